@@ -1,0 +1,29 @@
+"""Shared fixtures and named tolerances."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+#: float64 agreement between two exact computations of the same quantity (different op order).
+TIGHT = 1e-9
+#: float64 agreement between our filter and an independent reference implementation.
+REF_RTOL = 1e-8
+REF_ATOL = 1e-10
+
+BATCH_SHAPES = [(), (4,), (3, 2)]
+
+
+@pytest.fixture(autouse=True)
+def _seed() -> None:
+    torch.manual_seed(0)
+
+
+def random_spd(
+    rng: np.random.Generator, n: int, scale: float = 1.0, cond: float = 10.0
+) -> np.ndarray:
+    """A random SPD matrix with eigenvalues in [scale/cond, scale]."""
+    q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    ev = scale * np.exp(rng.uniform(np.log(1.0 / cond), 0.0, n))
+    return (q * ev) @ q.T

@@ -1,0 +1,61 @@
+import pytest
+import torch
+
+from torchfilt import (
+    ConditionalModel,
+    LinearGaussianModel,
+    Prediction,
+    StateSpaceModel,
+    TimeVarying,
+)
+from torchfilt.models import FunctionModel
+
+
+def test_linear_model_moves_with_to():
+    m = LinearGaussianModel(torch.eye(2), torch.ones(1, 2), torch.eye(2), torch.eye(1))
+    m64 = m.to(torch.float64)
+    assert m64.A.dtype == torch.float64 and m64.transition.noise_cov().dtype == torch.float64
+
+
+def test_one_and_two_argument_callables():
+    f1 = FunctionModel(lambda x: 2 * x, torch.eye(2))
+    f2 = FunctionModel(lambda x, u: x + u, torch.eye(2))
+    x = torch.ones(3, 2)
+    assert torch.equal(f1.predict(x).mean, 2 * x)
+    assert torch.equal(f2.predict(x, torch.ones(3, 2)).mean, 2 * x)
+
+
+def test_time_varying_noise_indexing():
+    tv = TimeVarying(torch.stack([torch.eye(2) * k for k in range(1, 4)]))
+    assert tv.steps == 3 and torch.equal(tv(2), 3 * torch.eye(2))
+    with pytest.raises(IndexError, match="3 steps"):
+        tv(3)
+    with pytest.raises(ValueError, match="TimeVarying values"):
+        TimeVarying(torch.eye(2))
+
+
+class Learned(ConditionalModel):
+    """A stand-in for a GP: mean 0.5 x, per-point variance 0.1."""
+
+    out_dim = 2
+    in_dim = 2
+
+    def predict(self, x, u=None):
+        return Prediction(0.5 * x, var=torch.full_like(x, 0.1))
+
+
+def test_model_object_with_extra_noise():
+    m = StateSpaceModel(Learned(), lambda x: x[..., :1], Q=0.2 * torch.eye(2), R=torch.eye(1))
+    assert m.state_dim == 2 and m.obs_dim == 1
+    assert torch.allclose(m.transition.noise_cov(), 0.2 * torch.eye(2))
+    assert torch.equal(m.transition.predict(torch.ones(3, 2)).var, torch.full((3, 2), 0.1))
+
+
+def test_per_point_variance_enters_predicted_cov():
+    """Law of total variance: P^- = spread + mean point variance + Q."""
+    from torchfilt import CKF
+
+    m = StateSpaceModel(Learned(), lambda x: x[..., :1], Q=0.2 * torch.eye(2), R=torch.eye(1))
+    x0, P0 = torch.zeros(2), torch.eye(2)
+    res = CKF(m).filter(torch.full((1, 1), float("nan")), x0=x0, P0=P0)
+    assert torch.allclose(res.predicted_cov[0], 0.25 * P0 + 0.1 * torch.eye(2) + 0.2 * torch.eye(2))

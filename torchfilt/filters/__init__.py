@@ -1,0 +1,17 @@
+"""Filters and smoothers: the batched cubature Gaussian filter, RTS smoothing and metrics."""
+
+from torchfilt.filters.gaussian import CKF, GaussianFilter
+from torchfilt.filters.metrics import nees, nis, rmse
+from torchfilt.filters.results import FilterResult, SmootherResult
+from torchfilt.filters.smoother import rts_smooth
+
+__all__ = [
+    "CKF",
+    "FilterResult",
+    "GaussianFilter",
+    "SmootherResult",
+    "nees",
+    "nis",
+    "rmse",
+    "rts_smooth",
+]

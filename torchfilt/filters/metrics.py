@@ -1,0 +1,66 @@
+"""Consistency and accuracy metrics: NIS, NEES, RMSE."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchfilt.exceptions import ShapeError
+from torchfilt.filters.results import FilterResult
+from torchfilt.numerics import safe_cholesky
+
+__all__ = ["nees", "nis", "rmse"]
+
+
+def nis(result: FilterResult) -> tuple[Tensor, Tensor]:
+    """Normalised innovation squared per step, over the observed components.
+
+    Args:
+        result: a filter result.
+
+    Returns:
+        ``(nis, dof)``: ``e^T P_yy^{-1} e`` restricted to observed components, shape ``(..., T)``
+        (0 where nothing was observed), and the number of observed components, shape ``(..., T)``.
+        For a consistent filter ``nis`` is chi-square with ``dof`` degrees of freedom.
+    """
+    obs = result.observed.to(result.innovation_cov.dtype)
+    e = torch.where(result.observed, result.innovation, torch.zeros_like(result.innovation))
+    S = result.innovation_cov * (obs.unsqueeze(-1) * obs.unsqueeze(-2)) + torch.diag_embed(1 - obs)
+    L = safe_cholesky(S, name="innovation covariance")
+    z = torch.linalg.solve_triangular(L, e.unsqueeze(-1), upper=False).squeeze(-1)
+    return (z * z).sum(-1), obs.sum(-1)
+
+
+def nees(x_true: Tensor, mean: Tensor, cov: Tensor) -> Tensor:
+    """Normalised estimation error squared ``(x - m)^T P^{-1} (x - m)``.
+
+    Args:
+        x_true: true states, shape ``(..., T, n)`` (broadcastable).
+        mean: estimated means, shape ``(..., T, n)``.
+        cov: estimated covariances, shape ``(..., T, n, n)``.
+
+    Returns:
+        NEES per step, shape ``(..., T)``; chi-square with ``n`` degrees of freedom when consistent.
+    """
+    if mean.shape[-1] != x_true.shape[-1] or cov.shape[-2:] != (mean.shape[-1],) * 2:
+        raise ShapeError(
+            f"nees: x_true {tuple(x_true.shape)}, mean {tuple(mean.shape)} and cov "
+            f"{tuple(cov.shape)} must be (..., n), (..., n), (..., n, n)"
+        )
+    L = safe_cholesky(cov, name="estimate covariance")
+    z = torch.linalg.solve_triangular(L, (x_true - mean).unsqueeze(-1), upper=False).squeeze(-1)
+    return (z * z).sum(-1)
+
+
+def rmse(x_true: Tensor, mean: Tensor, dim: int | tuple[int, ...] = -2) -> Tensor:
+    """Root-mean-square error per state component.
+
+    Args:
+        x_true: true states, shape ``(..., T, n)``.
+        mean: estimates, shape ``(..., T, n)``.
+        dim: dimensions averaged over (default: time).
+
+    Returns:
+        RMSE, shape of the input with ``dim`` reduced (default ``(..., n)``).
+    """
+    return ((x_true - mean) ** 2).mean(dim=dim).sqrt()

@@ -1,0 +1,61 @@
+"""Rauch-Tung-Striebel smoothing of a Gaussian filter's output.
+
+Cubature RTS smoother (Särkkä & Svensson 2023, ch. 14; Arasaratnam & Haykin 2011): with the filter's
+predicted moments ``m^-_{t+1}, P^-_{t+1}`` and the cross-covariance
+``C_{t+1} = Cov(x_t, x_{t+1} | y_{1:t})`` computed from the same cubature points,
+
+    G_t   = C_{t+1} (P^-_{t+1})^{-1}
+    m^s_t = m_t + G_t (m^s_{t+1} - m^-_{t+1})
+    P^s_t = P_t + G_t (P^s_{t+1} - P^-_{t+1}) G_t^T
+"""
+
+from __future__ import annotations
+
+import torch
+
+from torchfilt.filters.results import FilterResult, SmootherResult
+from torchfilt.numerics import psd_solve, symmetrize
+
+__all__ = ["rts_smooth"]
+
+
+def rts_smooth(result: FilterResult) -> SmootherResult:
+    """Backward RTS pass over a :class:`FilterResult` (any batch shape).
+
+    The cross-covariances come from the filter's own prediction step, so no model evaluations are
+    repeated: this is exactly the cubature (or unscented, ...) RTS smoother of the rule the filter
+    used.
+
+    Args:
+        result: forward pass with ``mean (..., T, n)``, ``cov (..., T, n, n)`` and the predicted
+            moments and cross-covariances.
+
+    Returns:
+        A :class:`SmootherResult` with ``mean (..., T, n)``, ``cov (..., T, n, n)`` and gains
+        ``(..., T-1, n, n)``.
+    """
+    T = result.mean.shape[-2]
+    m_s = result.mean[..., T - 1, :]
+    P_s = result.cov[..., T - 1, :, :]
+    means, covs, gains = [m_s], [P_s], []
+    for t in range(T - 2, -1, -1):
+        P_pred = result.predicted_cov[..., t + 1, :, :]
+        C = result.cross_cov[..., t + 1, :, :]
+        G = psd_solve(P_pred, C.mT, name="predicted covariance").mT
+        m_s = result.mean[..., t, :] + (
+            G @ (m_s - result.predicted_mean[..., t + 1, :]).unsqueeze(-1)
+        ).squeeze(-1)
+        P_s = symmetrize(result.cov[..., t, :, :] + G @ (P_s - P_pred) @ G.mT)
+        means.append(m_s)
+        covs.append(P_s)
+        gains.append(G)
+    means.reverse()
+    covs.reverse()
+    gains.reverse()
+    n = result.mean.shape[-1]
+    gain = (
+        torch.stack(gains, dim=-3)
+        if gains
+        else result.cov.new_zeros(*result.cov.shape[:-3], 0, n, n)
+    )
+    return SmootherResult(torch.stack(means, -2), torch.stack(covs, -3), gain, result)

@@ -1,0 +1,218 @@
+"""Models built from plain torch callables, and the state-space composition."""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torchfilt.exceptions import ShapeError
+from torchfilt.models.base import ConditionalModel, Prediction, TimeVarying, check_noise
+
+__all__ = ["FunctionModel", "StateSpaceModel", "as_conditional"]
+
+Fn = Callable[..., Tensor]
+
+
+def _positional_arity(fn: Fn) -> int:
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+        return 2
+    kinds = (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    if any(p.kind == inspect.Parameter.VAR_POSITIONAL for p in params):
+        return 2
+    return sum(1 for p in params if p.kind in kinds)
+
+
+class _NoiseMixin:
+    """Stores a constant ``(..., d, d)`` or :class:`TimeVarying` noise as a buffer."""
+
+    def _set_noise(self, noise: Tensor | TimeVarying | None) -> None:
+        self._tv = isinstance(noise, TimeVarying)
+        value = noise.values if isinstance(noise, TimeVarying) else noise
+        self.register_buffer("_noise", value)  # type: ignore[attr-defined]
+
+    def noise_cov(self, step: int | None = None) -> Tensor | None:
+        noise: Tensor | None = self._noise  # type: ignore[attr-defined]
+        if noise is None or not self._tv:
+            return noise
+        if step is None:
+            raise ValueError("this model's noise is time-varying; a step index is required")
+        return TimeVarying(noise)(step)
+
+    @property
+    def time_varying_noise(self) -> bool:
+        return bool(self._tv)
+
+    def _noise_dim(self) -> int | None:
+        noise: Tensor | None = self._noise  # type: ignore[attr-defined]
+        return None if noise is None else int(noise.shape[-1])
+
+
+class FunctionModel(_NoiseMixin, ConditionalModel):
+    """A deterministic torch callable plus additive Gaussian noise.
+
+    Args:
+        fn: ``fn(x, u)`` mapping ``(..., n)`` (and ``(..., nu)`` or ``None``) to ``(..., d)``. A
+            callable of one argument, ``fn(x)``, is accepted too. It must broadcast over leading
+            dimensions (use ``x[..., i]``, not ``x[i]``).
+        noise: additive covariance, ``(..., d, d)`` constant or :class:`TimeVarying` ``(..., T, d, d)``.
+        out_dim: output dimension; taken from ``noise`` when omitted.
+        in_dim: input (state) dimension, if known, for shape checks.
+        name: name used in error messages (``"transition"``, ``"measurement"``).
+        noise_name: name of the noise argument in error messages (``"Q"``, ``"R"``).
+    """
+
+    def __init__(
+        self,
+        fn: Fn,
+        noise: Tensor | TimeVarying | None = None,
+        *,
+        out_dim: int | None = None,
+        in_dim: int | None = None,
+        name: str = "function",
+        noise_name: str | None = None,
+    ) -> None:
+        super().__init__()
+        if not callable(fn):
+            raise TypeError(
+                f"{name} must be callable or a ConditionalModel, got {type(fn).__name__}"
+            )
+        self.name = name
+        self._set_noise(check_noise(noise, noise_name or f"{name} noise"))
+        nd = self._noise_dim()
+        if out_dim is None:
+            if nd is None:
+                raise ValueError(
+                    f"{name}: give out_dim or a noise covariance to fix the output size"
+                )
+            out_dim = nd
+        elif nd is not None and nd != out_dim:
+            raise ShapeError(f"{name}: noise is {nd}x{nd} but out_dim is {out_dim}")
+        self.out_dim = int(out_dim)
+        self.in_dim = in_dim
+        self._fn = fn
+        self._two_args = _positional_arity(fn) >= 2
+
+    def predict(self, x: Tensor, u: Tensor | None = None) -> Prediction:
+        out = self._fn(x, u) if self._two_args else self._fn(x)
+        if not isinstance(out, Tensor):
+            raise TypeError(f"{self.name} returned {type(out).__name__}, expected a torch.Tensor")
+        want = (*x.shape[:-1], self.out_dim)
+        if tuple(out.shape) != want:
+            try:
+                out = out.expand(want)
+            except RuntimeError:
+                raise ShapeError(
+                    f"{self.name} returned shape {tuple(out.shape)} for points of shape "
+                    f"{tuple(x.shape)}; expected {want} (..., P, d) with d = {self.out_dim}"
+                ) from None
+        return Prediction(out)
+
+
+class WithNoise(_NoiseMixin, ConditionalModel):
+    """Adds an extra noise covariance to another model's own noise."""
+
+    def __init__(self, base: ConditionalModel, noise: Tensor | TimeVarying, name: str) -> None:
+        super().__init__()
+        self.base = base
+        self._set_noise(check_noise(noise, name))
+        if self._noise_dim() != base.out_dim:
+            raise ShapeError(
+                f"{name} noise is {self._noise_dim()}x{self._noise_dim()} but the model outputs "
+                f"{base.out_dim}"
+            )
+        self.out_dim, self.in_dim = base.out_dim, base.in_dim
+
+    def predict(self, x: Tensor, u: Tensor | None = None) -> Prediction:
+        return self.base.predict(x, u)
+
+    def noise_cov(self, step: int | None = None) -> Tensor | None:
+        own = super().noise_cov(step)
+        base = self.base.noise_cov(step)
+        if base is None:
+            return own
+        return base if own is None else base + own
+
+    @property
+    def time_varying_noise(self) -> bool:
+        return bool(self._tv) or self.base.time_varying_noise
+
+
+def as_conditional(
+    obj: ConditionalModel | Fn,
+    noise: Tensor | TimeVarying | None,
+    *,
+    name: str,
+    noise_name: str,
+    in_dim: int | None = None,
+) -> ConditionalModel:
+    """Turn a callable (plus its noise) or a model (plus optional extra noise) into a model."""
+    if isinstance(obj, ConditionalModel):
+        return obj if noise is None else WithNoise(obj, noise, noise_name)
+    if noise is None:
+        raise ValueError(
+            f"{noise_name} is required when {name} is a callable (pass a zero matrix for a "
+            "noise-free map)"
+        )
+    return FunctionModel(obj, noise, in_dim=in_dim, name=name, noise_name=noise_name)
+
+
+class StateSpaceModel(torch.nn.Module):
+    """A nonlinear Gaussian state-space model.
+
+        x_k = f(x_{k-1}, u_{k-1}) + w_{k-1},   w ~ N(0, Q + V_f(x, u))
+        y_k = h(x_k, u_k) + v_k,               v ~ N(0, R + V_h(x, u))
+
+    ``V_f``, ``V_h`` are the per-point variances a learned (GP) model reports; plain callables have
+    none.
+
+    Args:
+        transition: ``f(x, u)``, ``(..., n) -> (..., n)``, or a :class:`ConditionalModel`.
+        measurement: ``h(x, u)``, ``(..., n) -> (..., m)``, or a :class:`ConditionalModel`.
+        Q: process noise, ``(..., n, n)`` or :class:`TimeVarying`; required for a callable
+            transition, optional (extra noise) for a model.
+        R: measurement noise, ``(..., m, m)`` or :class:`TimeVarying`; likewise.
+
+    Example:
+        >>> import torch, torchfilt
+        >>> f = lambda x, u: 0.9 * x
+        >>> h = lambda x, u: x[..., :1]
+        >>> model = torchfilt.StateSpaceModel(f, h, Q=0.1 * torch.eye(2), R=torch.eye(1))
+    """
+
+    def __init__(
+        self,
+        transition: ConditionalModel | Fn,
+        measurement: ConditionalModel | Fn,
+        Q: Tensor | TimeVarying | Any = None,
+        R: Tensor | TimeVarying | Any = None,
+    ) -> None:
+        super().__init__()
+        self.transition = as_conditional(transition, Q, name="transition", noise_name="Q")
+        n = self.transition.out_dim
+        if self.transition.in_dim is not None and self.transition.in_dim != n:
+            raise ShapeError(
+                f"transition maps {self.transition.in_dim} states to {n}; it must map n to n"
+            )
+        self.measurement = as_conditional(
+            measurement, R, name="measurement", noise_name="R", in_dim=n
+        )
+        if self.measurement.in_dim is not None and self.measurement.in_dim != n:
+            raise ShapeError(
+                f"measurement expects {self.measurement.in_dim} states but the transition has {n}"
+            )
+
+    @property
+    def state_dim(self) -> int:
+        """State dimension ``n``."""
+        return int(self.transition.out_dim)
+
+    @property
+    def obs_dim(self) -> int:
+        """Measurement dimension ``m``."""
+        return int(self.measurement.out_dim)
