@@ -7,7 +7,7 @@ from torch import Tensor
 
 from torchfilt.exceptions import ShapeError
 from torchfilt.filters.results import FilterResult
-from torchfilt.numerics import safe_cholesky
+from torchfilt.numerics import safe_cholesky, solve_tril
 
 __all__ = ["nees", "nis", "rmse"]
 
@@ -27,7 +27,7 @@ def nis(result: FilterResult) -> tuple[Tensor, Tensor]:
     e = torch.where(result.observed, result.innovation, torch.zeros_like(result.innovation))
     S = result.innovation_cov * (obs.unsqueeze(-1) * obs.unsqueeze(-2)) + torch.diag_embed(1 - obs)
     L = safe_cholesky(S, name="innovation covariance")
-    z = torch.linalg.solve_triangular(L, e.unsqueeze(-1), upper=False).squeeze(-1)
+    z = solve_tril(L, e.unsqueeze(-1)).squeeze(-1)
     return (z * z).sum(-1), obs.sum(-1)
 
 
@@ -48,7 +48,7 @@ def nees(x_true: Tensor, mean: Tensor, cov: Tensor) -> Tensor:
             f"{tuple(cov.shape)} must be (..., n), (..., n), (..., n, n)"
         )
     L = safe_cholesky(cov, name="estimate covariance")
-    z = torch.linalg.solve_triangular(L, (x_true - mean).unsqueeze(-1), upper=False).squeeze(-1)
+    z = solve_tril(L, (x_true - mean).unsqueeze(-1)).squeeze(-1)
     return (z * z).sum(-1)
 
 

@@ -11,14 +11,17 @@ from torchfilt.numerics.linalg import (
     symmetrize,
     tria,
 )
+from torchfilt.numerics.small import cholesky_solve, solve_tril
 from torchfilt.numerics.stats import chi2_quantile, gaussian_log_prob
 
 __all__ = [
     "chi2_quantile",
     "cholesky_ok",
+    "cholesky_solve",
     "gaussian_log_prob",
     "psd_solve",
     "safe_cholesky",
+    "solve_tril",
     "symmetrize",
     "tria",
 ]
