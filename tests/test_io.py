@@ -226,3 +226,38 @@ def test_atomic_write_leaves_old_file_on_failure(tmp_path):
         atomic_write(target, boom)
     assert target.read_bytes() == b"old"
     assert [p.name for p in tmp_path.iterdir()] == ["f.bin"]
+
+
+@pytest.mark.parametrize("fmt", [".csv", ".npz"])
+def test_optional_roles_may_be_absent(tmp_path, fmt):
+    meas_only = (Channel("thrust", "input"), Channel("range", "measurement"))
+    rec = make_recording()
+    sub = Recording.from_arrays(
+        rec.time, meas_only, {c.name: rec.column(c.name) for c in meas_only}
+    )
+    write_recording(sub, tmp_path / f"r{fmt}")
+    back = read_recording(tmp_path / f"r{fmt}", CHANNELS, optional=("state",))
+    assert back.states.isnan().all() and not back.inputs.isnan().any()
+    with pytest.raises(DataError, match="column 'alt'"):
+        read_recording(tmp_path / f"r{fmt}", CHANNELS)
+
+
+def test_estimates_round_trip(tmp_path):
+    from torchfilt.io.estimates import Estimates, read_estimates, write_estimates
+
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((5, 3, 3))
+    cov = A @ A.transpose(0, 2, 1) + np.eye(3)
+    cov[2, 1, :] = cov[2, :, 1] = 0.0  # a zero-variance state: correlation undefined
+    est = Estimates(
+        np.arange(5.0), rng.standard_normal((5, 3)), cov, ["a", "b", "c"], rng.random(5), np.ones(5)
+    )
+    write_estimates(tmp_path / "e.csv", est)
+    back = read_estimates(tmp_path / "e.csv")
+    assert back.state_names == ["a", "b", "c"]
+    np.testing.assert_allclose(back.cov, cov, rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(back.mean, est.mean)
+    np.testing.assert_array_equal(back.nis, est.nis)
+    (tmp_path / "bad.csv").write_text("x,y\n1,2\n")
+    with pytest.raises(DataError, match="not an estimates file"):
+        read_estimates(tmp_path / "bad.csv")

@@ -6,7 +6,7 @@ import csv
 import difflib
 import io
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -100,7 +100,7 @@ class Recording:
         cls,
         time: np.ndarray | Tensor,
         channels: Sequence[Channel],
-        columns: dict[str, np.ndarray | Tensor],
+        columns: Mapping[str, np.ndarray | Tensor],
         *,
         time_column: str = "time",
     ) -> Recording:
@@ -164,7 +164,7 @@ def _check_time(
                 )
 
 
-def _read_csv(path: Path, want: list[str]) -> tuple[dict[str, np.ndarray], bool]:
+def _read_csv(path: Path, want: list[str], maybe: set[str]) -> tuple[dict[str, np.ndarray], bool]:
     raw = path.read_bytes()
     if raw.startswith(_ZIP_MAGIC):
         raise DataError("is a zip/NPZ archive, not a CSV file (check the extension)", path=path)
@@ -185,13 +185,14 @@ def _read_csv(path: Path, want: list[str]) -> tuple[dict[str, np.ndarray], bool]
     if dup:
         raise DataError(f"duplicate column names {sorted(dup)}", path=path, line=1)
     for name in want:
-        if name not in header:
+        if name not in header and name not in maybe:
             raise DataError(
                 f"missing column; the file has columns {header}{_suggest(name, header)}",
                 path=path,
                 column=name,
                 line=1,
             )
+    want = [n for n in want if n in header]
     idx = {h: i for i, h in enumerate(header)}
     out = {name: np.empty(len(rows) - 1) for name in want}
     for r, row in enumerate(rows[1:]):
@@ -214,7 +215,7 @@ def _read_csv(path: Path, want: list[str]) -> tuple[dict[str, np.ndarray], bool]
     return out, True
 
 
-def _read_npz(path: Path, want: list[str]) -> tuple[dict[str, np.ndarray], bool]:
+def _read_npz(path: Path, want: list[str], maybe: set[str]) -> tuple[dict[str, np.ndarray], bool]:
     with open(path, "rb") as fh:
         head = fh.read(4)
     if head != _ZIP_MAGIC:
@@ -224,6 +225,8 @@ def _read_npz(path: Path, want: list[str]) -> tuple[dict[str, np.ndarray], bool]
             have = list(z.files)
             out = {}
             for name in want:
+                if name not in have and name in maybe:
+                    continue
                 if name not in have:
                     raise DataError(
                         f"missing array; the archive has {have}{_suggest(name, have)}",
@@ -259,6 +262,7 @@ def read_recording(
     time_column: str | None = None,
     sample_time: float | None = None,
     require_finite: Sequence[str] = (),
+    optional: Sequence[str] = (),
 ) -> Recording:
     """Read and validate one recording.
 
@@ -268,6 +272,8 @@ def read_recording(
         time_column: name of the time column (default: the manifest's, else ``"time"``).
         sample_time: expected time step (default: the manifest's); ``None`` skips the check.
         require_finite: roles that may not contain NaN (``("state", "input")`` for training data).
+        optional: roles whose columns may be absent (read as all-NaN), e.g. ``("state",)`` when
+            filtering logs that may or may not carry ground truth.
 
     Returns:
         The recording.
@@ -292,8 +298,12 @@ def read_recording(
     if suffix not in SUFFIXES:
         raise DataError(f"unsupported file type {suffix!r}; use one of {SUFFIXES}", path=path)
     want = [time_column, *(c.name for c in channels)]
-    cols, lines = (_read_csv if suffix == ".csv" else _read_npz)(path, want)
+    maybe = {c.name for c in channels if c.role in optional}
+    cols, lines = (_read_csv if suffix == ".csv" else _read_npz)(path, want, maybe)
     t = cols[time_column]
+    for name in maybe:
+        if name not in cols:
+            cols[name] = np.full(t.shape, np.nan)
     if t.shape[0] == 0:
         raise DataError("has no rows", path=path)
     _check_time(t, path, sample_time, time_column, csv_lines=lines)

@@ -6,6 +6,7 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from torch import Tensor
 
@@ -14,7 +15,7 @@ from torchfilt.numerics import chi2_quantile
 from torchfilt.plots._util import label, names, to_numpy
 from torchfilt.plots.style import MEASUREMENT_COLOR, PALETTE, TRUTH_COLOR, style
 
-__all__ = ["plot_estimates", "plot_nis"]
+__all__ = ["nis_panel", "plot_estimates", "plot_nis"]
 
 #: two-sided 95% band of a Gaussian
 Z95 = 1.959963984540054
@@ -131,6 +132,43 @@ def plot_estimates(
     return fig
 
 
+def nis_panel(ax: Axes, result: FilterResult, t: np.ndarray, level: float = 0.95) -> float:
+    """Draw NIS points and the chi-square band on ``ax``; return the fraction inside the band."""
+    value, dof = nis(result)
+    v, k = to_numpy(value), to_numpy(dof)
+    if v.ndim != 1:
+        raise ValueError(f"plot_nis takes one sequence, got NIS of shape {v.shape}")
+    seen = k > 0
+    lo = np.full_like(v, np.nan)
+    hi = np.full_like(v, np.nan)
+    if seen.any():
+        a = (1.0 - level) / 2.0
+        lo[seen] = to_numpy(chi2_quantile(a, torch.as_tensor(k[seen])))
+        hi[seen] = to_numpy(chi2_quantile(1.0 - a, torch.as_tensor(k[seen])))
+    inside = (
+        float(np.mean((v[seen] >= lo[seen]) & (v[seen] <= hi[seen])))
+        if seen.any()
+        else float("nan")
+    )
+    ax.fill_between(
+        t,
+        lo,
+        hi,
+        step="mid",
+        color=PALETTE[2],
+        alpha=0.18,
+        linewidth=0,
+        label=f"{level:.0%} chi-square band",
+    )
+    ax.plot(
+        t[seen], v[seen], ".", color=PALETTE[0], markersize=4, label=f"NIS ({inside:.0%} inside)"
+    )
+    ax.set_yscale("log")
+    ax.set_ylabel("NIS")
+    ax.margins(x=0)
+    return inside
+
+
 def plot_nis(
     result: FilterResult,
     *,
@@ -151,48 +189,13 @@ def plot_nis(
     Returns:
         The figure; the legend reports the fraction of steps inside the band.
     """
-    value, dof = nis(result)
-    v, k = to_numpy(value), to_numpy(dof)
-    if v.ndim != 1:
-        raise ValueError(f"plot_nis takes one sequence, got NIS of shape {v.shape}")
-    t = np.arange(v.shape[0], dtype=float) if times is None else to_numpy(times)
-    seen = k > 0
-    lo = np.full_like(v, np.nan)
-    hi = np.full_like(v, np.nan)
-    if seen.any():
-        a = (1.0 - level) / 2.0
-        lo[seen] = to_numpy(chi2_quantile(a, torch.as_tensor(k[seen])))
-        hi[seen] = to_numpy(chi2_quantile(1.0 - a, torch.as_tensor(k[seen])))
-    inside = (
-        float(np.mean((v[seen] >= lo[seen]) & (v[seen] <= hi[seen])))
-        if seen.any()
-        else float("nan")
-    )
+    T = result.innovation.shape[-2]
+    t = np.arange(T, dtype=float) if times is None else to_numpy(times)
     with style():
         fig = Figure(figsize=(8.0, 2.6))
         ax = fig.subplots()
-        ax.fill_between(
-            t,
-            lo,
-            hi,
-            step="mid",
-            color=PALETTE[2],
-            alpha=0.18,
-            linewidth=0,
-            label=f"{level:.0%} chi-square band",
-        )
-        ax.plot(
-            t[seen],
-            v[seen],
-            ".",
-            color=PALETTE[0],
-            markersize=4,
-            label=f"NIS ({inside:.0%} inside)",
-        )
-        ax.set_yscale("log")
+        nis_panel(ax, result, t, level)
         ax.set_xlabel(label("time", time_unit))
-        ax.set_ylabel("NIS")
-        ax.margins(x=0)
         fig.legend(loc="outside upper right", ncols=2)
         if title:
             fig.suptitle(title, x=0.01, ha="left")
