@@ -11,14 +11,24 @@ from torchfilt.numerics.linalg import (
     symmetrize,
     tria,
 )
+from torchfilt.numerics.riccati import (
+    SteadyStateKalman,
+    check_detectable,
+    solve_dare,
+    steady_state_kalman,
+)
 from torchfilt.numerics.stats import chi2_quantile, gaussian_log_prob
 
 __all__ = [
+    "SteadyStateKalman",
+    "check_detectable",
     "chi2_quantile",
     "cholesky_ok",
     "gaussian_log_prob",
     "psd_solve",
     "safe_cholesky",
+    "solve_dare",
+    "steady_state_kalman",
     "symmetrize",
     "tria",
 ]
