@@ -57,33 +57,6 @@ class SampledPlant:
         self.steps, self.scale = int(steps), float(output_scale)
         self.ny, self.nu, self.nv = exact.ny, exact.nu, exact.nv
 
-    def response(self, du: Tensor, dv: Tensor | None = None) -> Tensor:
-        """Outputs ``y(0..K-1)`` for moves ``du(0..K-1)`` and disturbance changes ``dv(0..K-1)``.
-
-        Args:
-            du: ``du[k] = u(k) - u(k-1)``, shape ``(K, nu)``, ``K <= steps``.
-            dv: ``dv[k] = v(k) - v(k-1)``, shape ``(K, nv)``, or ``None``.
-
-        Returns:
-            Noise-free outputs, shape ``(K, ny)``.
-        """
-        du = torch.as_tensor(du, dtype=self.Su.dtype)
-        K = du.shape[0]
-        if du.dim() != 2 or du.shape[1] != self.nu:
-            raise ShapeError(f"du: expected shape (K, {self.nu}), got {tuple(du.shape)}")
-        if K > self.steps + 1:
-            raise ValueError(f"the plant was sampled for {self.steps} steps; got {K}")
-        y = torch.zeros(K, self.ny, dtype=self.Su.dtype)
-        for k in range(1, K):
-            y[k] = torch.einsum("iyu,iu->y", self.Su[:k], du[:k].flip(0))
-        if dv is not None and self.nv:
-            dv = torch.as_tensor(dv, dtype=self.Sv.dtype)
-            if dv.shape != (K, self.nv):
-                raise ShapeError(f"dv: expected shape ({K}, {self.nv}), got {tuple(dv.shape)}")
-            for k in range(1, K):
-                y[k] += torch.einsum("iyv,iv->y", self.Sv[:k], dv[:k].flip(0))
-        return self.scale * y
-
     def output(self, k: int, du: Tensor, dv: Tensor | None = None) -> Tensor:
         """``y(k)`` from the moves ``du(0..k-1)`` ``(>= k, nu)`` and ``dv(0..k-1)``: shape ``(ny,)``."""
         y = torch.einsum("iyu,iu->y", self.Su[:k], du[:k].flip(0)) if k > 0 else None

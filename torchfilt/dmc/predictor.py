@@ -118,6 +118,7 @@ class OpenLoopPredictor:
         NotDetectableError: the realisation with these covariances has no stabilising DARE solution.
 
     Example:
+        >>> import torch
         >>> from torchfilt.dmc import FOPDT, StepResponseModel, OpenLoopPredictor
         >>> m = StepResponseModel.from_transfer_functions([[FOPDT(2.0, 5.0, 1.5)]], dt=1.0, horizon=30)
         >>> pred = OpenLoopPredictor(m, Q_Y=0.5, Q_y=1.0)
