@@ -127,7 +127,9 @@ def section_32(steps: int, seed: int) -> dict:
             res["tracking"]["prediction_rmse_all_horizons"] = float(P_err.pow(2).mean().sqrt())
         out[label] = res
     out["gain_seconds"] = t_gain
-    out["closed_loop_spectral_radius"] = float(torch.linalg.eigvals(pred._F).abs().max())
+    out["closed_loop_spectral_radius"] = float(
+        torch.linalg.eigvals(pred.error_dynamics).abs().max()
+    )
     out["_runs"] = runs
     out["_y_true"] = y_true
     return out

@@ -76,6 +76,10 @@ def _block_diagonal(Q: Tensor, blocks: tuple[tuple[int, int], ...]) -> bool:
     return not bool(Q[~mask].any())
 
 
+def _is_diagonal(Q: Tensor) -> bool:
+    return not bool((Q - torch.diag(Q.diagonal())).any())
+
+
 def steady_gain(real: Realization, Q_Y: Tensor, Q_y: Tensor) -> Tensor:
     """Steady-state Kalman gain of a realisation, shape ``(n, ny)``.
 
@@ -86,7 +90,7 @@ def steady_gain(real: Realization, Q_Y: Tensor, Q_y: Tensor) -> Tensor:
         NotDetectableError: from the DARE solver.
     """
     n, ny = real.state_dim, real.H.shape[0]
-    if not (_block_diagonal(Q_Y, real.blocks) and not bool((Q_y - torch.diag(Q_y.diag())).any())):
+    if not (_block_diagonal(Q_Y, real.blocks) and _is_diagonal(Q_y)):
         return steady_state_kalman(real.A, real.H, Q_Y, Q_y).gain
     K = Q_Y.new_zeros(n, ny)
     sizes = sorted({L for _, L in real.blocks})
@@ -139,9 +143,11 @@ class OpenLoopPredictor:
         horizon: int | None = None,
     ) -> None:
         self.model = model
-        self.realization = self._realize(model, horizon)
+        self.realization = self._realizer(model, horizon)
         n, ny = self.realization.state_dim, model.ny
         dtype = model.dtype
+        self.Q_Y: Tensor | None = None
+        self.Q_y: Tensor | None = None
         if gain is not None:
             if Q_Y is not None or Q_y is not None:
                 raise ValueError("give either gain or the covariances Q_Y and Q_y, not both")
@@ -155,18 +161,10 @@ class OpenLoopPredictor:
             self.Q_Y = self._state_cov(_as_cov(Q_Y, self._cov_dim, "Q_Y", dtype))
             self.Q_y = _as_cov(Q_y, ny, "Q_y", dtype)
             self.gain = steady_gain(self.realization, self.Q_Y, self.Q_y)
-        r = self.realization
-        eye = torch.eye(n, dtype=dtype)
-        IKH = eye - self.gain @ r.H
-        # one step as a single affine map: X(k|k) = F X(k-1|k-1) + G_u du + G_v dv + K y
-        self._F, self._Gu, self._Gv = IKH @ r.A, IKH @ r.B, IKH @ r.Bv
         self._state = self.initial_state()
 
     # -------------------------------------------------------------- variants
     _realizer = staticmethod(realize)
-
-    def _realize(self, model: StepResponseModel, horizon: int | None) -> Realization:
-        return self._realizer(model, horizon)
 
     @property
     def _cov_dim(self) -> int:
@@ -207,6 +205,16 @@ class OpenLoopPredictor:
         return cls(model, gain=K, horizon=horizon)
 
     # -------------------------------------------------------------- state helpers
+    @property
+    def error_dynamics(self) -> Tensor:
+        """Error dynamics ``(I - K H) A``, shape ``(n, n)``.
+
+        Without noise the estimation error evolves as ``e(k) = (I - K H) A e(k-1)``; the spectral
+        radius of this matrix sets how fast a wrong initial estimate is forgotten.
+        """
+        r = self.realization
+        return r.A - self.gain @ (r.H @ r.A)
+
     @property
     def horizon(self) -> int:
         return self.realization.horizon
@@ -285,12 +293,8 @@ class OpenLoopPredictor:
         r = self.realization
         xp = x @ r.A.mT + du @ r.B.mT + dv @ r.Bv.mT
         eps = y - xp @ r.H.mT
-        missing = torch.isnan(eps)
-        if bool(missing.any()):
-            xn = xp + torch.where(missing, torch.zeros_like(eps), eps) @ self.gain.mT
-        else:
-            xn = x @ self._F.mT + du @ self._Gu.mT + dv @ self._Gv.mT + y @ self.gain.mT
-        return xn, eps
+        correction = torch.where(torch.isnan(eps), torch.zeros_like(eps), eps)
+        return xp + correction @ self.gain.mT, eps
 
     def step(
         self, state: Tensor, y: Tensor, du: Tensor | None = None, dv: Tensor | None = None

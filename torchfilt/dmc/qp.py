@@ -39,6 +39,8 @@ QP_TOL = 1e-10
 QP_MAX_ITER = 100
 #: Fraction of the step to the boundary taken (keeps iterates strictly interior).
 STEP_FRACTION = 0.995
+#: Relative asymmetry of ``G`` tolerated (rounding from forming ``D^T Q D`` and the like).
+SYMMETRY_RTOL = 1e-10
 #: A polished solution is accepted if it violates no constraint and no multiplier sign by more than
 #: this (relative to the problem scale).
 POLISH_TOL = 1e-9
@@ -76,7 +78,7 @@ def _bound_rows(
         raise ShapeError(f"{name}: expected shape (..., {n}), got {tuple(bt.shape)}")
     finite = torch.isfinite(bt)
     keep = finite.reshape(-1, n).any(0)
-    if bool((finite.reshape(-1, n)[:, keep] != True).any()):  # noqa: E712
+    if bool((~finite.reshape(-1, n)[:, keep]).any()):
         raise ValueError(
             f"{name}: a bound must be finite for every batch element or infinite for every one"
         )
@@ -129,7 +131,8 @@ def solve_qp(
     G, c = G.to(dtype), c.to(dtype)
     if not bool(torch.isfinite(G).all() & torch.isfinite(c).all()):
         raise ValueError("G and c must be finite")
-    if not torch.allclose(G, G.mT, rtol=1e-10, atol=1e-12 * float(G.abs().amax().clamp_min(1))):
+    gscale = float(G.abs().amax().clamp_min(1.0))
+    if not torch.allclose(G, G.mT, rtol=0.0, atol=SYMMETRY_RTOL * gscale):
         raise ValueError("G is not symmetric")
     if not bool((torch.linalg.cholesky_ex(G)[1] == 0).all()):
         raise ValueError("G must be positive definite (the QP must be strictly convex)")

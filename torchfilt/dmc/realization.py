@@ -87,6 +87,18 @@ def _shift(L: int, integrating: bool, dtype: torch.dtype) -> Tensor:
     return M
 
 
+def _measurement(
+    blocks: list[tuple[int, int]], N: int, dtype: torch.dtype
+) -> tuple[Tensor, Tensor]:
+    """``H`` picking the first element of each CV block, and the index of ``y_j(k+i|k)``."""
+    n = sum(L for _, L in blocks)
+    H = torch.zeros(len(blocks), n, dtype=dtype)
+    for j, (s, _) in enumerate(blocks):
+        H[j, s] = 1.0
+    offsets = torch.tensor([s for s, _ in blocks])
+    return H, offsets[None, :] + torch.arange(1, N + 1)[:, None]
+
+
 def _check_horizon(model: StepResponseModel, horizon: int | None) -> int:
     if not isinstance(model, StepResponseModel):
         raise TypeError(f"model must be a StepResponseModel, got {type(model).__name__}")
@@ -130,11 +142,7 @@ def realize(model: StepResponseModel, horizon: int | None = None) -> Realization
         blocks.append((start, L))
         start += L
     A = torch.block_diag(*As)
-    H = A.new_zeros(model.ny, start)
-    for j, (s, _) in enumerate(blocks):
-        H[j, s] = 1.0
-    offsets = torch.tensor([s for s, _ in blocks])
-    pred_index = offsets[None, :] + torch.arange(1, N + 1)[:, None]
+    H, pred_index = _measurement(blocks, N, A.dtype)
     return Realization(
         A, torch.cat(Bs), torch.cat(Bvs), H, pred_index, tuple(blocks), N, model.integrating
     )
@@ -157,7 +165,7 @@ def lmg_realization(model: StepResponseModel, horizon: int | None = None) -> Rea
     Su = model.coefficients(N + 2, "u")  # S_1..S_{N+2}
     Sv = model.coefficients(N + 1, "v")
     Sv0 = torch.cat([Sv.new_zeros(1, model.ny, model.nv), Sv], dim=0)  # S^v_0..S^v_{N+1}
-    As, Bs, Bvs, Ts, blocks, start, ours = [], [], [], [], [], 0, 0
+    As, Bs, Bvs, Ts, blocks, start = [], [], [], [], [], 0
     for j in range(model.ny):
         integ = bool(model.integrating[j])
         L = N + 2 if integ else N + 1
@@ -186,13 +194,8 @@ def lmg_realization(model: StepResponseModel, horizon: int | None = None) -> Rea
         Ts.append(T)
         blocks.append((start, n))
         start += n
-        ours += L
     A = torch.block_diag(*As)
-    H = A.new_zeros(model.ny, start)
-    for j, (s, _) in enumerate(blocks):
-        H[j, s] = 1.0
-    offsets = torch.tensor([s for s, _ in blocks])
-    pred_index = offsets[None, :] + torch.arange(1, N + 1)[:, None]
+    H, pred_index = _measurement(blocks, N, A.dtype)
     return Realization(
         A,
         torch.cat(Bs),

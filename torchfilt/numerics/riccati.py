@@ -55,6 +55,8 @@ SDA_RTOL = 1e-13
 SDA_MAX_ITER = 60
 #: Relative residual of the Riccati equation accepted after SDA stops.
 RESIDUAL_RTOL = 1e-8
+#: Relative asymmetry tolerated in ``Q`` and ``R``.
+SYMMETRY_RTOL = 1e-10
 
 
 class SteadyStateKalman(NamedTuple):
@@ -98,7 +100,7 @@ def _check_inputs(A: Tensor, C: Tensor, Q: Tensor, R: Tensor) -> tuple[Tensor, .
     _check_square(R, "R", m)
     for name, M in (("Q", Q), ("R", R)):
         scale = M.abs().amax().clamp_min(1.0)
-        if not torch.allclose(M, M.mT, rtol=0.0, atol=float(scale) * 1e-10):
+        if not torch.allclose(M, M.mT, rtol=0.0, atol=float(scale) * SYMMETRY_RTOL):
             raise ValueError(f"{name} is not symmetric")
     ev_r = torch.linalg.eigvalsh(symmetrize(R))
     if bool((ev_r[..., 0] <= 0).any()):
