@@ -4,6 +4,7 @@ Nothing here knows about filters or models. Shapes follow the ``(..., n, n)`` co
 number of leading batch dimensions.
 """
 
+from torchfilt.numerics.box import Box
 from torchfilt.numerics.linalg import (
     cholesky_ok,
     psd_solve,
@@ -11,9 +12,20 @@ from torchfilt.numerics.linalg import (
     symmetrize,
     tria,
 )
+from torchfilt.numerics.lsq import (
+    LeastSquaresResult,
+    SolverStatus,
+    batched_jacobian,
+    bounded_least_squares,
+)
 from torchfilt.numerics.stats import chi2_quantile, gaussian_log_prob
 
 __all__ = [
+    "Box",
+    "LeastSquaresResult",
+    "SolverStatus",
+    "batched_jacobian",
+    "bounded_least_squares",
     "chi2_quantile",
     "cholesky_ok",
     "gaussian_log_prob",

@@ -1,0 +1,401 @@
+"""Batched bounded nonlinear least squares: projected Gauss-Newton with Levenberg-Marquardt damping.
+
+Solves, independently for every batch element,
+
+    min_x  F(x) = 1/2 ||r(x)||^2   subject to   lower <= x <= upper,
+
+for a residual ``r: (..., n) -> (..., k)``. Each iteration (Bertsekas' projected Newton method,
+"Projected Newton methods for optimization problems with simple constraints", SIAM J. Control
+Optim. 20(2), 1982, with the Gauss-Newton matrix in place of the Hessian):
+
+    g = J^T r,   A = J^T J,   s = g / diag(A)                       (J = dr/dx at x)
+    binding set B = {j : g_j > 0 and x_j - lower_j <= s_j} U {j : g_j < 0 and upper_j - x_j <= -s_j}
+    free set F: (A_FF + mu diag(A_FF)) d_F = -g_F,   d_B = -s_B
+    x+ = P(x + alpha d),   alpha = 1, 1/2, 1/4, ... until  F(x+) <= F(x) + sigma g^T (x+ - x)
+
+``P`` is the projection onto the box. The damping ``mu`` starts at 0 (pure Gauss-Newton, so a
+linear residual is solved exactly once its active set is found) and grows when a full step is
+rejected, shrinking again after full steps (Levenberg-Marquardt safeguard).
+
+Stopping rule (the stated tolerance): with ``d0`` the undamped step,
+
+    delta = -g_F^T d0_F + sum_{j in B} g_j (x_j - P(x - s)_j)      (>= 0; 0 exactly at a KKT point)
+
+is twice the cost decrease the Gauss-Newton model predicts, i.e. ``sqrt(delta)`` is the remaining
+step length in the ``J^T J`` metric. A problem has converged when ``sqrt(delta) <= tol`` or when
+``delta / 2 <= ROUNDOFF * eps * F`` (the predicted decrease is below the cost's round-off).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Callable
+from enum import IntEnum
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchfilt.exceptions import ConvergenceWarning, ShapeError
+from torchfilt.numerics.box import Box
+
+__all__ = [
+    "LeastSquaresResult",
+    "SolverStatus",
+    "batched_jacobian",
+    "bounded_least_squares",
+]
+
+#: Armijo sufficient-decrease constant of the projected line search.
+ARMIJO = 1e-4
+#: Step-length factor per backtracking step.
+BACKTRACK = 0.5
+#: Damping set when a full step is first rejected (relative to diag(J^T J)).
+MU_INIT = 1e-3
+#: Damping growth after a rejected full step, and shrink after an accepted one.
+MU_GROW, MU_SHRINK = 4.0, 3.0
+#: Damping below this is reset to 0 (pure Gauss-Newton).
+MU_MIN = 1e-9
+#: A problem whose line search fails with damping above this has stalled.
+MU_MAX = 1e10
+#: Predicted decrease below ``ROUNDOFF * eps * F`` counts as converged (cost round-off).
+ROUNDOFF = 16.0
+
+Residual = Callable[[Tensor], Tensor]
+
+
+class SolverStatus(IntEnum):
+    """Why :func:`bounded_least_squares` stopped for a problem (positive: converged)."""
+
+    #: The residual or its Jacobian was non-finite at an accepted iterate.
+    NONFINITE = -2
+    #: No decrease was found even with the largest damping.
+    STALLED = -1
+    #: ``max_iter`` iterations without meeting the tolerance.
+    MAX_ITER = 0
+    #: ``sqrt(delta) <= tol``.
+    CONVERGED = 1
+    #: The predicted decrease is below the round-off of the cost.
+    ROUNDOFF = 2
+
+
+class LeastSquaresResult(NamedTuple):
+    """Result of :func:`bounded_least_squares`.
+
+    Attributes:
+        x: solutions, shape ``(..., n)``, inside the box.
+        cost: ``1/2 ||r(x)||^2``, shape ``(...)``.
+        optimality: ``sqrt(delta)`` at ``x`` (see the module docstring), shape ``(...)``.
+        iterations: Gauss-Newton iterations taken, shape ``(...)`` (int64).
+        status: a :class:`SolverStatus` code per problem, shape ``(...)`` (int64).
+    """
+
+    x: Tensor
+    cost: Tensor
+    optimality: Tensor
+    iterations: Tensor
+    status: Tensor
+
+    @property
+    def converged(self) -> Tensor:
+        """Whether each problem met the tolerance, shape ``(...)``."""
+        return self.status > 0
+
+
+def batched_jacobian(
+    fn: Residual, x: Tensor, *, create_graph: bool = False
+) -> tuple[Tensor, Tensor]:
+    """Value and Jacobian of a batched map by reverse-mode autograd (one backward pass per output).
+
+    ``fn`` must act independently on every batch element (as any broadcasting function does), so
+    that the gradient of ``fn(x)[..., i].sum()`` with respect to ``x`` is row ``i`` of each
+    element's Jacobian.
+
+    Args:
+        fn: map ``(..., n) -> (..., k)`` with the batch shape of ``x``.
+        x: points, shape ``(..., n)``.
+        create_graph: keep the graph of the Jacobian (for higher derivatives).
+
+    Returns:
+        ``(fn(x), J)`` with ``J`` of shape ``(..., k, n)``.
+    """
+    with torch.enable_grad():
+        xr = x if create_graph and x.requires_grad else x.detach().requires_grad_(True)
+        r = fn(xr)
+        if r.shape[:-1] != x.shape[:-1]:
+            raise ShapeError(
+                f"residual returned shape {tuple(r.shape)} for points {tuple(x.shape)}; "
+                "expected (..., k) with the points' batch shape"
+            )
+        k = r.shape[-1]
+        if not r.requires_grad:
+            return r, r.new_zeros(*r.shape, x.shape[-1])
+        rows = []
+        for i in range(k):
+            (gi,) = torch.autograd.grad(
+                r[..., i].sum(), xr, retain_graph=True, create_graph=create_graph, allow_unused=True
+            )
+            rows.append(torch.zeros_like(x) if gi is None else gi)
+    J = torch.stack(rows, dim=-2)
+    return (r, J) if create_graph else (r.detach(), J.detach())
+
+
+def _evaluate(residual: Residual, jacobian: Residual | None, x: Tensor) -> tuple[Tensor, Tensor]:
+    if jacobian is None:
+        return batched_jacobian(residual, x)
+    r = residual(x)
+    J = jacobian(x)
+    if J.shape != (*r.shape, x.shape[-1]):
+        raise ShapeError(
+            f"jacobian returned shape {tuple(J.shape)}; expected (..., k, n) = "
+            f"{(*r.shape, x.shape[-1])}"
+        )
+    return r.detach(), J.detach()
+
+
+def _reduced_factor(A: Tensor, free: Tensor, extra: Tensor) -> Tensor:
+    """Cholesky factor of ``A`` on the free block plus ``extra`` there, identity elsewhere."""
+    ff = free.unsqueeze(-1) & free.unsqueeze(-2)
+    M = torch.where(ff, A, torch.zeros_like(A))
+    M = M + torch.diag_embed(torch.where(free, extra, torch.ones_like(extra)))
+    L, info = torch.linalg.cholesky_ex(M)
+    if bool((info > 0).any()):
+        # rank-deficient free block: a larger ridge (relative to the element's scale)
+        bump = extra.amax(-1, keepdim=True) * 1e6 + torch.finfo(A.dtype).tiny
+        M2 = M + torch.diag_embed(torch.where(free, bump.expand_as(extra), torch.zeros_like(extra)))
+        L2, _ = torch.linalg.cholesky_ex(M2)
+        L = torch.where((info > 0)[..., None, None], L2, L)
+    return L
+
+
+def bounded_least_squares(
+    residual: Residual,
+    x0: Tensor,
+    bounds: Box | None = None,
+    *,
+    jacobian: Residual | None = None,
+    tol: float | None = None,
+    max_iter: int = 50,
+    max_backtracks: int = 30,
+    warn: bool = True,
+) -> LeastSquaresResult:
+    """Solve a batch of bounded nonlinear least-squares problems at once.
+
+        x* = argmin_{lower <= x <= upper} 1/2 ||r(x)||^2
+
+    by projected Gauss-Newton / Levenberg-Marquardt with a backtracking (Armijo) line search along
+    the projection arc; the equations and the stopping rule are in the module docstring. Every
+    problem of the batch iterates in lock-step; converged problems stop moving.
+
+    For an affine residual ``r(x) = A x - b`` with ``A`` of full column rank this is an exact
+    active-set method for the box-constrained QP: once the active set is right, the next step
+    lands on the solution.
+
+    Gradients: when autograd is on and the residual depends on tensors that require grad (or the
+    bounds do), the returned ``x`` carries the implicit-function derivative of the solution:
+    ``dx_F = -H_FF^{-1} d(grad_F)`` on the free coordinates (``H`` the exact Hessian of ``F``
+    from autograd, falling back to ``J^T J``), and the bound's own gradient on active ones. The
+    iterations themselves are not differentiated.
+
+    Other constraint types (``c(x) <= 0``, ``e(x) = 0``) are not supported yet; they would come as
+    further keyword arguments beside ``bounds``.
+
+    Args:
+        residual: ``r(x)``, mapping ``(..., n)`` to ``(..., k)`` independently per batch element
+            (it may broadcast ``x`` against fixed data of a larger batch shape). Must be
+            differentiable by autograd unless ``jacobian`` is given.
+        x0: starting points, shape ``(..., n)``; projected onto the box first.
+        bounds: the :class:`Box`; ``None`` for an unconstrained problem.
+        jacobian: optional ``J(x)``, ``(..., n) -> (..., k, n)``; default: autograd on
+            ``residual`` (``k`` backward passes per iteration).
+        tol: tolerance on ``sqrt(delta)``; default ``sqrt(eps)`` of the dtype (1.5e-8 in float64,
+            3.5e-4 in float32).
+        max_iter: iteration limit.
+        max_backtracks: line-search halvings per iteration.
+        warn: emit a :class:`~torchfilt.exceptions.ConvergenceWarning` when a problem did not
+            converge.
+
+    Returns:
+        A :class:`LeastSquaresResult`: ``x (..., n)``, ``cost``, ``optimality``, ``iterations`` and
+        ``status`` (each ``(...)``).
+
+    Raises:
+        ShapeError: ``x0`` or ``bounds`` have the wrong shape, or the residual's batch shape does
+            not broadcast with theirs.
+    """
+    if not isinstance(x0, Tensor) or not x0.is_floating_point() or x0.dim() < 1:
+        raise TypeError("x0 must be a floating-point tensor of shape (..., n)")
+    n = x0.shape[-1]
+    box = Box(n=n) if bounds is None else bounds
+    if box.dim != n:
+        raise ShapeError(f"bounds: dimension {box.dim} does not match x0's n = {n}")
+    if max_iter < 0 or max_backtracks < 1:
+        raise ValueError("max_iter must be >= 0 and max_backtracks >= 1")
+    dtype = x0.dtype
+    eps = torch.finfo(dtype).eps
+    tol = math.sqrt(eps) if tol is None else float(tol)
+    lo_in, hi_in = box.lower.to(x0), box.upper.to(x0)
+
+    with torch.no_grad():
+        x = torch.clamp(x0.detach(), lo_in, hi_in)
+        r, J = _evaluate(residual, jacobian, x)
+        try:
+            batch = torch.broadcast_shapes(x.shape[:-1], r.shape[:-1], box.batch_shape)
+        except RuntimeError:
+            raise ShapeError(
+                f"residual batch shape {tuple(r.shape[:-1])}, x0 {tuple(x.shape[:-1])} and "
+                f"bounds {tuple(box.batch_shape)} do not broadcast"
+            ) from None
+        if x.shape[:-1] != batch:
+            x = torch.clamp(x.expand(*batch, n).clone(), lo_in, hi_in)
+            r, J = _evaluate(residual, jacobian, x)
+        lo, hi = lo_in.detach().expand(*batch, n), hi_in.detach().expand(*batch, n)
+        status = torch.full(batch, int(SolverStatus.MAX_ITER), dtype=torch.long, device=x.device)
+        iters = torch.zeros(batch, dtype=torch.long, device=x.device)
+        mu = torch.zeros(batch, dtype=dtype, device=x.device)
+        done = torch.zeros(batch, dtype=torch.bool, device=x.device)
+        opt = torch.zeros(batch, dtype=dtype, device=x.device)
+        F = 0.5 * (r * r).sum(-1)
+        for it in range(max_iter + 1):
+            g = (J.mT @ r.unsqueeze(-1)).squeeze(-1)
+            A = J.mT @ J
+            finite = (
+                torch.isfinite(F) & torch.isfinite(g).all(-1) & torch.isfinite(A).all(-1).all(-1)
+            )
+            bad = finite.logical_not() & done.logical_not()
+            status = torch.where(bad, int(SolverStatus.NONFINITE), status)
+            done = done | bad
+            g = torch.where(finite.unsqueeze(-1), g, torch.zeros_like(g))
+            A = torch.where(finite[..., None, None], A, torch.eye(n, dtype=dtype, device=x.device))
+            diag = A.diagonal(dim1=-2, dim2=-1)
+            scale = diag.amax(-1, keepdim=True).clamp_min(torch.finfo(dtype).tiny)
+            dA = torch.maximum(diag, eps * scale)
+            s = g / dA
+            bind = ((g > 0) & (x - lo <= s)) | ((g < 0) & (hi - x <= -s))
+            free = bind.logical_not()
+            L0 = _reduced_factor(A, free, eps * scale.expand_as(dA))
+            d0 = torch.cholesky_solve(torch.where(free, -g, 0.0).unsqueeze(-1), L0).squeeze(-1)
+            xb = torch.clamp(x - s, lo, hi)
+            delta = -(torch.where(free, g * d0, 0.0)).sum(-1) + torch.where(
+                bind, g * (x - xb), 0.0
+            ).sum(-1)
+            delta = delta.clamp_min(0.0)
+            opt = torch.where(done, opt, delta.sqrt())
+            by_tol = delta.sqrt() <= tol
+            by_round = 0.5 * delta <= ROUNDOFF * eps * F
+            conv = done.logical_not() & (by_tol | by_round)
+            status = torch.where(
+                conv & by_tol,
+                int(SolverStatus.CONVERGED),
+                torch.where(conv, int(SolverStatus.ROUNDOFF), status),
+            )
+            # problems still iterating take a step; converged ones take one last undamped step
+            # (polish: for an affine residual it lands exactly on the solution) if it helps
+            stepping = conv if it == max_iter else done.logical_not()
+            if not bool(stepping.any()):
+                break
+            if bool((mu > 0).any()):
+                L = _reduced_factor(A, free, eps * scale.expand_as(dA) + mu.unsqueeze(-1) * dA)
+                d = torch.cholesky_solve(torch.where(free, -g, 0.0).unsqueeze(-1), L).squeeze(-1)
+                d = torch.where(conv.unsqueeze(-1), d0, d)
+            else:
+                d = d0
+            d = torch.where(bind, -s, d)
+            # ---- projected backtracking line search
+            alpha = torch.ones(batch, dtype=dtype, device=x.device)
+            need = stepping
+            x_new, F_new = x.clone(), F.clone()
+            full = torch.zeros_like(need)
+            for bt in range(max_backtracks):
+                xt = torch.clamp(x + alpha.unsqueeze(-1) * d, lo, hi)
+                rt = residual(xt)
+                Ft = 0.5 * (rt * rt).sum(-1).expand(batch)
+                armijo = Ft <= F + ARMIJO * (g * (xt - x)).sum(-1)
+                polish = Ft <= F + ROUNDOFF * eps * F.abs()
+                ok = need & torch.isfinite(Ft) & torch.where(conv, polish, armijo)
+                x_new = torch.where(ok.unsqueeze(-1), xt, x_new)
+                F_new = torch.where(ok, Ft, F_new)
+                if bt == 0:
+                    full = ok
+                need = need & ok.logical_not() & conv.logical_not()
+                if not bool(need.any()):
+                    break
+                alpha = alpha * BACKTRACK
+            moving = (done | conv).logical_not()
+            mu = torch.where(full, mu / MU_SHRINK, torch.clamp(mu * MU_GROW, min=MU_INIT))
+            mu = torch.where(mu < MU_MIN, torch.zeros_like(mu), mu)
+            stalled = need & (mu > MU_MAX)
+            status = torch.where(stalled, int(SolverStatus.STALLED), status)
+            done = done | stalled | conv
+            iters = iters + moving.long()
+            x = x_new
+            r, J = _evaluate(residual, jacobian, x)
+            F = 0.5 * (r * r).sum(-1)
+            if bool(done.all()) or it == max_iter:
+                break
+
+    x = _attach_gradient(residual, jacobian, x, lo_in, hi_in)
+    if warn and not bool((status > 0).all()):
+        counts = {s.name.lower(): int((status == s).sum()) for s in SolverStatus if s <= 0}
+        detail = ", ".join(f"{k}: {v}" for k, v in counts.items() if v)
+        warnings.warn(
+            f"bounded_least_squares: {int((status <= 0).sum())} of {status.numel()} problems did "
+            f"not converge to tol={tol:.1e} ({detail})",
+            ConvergenceWarning,
+            stacklevel=2,
+        )
+    return LeastSquaresResult(x, F.detach(), opt, iters, status)
+
+
+def _attach_gradient(
+    residual: Residual, jacobian: Residual | None, x: Tensor, lo: Tensor, hi: Tensor
+) -> Tensor:
+    """Give the (detached) solution the implicit-function derivative; its value is unchanged."""
+    if not torch.is_grad_enabled():
+        return x
+    at_lo, at_hi = x <= lo, x >= hi
+    free = (at_lo | at_hi).logical_not()
+    bound_grad = lo.requires_grad or hi.requires_grad
+    r0 = residual(x)
+    if not r0.requires_grad and not bound_grad:
+        return x
+    out = x
+    if r0.requires_grad and bool(free.any()):
+        with torch.enable_grad():
+            xi = x.detach().requires_grad_(True)
+            r = residual(xi)
+            if jacobian is None:
+                (grad,) = torch.autograd.grad(0.5 * (r * r).sum(), xi, create_graph=True)
+            else:
+                grad = (jacobian(xi).mT @ r.unsqueeze(-1)).squeeze(-1)
+            rows = []
+            for j in range(x.shape[-1]):
+                (hj,) = torch.autograd.grad(
+                    grad[..., j].sum(), xi, retain_graph=True, allow_unused=True
+                )
+                rows.append(torch.zeros_like(x) if hj is None else hj)
+        H = torch.stack(rows, dim=-2).detach()
+        H = 0.5 * (H + H.mT)
+        ff = free.unsqueeze(-1) & free.unsqueeze(-2)
+        M = torch.where(ff, H, torch.zeros_like(H)) + torch.diag_embed(free.logical_not().to(H))
+        L, info = torch.linalg.cholesky_ex(M)
+        if bool((info > 0).any()):
+            _, Jd = _evaluate(residual, jacobian, x)
+            G = Jd.mT @ Jd
+            Mg = torch.where(ff, G, torch.zeros_like(G)) + torch.diag_embed(
+                free.logical_not().to(G)
+            )
+            Lg, _ = torch.linalg.cholesky_ex(Mg)
+            L = torch.where((info > 0)[..., None, None], Lg, L)
+        step = torch.cholesky_solve(
+            torch.where(free, grad, torch.zeros_like(grad)).unsqueeze(-1), L
+        ).squeeze(-1)
+        out = out - (step - step.detach())
+    if bound_grad:
+        lo_b, hi_b = lo.expand_as(x), hi.expand_as(x)
+        out = out + torch.where(at_lo, lo_b - lo_b.detach(), torch.zeros_like(x))
+        out = out + torch.where(
+            at_hi & at_lo.logical_not(), hi_b - hi_b.detach(), torch.zeros_like(x)
+        )
+    return out
