@@ -95,7 +95,7 @@ def constrained_points(
     ratio = torch.where(hit, (gap / step).clamp_min(0.0), torch.full_like(dx, math.inf))
     th = ratio.amin(-1)  # (..., 2n)
     lam = th.clamp(max=1.0)
-    points = box.project(x + lam.unsqueeze(-1) * dx)
+    points = torch.clamp(x + lam.unsqueeze(-1) * dx, lo, hi)  # removes round-off only
     arg = th * math.sqrt(n) if theta == "std" else th
     Fv = torch.special.ndtr(arg) - 0.5
     Fa, Fb = Fv[..., :n], Fv[..., n:]

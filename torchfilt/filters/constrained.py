@@ -335,7 +335,9 @@ class ConstrainedCKF(GaussianFilter):
     ) -> tuple[_Step, _Diag]:
         f, h = self.model.transition, self.model.measurement
         # ---- predict (constrained points of the filtered Gaussian)
-        S = safe_cholesky(cov, name="filtered covariance")
+        # the reconciled points' spread is exactly singular when they all share a bound
+        # (certainty at the bound): factor it with the tiny jitter, without a warning
+        S = safe_cholesky(cov, name="filtered covariance", warn=False)
         cp = constrained_points(mean, S, box, theta=self.theta)
         X, w = cp.points, cp.weights
         uP = None if u is None else u.unsqueeze(-2).expand(*X.shape[:-1], u.shape[-1])
@@ -378,9 +380,12 @@ class ConstrainedCKF(GaussianFilter):
 
         # ---- NDDR: one bounded least-squares problem per batch element and cubature point
         R_pts = _add(None if Vh_pts is None else Vh_pts, None if R is None else R.unsqueeze(-3))
-        L_R = safe_cholesky(
-            _observed_block(R_pts, obs_f.unsqueeze(-2), 1.0), name="measurement noise R"
-        )
+        L_R, bad = torch.linalg.cholesky_ex(_observed_block(R_pts, obs_f.unsqueeze(-2), 1.0))
+        if bool((bad > 0).any()):
+            raise ValueError(
+                "the measurement noise R (plus the model's per-point variance) is not positive "
+                "definite: the reconciliation weighs the measurement by its inverse"
+            )
         L_P = S_pred.unsqueeze(-3)
         z = y.unsqueeze(-2)
         o = obs_f.unsqueeze(-2)

@@ -109,9 +109,7 @@ class Box:
         """Whether any bound is finite."""
         return bool(torch.isfinite(self.lower).any() or torch.isfinite(self.upper).any())
 
-    def to(
-        self, dtype: torch.dtype | None = None, device: torch.device | str | None = None
-    ) -> Box:
+    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> Box:
         """A copy with bounds cast to ``dtype`` and moved to ``device``."""
         out = Box.__new__(Box)
         out.lower = self.lower.to(device=device, dtype=dtype)

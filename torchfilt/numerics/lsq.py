@@ -14,8 +14,10 @@ Optim. 20(2), 1982, with the Gauss-Newton matrix in place of the Hessian):
     x+ = P(x + alpha d),   alpha = 1, 1/2, 1/4, ... until  F(x+) <= F(x) + sigma g^T (x+ - x)
 
 ``P`` is the projection onto the box. The damping ``mu`` starts at 0 (pure Gauss-Newton, so a
-linear residual is solved exactly once its active set is found) and grows when a full step is
-rejected, shrinking again after full steps (Levenberg-Marquardt safeguard).
+linear residual is solved exactly once its active set is found); it grows when a full step is
+rejected or decreases the cost by less than a quarter of what the Gauss-Newton model predicted, and
+shrinks after full steps that achieve more than three quarters (Levenberg-Marquardt gain-ratio
+rule, Madsen, Nielsen & Tingleff, "Methods for non-linear least squares problems", 2004).
 
 Stopping rule (the stated tolerance): with ``d0`` the undamped step,
 
@@ -55,6 +57,9 @@ BACKTRACK = 0.5
 MU_INIT = 1e-3
 #: Damping growth after a rejected full step, and shrink after an accepted one.
 MU_GROW, MU_SHRINK = 4.0, 3.0
+#: A full step whose actual/predicted decrease ratio is above GAIN_HIGH shrinks the damping; below
+#: GAIN_LOW (an overshooting step, even if accepted) grows it.
+GAIN_LOW, GAIN_HIGH = 0.25, 0.75
 #: Damping below this is reset to 0 (pure Gauss-Newton).
 MU_MIN = 1e-9
 #: A problem whose line search fails with damping above this has stalled.
@@ -186,7 +191,9 @@ def bounded_least_squares(
 
     by projected Gauss-Newton / Levenberg-Marquardt with a backtracking (Armijo) line search along
     the projection arc; the equations and the stopping rule are in the module docstring. Every
-    problem of the batch iterates in lock-step; converged problems stop moving.
+    problem of the batch iterates in lock-step; converged problems stop moving. Like every
+    Gauss-Newton method it converges quadratically on small-residual problems and only linearly
+    where the residual is large and strongly curved at the solution; raise ``max_iter`` there.
 
     For an affine residual ``r(x) = A x - b`` with ``A`` of full column rank this is an exact
     active-set method for the box-constrained QP: once the active set is right, the next step
@@ -239,7 +246,7 @@ def bounded_least_squares(
 
     with torch.no_grad():
         x = torch.clamp(x0.detach(), lo_in, hi_in)
-        r, J = _evaluate(residual, jacobian, x)
+        r = residual(x)
         try:
             batch = torch.broadcast_shapes(x.shape[:-1], r.shape[:-1], box.batch_shape)
         except RuntimeError:
@@ -247,9 +254,8 @@ def bounded_least_squares(
                 f"residual batch shape {tuple(r.shape[:-1])}, x0 {tuple(x.shape[:-1])} and "
                 f"bounds {tuple(box.batch_shape)} do not broadcast"
             ) from None
-        if x.shape[:-1] != batch:
-            x = torch.clamp(x.expand(*batch, n).clone(), lo_in, hi_in)
-            r, J = _evaluate(residual, jacobian, x)
+        x = x.expand(*batch, n).clone()
+        r, J = _evaluate(residual, jacobian, x)
         lo, hi = lo_in.detach().expand(*batch, n), hi_in.detach().expand(*batch, n)
         status = torch.full(batch, int(SolverStatus.MAX_ITER), dtype=torch.long, device=x.device)
         iters = torch.zeros(batch, dtype=torch.long, device=x.device)
@@ -322,8 +328,18 @@ def bounded_least_squares(
                 if not bool(need.any()):
                     break
                 alpha = alpha * BACKTRACK
-            moving = (done | conv).logical_not()
-            mu = torch.where(full, mu / MU_SHRINK, torch.clamp(mu * MU_GROW, min=MU_INIT))
+            moving = stepping & conv.logical_not()
+            # gain ratio of the accepted step: actual over model-predicted decrease
+            step = x_new - x
+            pred = -(
+                (g * step).sum(-1) + 0.5 * (step * (A @ step.unsqueeze(-1)).squeeze(-1)).sum(-1)
+            )
+            gain = (F - F_new) / pred.clamp_min(torch.finfo(dtype).tiny)
+            mu = torch.where(
+                full & (gain > GAIN_HIGH),
+                mu / MU_SHRINK,
+                torch.where(full & (gain >= GAIN_LOW), mu, torch.clamp(mu * MU_GROW, min=MU_INIT)),
+            )
             mu = torch.where(mu < MU_MIN, torch.zeros_like(mu), mu)
             stalled = need & (mu > MU_MAX)
             status = torch.where(stalled, int(SolverStatus.STALLED), status)
@@ -351,51 +367,51 @@ def bounded_least_squares(
 def _attach_gradient(
     residual: Residual, jacobian: Residual | None, x: Tensor, lo: Tensor, hi: Tensor
 ) -> Tensor:
-    """Give the (detached) solution the implicit-function derivative; its value is unchanged."""
+    """Give the (detached) solution the implicit-function derivative; its value is unchanged.
+
+    Free coordinates solve ``grad_F F(x_F, x_B = bound) = 0``, so ``dx_F = -H_FF^{-1} d(grad_F)``
+    where the differential of the gradient covers the residual's parameters and the active bounds;
+    active coordinates equal their bound.
+    """
     if not torch.is_grad_enabled():
         return x
     at_lo, at_hi = x <= lo, x >= hi
+    at_hi = at_hi & at_lo.logical_not()
     free = (at_lo | at_hi).logical_not()
     bound_grad = lo.requires_grad or hi.requires_grad
-    r0 = residual(x)
-    if not r0.requires_grad and not bound_grad:
+    if not residual(x).requires_grad and not bound_grad:
         return x
-    out = x
-    if r0.requires_grad and bool(free.any()):
-        with torch.enable_grad():
-            xi = x.detach().requires_grad_(True)
-            r = residual(xi)
-            if jacobian is None:
-                (grad,) = torch.autograd.grad(0.5 * (r * r).sum(), xi, create_graph=True)
-            else:
-                grad = (jacobian(xi).mT @ r.unsqueeze(-1)).squeeze(-1)
-            rows = []
-            for j in range(x.shape[-1]):
-                (hj,) = torch.autograd.grad(
-                    grad[..., j].sum(), xi, retain_graph=True, allow_unused=True
-                )
-                rows.append(torch.zeros_like(x) if hj is None else hj)
-        H = torch.stack(rows, dim=-2).detach()
-        H = 0.5 * (H + H.mT)
-        ff = free.unsqueeze(-1) & free.unsqueeze(-2)
-        M = torch.where(ff, H, torch.zeros_like(H)) + torch.diag_embed(free.logical_not().to(H))
-        L, info = torch.linalg.cholesky_ex(M)
-        if bool((info > 0).any()):
-            _, Jd = _evaluate(residual, jacobian, x)
-            G = Jd.mT @ Jd
-            Mg = torch.where(ff, G, torch.zeros_like(G)) + torch.diag_embed(
-                free.logical_not().to(G)
+    lo_b, hi_b = lo.expand_as(x), hi.expand_as(x)
+    with torch.enable_grad():
+        xi = x.detach().requires_grad_(True)
+        x_eval = torch.where(at_lo, lo_b, torch.where(at_hi, hi_b, xi))
+        out = torch.where(at_lo, lo_b, torch.where(at_hi, hi_b, x))
+        if not bool(free.any()):
+            return out
+        r = residual(x_eval)
+        if jacobian is None:
+            (grad,) = torch.autograd.grad(0.5 * (r * r).sum(), xi, create_graph=True)
+        else:
+            grad = (jacobian(x_eval).mT @ r.unsqueeze(-1)).squeeze(-1)
+        if not grad.requires_grad:  # no parameter reaches the free coordinates
+            return out
+        rows = []
+        for j in range(x.shape[-1]):
+            (hj,) = torch.autograd.grad(
+                grad[..., j].sum(), xi, retain_graph=True, allow_unused=True
             )
-            Lg, _ = torch.linalg.cholesky_ex(Mg)
-            L = torch.where((info > 0)[..., None, None], Lg, L)
-        step = torch.cholesky_solve(
-            torch.where(free, grad, torch.zeros_like(grad)).unsqueeze(-1), L
-        ).squeeze(-1)
-        out = out - (step - step.detach())
-    if bound_grad:
-        lo_b, hi_b = lo.expand_as(x), hi.expand_as(x)
-        out = out + torch.where(at_lo, lo_b - lo_b.detach(), torch.zeros_like(x))
-        out = out + torch.where(
-            at_hi & at_lo.logical_not(), hi_b - hi_b.detach(), torch.zeros_like(x)
-        )
-    return out
+            rows.append(torch.zeros_like(x) if hj is None else hj)
+    H = torch.stack(rows, dim=-2).detach()
+    H = 0.5 * (H + H.mT)
+    ff = free.unsqueeze(-1) & free.unsqueeze(-2)
+    eye_b = torch.diag_embed(free.logical_not().to(H))
+    L, info = torch.linalg.cholesky_ex(torch.where(ff, H, torch.zeros_like(H)) + eye_b)
+    if bool((info > 0).any()):  # not strictly convex there: fall back to the Gauss-Newton matrix
+        _, Jd = _evaluate(residual, jacobian, x)
+        G = Jd.mT @ Jd
+        Lg, _ = torch.linalg.cholesky_ex(torch.where(ff, G, torch.zeros_like(G)) + eye_b)
+        L = torch.where((info > 0)[..., None, None], Lg, L)
+    step = torch.cholesky_solve(
+        torch.where(free, grad, torch.zeros_like(grad)).unsqueeze(-1), L
+    ).squeeze(-1)
+    return out - (step - step.detach())
