@@ -46,6 +46,7 @@ from torchfilt.models import ConditionalModel, Prediction, StateSpaceModel
 from torchfilt.numerics import (
     Box,
     SolverStatus,
+    batched_jacobian,
     bounded_least_squares,
     gaussian_log_prob,
     safe_cholesky,
@@ -390,14 +391,37 @@ class ConstrainedCKF(GaussianFilter):
         z = y.unsqueeze(-2)
         o = obs_f.unsqueeze(-2)
 
+        # whitening by the inverse Cholesky factors, formed once per step (triangular solves of the
+        # identity) so that the solver's many residual calls are cheap products
+        n, m = mean.shape[-1], y.shape[-1]
+        W_P = torch.linalg.solve_triangular(
+            L_P, torch.eye(n, dtype=mean.dtype, device=mean.device), upper=False
+        )  # (..., 1, n, n): also the (constant) Jacobian of the prior residual
+        W_R = torch.linalg.solve_triangular(
+            L_R, torch.eye(m, dtype=mean.dtype, device=mean.device), upper=False
+        )  # (..., 1 or 2n, m, m)
+
+        def h_mean(x: Tensor) -> Tensor:
+            return h.predict(x, uP).mean
+
         def residual(x: Tensor) -> Tensor:  # (..., 2n, n) -> (..., 2n, n + m)
-            rp = torch.linalg.solve_triangular(L_P, (x - Xu).unsqueeze(-1), upper=False)
-            em = (z - h.predict(x, uP).mean) * o
-            rm = torch.linalg.solve_triangular(L_R, em.unsqueeze(-1), upper=False)
-            return torch.cat([rp.squeeze(-1), rm.squeeze(-1)], dim=-1)
+            rp = (W_P * (x - Xu).unsqueeze(-2)).sum(-1)
+            rm = (W_R * ((z - h_mean(x)) * o).unsqueeze(-2)).sum(-1)
+            return torch.cat([rp, rm], dim=-1)
+
+        def jacobian(x: Tensor) -> Tensor:  # (..., 2n, n + m, n); autograd only through h
+            _, Jh = batched_jacobian(h_mean, x)
+            Jm = -W_R @ (Jh * o.unsqueeze(-1))
+            return torch.cat([W_P.expand(*Jm.shape[:-2], n, n), Jm], dim=-2)
 
         sol = bounded_least_squares(
-            residual, Xu, box.unsqueeze(-2), tol=self.tol, max_iter=self.max_iter, warn=False
+            residual,
+            Xu,
+            box.unsqueeze(-2),
+            jacobian=jacobian,
+            tol=self.tol,
+            max_iter=self.max_iter,
+            warn=False,
         )
         Xk = sol.x
         x_upd = box.project(

@@ -200,7 +200,8 @@ def bounded_least_squares(
     lands on the solution.
 
     Gradients: when autograd is on and the residual depends on tensors that require grad (or the
-    bounds do), the returned ``x`` carries the implicit-function derivative of the solution:
+    bounds do), the returned ``x`` carries the implicit-function derivative of the solution (from
+    autograd through ``residual``, twice differentiable, even when ``jacobian`` is given):
     ``dx_F = -H_FF^{-1} d(grad_F)`` on the free coordinates (``H`` the exact Hessian of ``F``
     from autograd, falling back to ``J^T J``), and the bound's own gradient on active ones. The
     iterations themselves are not differentiated.
@@ -345,11 +346,11 @@ def bounded_least_squares(
             status = torch.where(stalled, int(SolverStatus.STALLED), status)
             done = done | stalled | conv
             iters = iters + moving.long()
-            x = x_new
-            r, J = _evaluate(residual, jacobian, x)
-            F = 0.5 * (r * r).sum(-1)
+            x, F = x_new, F_new
             if bool(done.all()) or it == max_iter:
                 break
+            r, J = _evaluate(residual, jacobian, x)
+            F = 0.5 * (r * r).sum(-1)
 
     x = _attach_gradient(residual, jacobian, x, lo_in, hi_in)
     if warn and not bool((status > 0).all()):
@@ -389,12 +390,7 @@ def _attach_gradient(
         if not bool(free.any()):
             return out
         r = residual(x_eval)
-        if jacobian is None:
-            (grad,) = torch.autograd.grad(0.5 * (r * r).sum(), xi, create_graph=True)
-        else:
-            grad = (jacobian(x_eval).mT @ r.unsqueeze(-1)).squeeze(-1)
-        if not grad.requires_grad:  # no parameter reaches the free coordinates
-            return out
+        (grad,) = torch.autograd.grad(0.5 * (r * r).sum(), xi, create_graph=True)
         rows = []
         for j in range(x.shape[-1]):
             (hj,) = torch.autograd.grad(
