@@ -15,6 +15,12 @@ REF_ATOL = 1e-10
 BATCH_SHAPES = [(), (4,), (3, 2)]
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    # The suite is dominated by tiny tensor ops: one thread is faster and immune to spin-waiting
+    # when the machine is shared. Benchmarks (scripts/) choose their own thread count.
+    torch.set_num_threads(1)
+
+
 @pytest.fixture(autouse=True)
 def _seed() -> None:
     torch.manual_seed(0)

@@ -5,7 +5,7 @@ from pathlib import Path
 
 PKG = Path(__file__).resolve().parents[1] / "torchfilt"
 
-#: numerics -> cubature -> models -> filters -> systems/estimators -> io -> training/plots -> cli
+#: numerics -> cubature -> models -> filters -> systems/dmc -> io -> training/plots -> pipeline -> cli
 LAYERS = {
     "exceptions": 0,
     "numerics": 1,
@@ -18,9 +18,10 @@ LAYERS = {
     "io": 6,
     "training": 7,
     "plots": 7,
-    "cli": 8,
-    "__init__": 9,
-    "__main__": 9,
+    "pipeline": 8,
+    "cli": 9,
+    "__init__": 10,
+    "__main__": 10,
 }
 
 

@@ -66,3 +66,17 @@ def test_consistent_filter_has_chi2_nees_and_nis():
         lo = scipy.stats.chi2.ppf(0.0005, k * runs) / runs
         hi = scipy.stats.chi2.ppf(0.9995, k * runs) / runs
         assert lo < float(value) < hi
+
+
+def test_coverage_counts_errors_inside_interval():
+    from torchfilt import coverage
+
+    mean = torch.zeros(4, 2, dtype=torch.float64)
+    cov = torch.diag_embed(torch.tensor([[1.0, 4.0]] * 4, dtype=torch.float64))
+    x = torch.tensor([[0.0, 0.0], [1.9, 3.0], [2.0, 4.0], [-2.6, -5.2]], dtype=torch.float64)
+    # 95%: |e| <= 1.960 sd -> state 1 (sd 1): 0, 1.9 in, 2.0, 2.6 out; state 2 (sd 2): 0, 3 in, 4, 5.2 out
+    # 99%: |e| <= 2.576 sd -> only 2.6 (state 1) and 5.2 (state 2) are out
+    assert coverage(x, mean, cov).tolist() == [0.5, 0.5]
+    assert coverage(x, mean, cov, level=0.99).tolist() == [0.75, 0.75]
+    with pytest.raises(ValueError, match="level"):
+        coverage(x, mean, cov, level=1.0)

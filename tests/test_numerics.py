@@ -99,3 +99,34 @@ def test_gaussian_log_prob_matches_scipy():
     got = float(gaussian_log_prob(torch.tensor(e), L))
     want = scipy.stats.multivariate_normal(np.zeros(3), S).logpdf(e)
     assert got == pytest.approx(want, rel=1e-12)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 6])
+def test_unrolled_small_kernels_match_lapack(n):
+    from torchfilt.numerics import small
+
+    gen = torch.Generator().manual_seed(n)
+    X = torch.randn(small.SMALL_BATCH, n, n + 2, generator=gen, dtype=torch.float64)
+    A = X @ X.mT + 0.1 * torch.eye(n, dtype=torch.float64)
+    B = torch.randn(small.SMALL_BATCH, n, 3, generator=gen, dtype=torch.float64)
+    assert small.use_unrolled(A)
+    L, info = small.cholesky_ex(A)
+    assert (info == 0).all()
+    assert torch.allclose(L, torch.linalg.cholesky(A), rtol=TIGHT, atol=1e-12)
+    want = torch.linalg.solve_triangular(L, B, upper=False)
+    assert torch.allclose(small.solve_tril(L, B), want, rtol=TIGHT, atol=1e-12)
+    assert torch.allclose(
+        small.cholesky_solve(B, L), torch.linalg.solve(A, B), rtol=1e-8, atol=1e-10
+    )
+
+
+def test_unrolled_cholesky_reports_failures_like_lapack():
+    from torchfilt.numerics import small
+
+    A = torch.eye(3, dtype=torch.float64).repeat(small.SMALL_BATCH, 1, 1)
+    A[5, 1, 1] = -1.0
+    A[9, 2, 2] = float("nan")
+    _, info = small.cholesky_ex(A)
+    _, info_ref = torch.linalg.cholesky_ex(A[:8])
+    assert info[5] == 2 and info[9] == 3 and info_ref[5] == 2
+    assert (info[[i for i in range(small.SMALL_BATCH) if i not in (5, 9)]] == 0).all()

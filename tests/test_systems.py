@@ -18,6 +18,17 @@ def test_reentry_constants_and_trajectory():
     assert torch.allclose(x[0, :, 2], torch.full((60,), 1e-3, dtype=torch.float64))
 
 
+def test_reentry_transition_equals_generic_rk4():
+    from torchfilt.models import rk4
+
+    gen = torch.Generator().manual_seed(0)
+    x = torch.tensor(reentry.X0_TRUE, dtype=torch.float64) * (
+        1 + 0.2 * torch.randn(50, 3, generator=gen, dtype=torch.float64)
+    )
+    want = rk4(reentry.drift, x, None, reentry.DT, reentry.SUBSTEPS)
+    assert torch.allclose(reentry.transition(x), want, rtol=1e-13, atol=0)
+
+
 def test_reentry_measurement_models():
     x = torch.tensor([[2e5, 0.0, 0.0]], dtype=torch.float64)
     assert float(reentry.measurement(x)) == pytest.approx((1e10 + 1e10) ** 0.5)

@@ -5,11 +5,20 @@ Layers (each imports only from those before it):
 ``cli``, ``plots``.
 """
 
-from torchfilt import cubature, exceptions, filters, models, numerics, systems
+from torchfilt import cubature, dmc, exceptions, filters, models, numerics, systems
 from torchfilt.cubature import GaussHermiteRule, SphericalRadialRule, UnscentedRule
+from torchfilt.dmc import (
+    FOPDT,
+    IPDT,
+    DMCController,
+    LMGPredictor,
+    OpenLoopPredictor,
+    StepResponseModel,
+)
 from torchfilt.exceptions import (
     CholeskyJitterWarning,
     DivergenceWarning,
+    NotDetectableError,
     NumericsWarning,
     ShapeError,
 )
@@ -18,6 +27,7 @@ from torchfilt.filters import (
     FilterResult,
     GaussianFilter,
     SmootherResult,
+    coverage,
     nees,
     nis,
     rmse,
@@ -30,28 +40,38 @@ from torchfilt.models import (
     StateSpaceModel,
     TimeVarying,
 )
+from torchfilt.numerics import solve_dare, steady_state_kalman
 from torchfilt.systems import simulate
 
 __version__ = "0.1.0"
 
 __all__ = [
     "CKF",
+    "FOPDT",
+    "IPDT",
     "CholeskyJitterWarning",
     "ConditionalModel",
+    "DMCController",
     "DivergenceWarning",
     "FilterResult",
     "GaussHermiteRule",
     "GaussianFilter",
+    "LMGPredictor",
     "LinearGaussianModel",
+    "NotDetectableError",
     "NumericsWarning",
+    "OpenLoopPredictor",
     "Prediction",
     "ShapeError",
     "SmootherResult",
     "SphericalRadialRule",
     "StateSpaceModel",
+    "StepResponseModel",
     "TimeVarying",
     "UnscentedRule",
+    "coverage",
     "cubature",
+    "dmc",
     "exceptions",
     "filters",
     "models",
@@ -61,5 +81,7 @@ __all__ = [
     "rmse",
     "rts_smooth",
     "simulate",
+    "solve_dare",
+    "steady_state_kalman",
     "systems",
 ]

@@ -1,7 +1,7 @@
 """Filters and smoothers: the batched cubature Gaussian filter, RTS smoothing and metrics."""
 
 from torchfilt.filters.gaussian import CKF, GaussianFilter
-from torchfilt.filters.metrics import nees, nis, rmse
+from torchfilt.filters.metrics import coverage, nees, nis, rmse
 from torchfilt.filters.results import FilterResult, SmootherResult
 from torchfilt.filters.smoother import rts_smooth
 
@@ -10,6 +10,7 @@ __all__ = [
     "FilterResult",
     "GaussianFilter",
     "SmootherResult",
+    "coverage",
     "nees",
     "nis",
     "rmse",

@@ -240,6 +240,9 @@ class ConstrainedCKF(GaussianFilter):
         diags: list[_Diag] = []
 
         def step(
+            xi: Tensor,
+            wm: Tensor,
+            wc: Tensor,
             mean: Tensor,
             cov: Tensor,
             sqrt: Tensor,

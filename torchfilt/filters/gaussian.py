@@ -26,7 +26,7 @@ from torchfilt.cubature import CubatureRule, SphericalRadialRule, sigma_points
 from torchfilt.exceptions import DivergenceWarning, ShapeError
 from torchfilt.filters.results import FilterResult, SmootherResult
 from torchfilt.models import Prediction, StateSpaceModel
-from torchfilt.numerics import gaussian_log_prob, safe_cholesky, symmetrize, tria
+from torchfilt.numerics import cholesky_solve, gaussian_log_prob, safe_cholesky, symmetrize, tria
 
 __all__ = ["CKF", "GaussianFilter"]
 
@@ -233,6 +233,9 @@ class GaussianFilter(nn.Module):
     # ------------------------------------------------------------------ one step
     def _step(
         self,
+        xi: Tensor,
+        wm: Tensor,
+        wc: Tensor,
         mean: Tensor,
         cov: Tensor,
         sqrt: Tensor,
@@ -244,8 +247,7 @@ class GaussianFilter(nn.Module):
         R: Tensor | None,
         R_sqrt: Tensor | None,
     ) -> _Step:
-        n = mean.shape[-1]
-        xi, wm, wc = self.rule.unit_points(n, dtype=mean.dtype, device=mean.device)
+        """One predict + update; ``xi (P, n)``, ``wm (P,)``, ``wc (P,)`` are the rule's unit points."""
         f, h = self.model.transition, self.model.measurement
         if not self.sqrt:
             sqrt = safe_cholesky(cov, name="filtered covariance")
@@ -313,7 +315,7 @@ class GaussianFilter(nn.Module):
             Z = (E * wc.sqrt().unsqueeze(-1)).mT * rows  # (..., m, P)
             L_yy = tria(_cat_cols(Z, None if R_sqrt_tot is None else R_sqrt_tot * rows, unobs_diag))
         P_xy_m = P_xy * obs_f.unsqueeze(-2)
-        K = torch.cholesky_solve(P_xy_m.mT, L_yy).mT  # (..., n, m)
+        K = cholesky_solve(P_xy_m.mT, L_yy).mT  # (..., n, m)
         innov = y - y_mean
         e = innov * obs_f
         mean_new = m_pred + (K @ e.unsqueeze(-1)).squeeze(-1)
@@ -376,6 +378,7 @@ class GaussianFilter(nn.Module):
         const_R = None if h.time_varying_noise else self._noise(h, 0, mean)
         const_Qs = None if const_Q is None or not self.sqrt else _noise_sqrt(const_Q)
         const_Rs = None if const_R is None or not self.sqrt else _noise_sqrt(const_R)
+        pts = self.rule.unit_points(mean.shape[-1], dtype=mean.dtype, device=mean.device)
         outs: list[_Step] = []
         for t in range(T):
             if f.time_varying_noise:
@@ -389,7 +392,9 @@ class GaussianFilter(nn.Module):
             else:
                 R, Rs = const_R, const_Rs
             ut = None if inp.u is None else inp.u[..., t, :]
-            st = step_fn(mean, cov, sqrt, inp.y[..., t, :], inp.obs[..., t, :], ut, Q, Qs, R, Rs)
+            st = step_fn(
+                *pts, mean, cov, sqrt, inp.y[..., t, :], inp.obs[..., t, :], ut, Q, Qs, R, Rs
+            )
             outs.append(st)
             mean, cov, sqrt = st.mean, st.cov, st.sqrt
         return outs

@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
 from torchfilt.exceptions import ShapeError
 from torchfilt.filters.results import FilterResult
-from torchfilt.numerics import safe_cholesky
+from torchfilt.numerics import safe_cholesky, solve_tril
 
-__all__ = ["nees", "nis", "rmse"]
+__all__ = ["coverage", "nees", "nis", "rmse"]
 
 
 def nis(result: FilterResult) -> tuple[Tensor, Tensor]:
@@ -27,7 +29,7 @@ def nis(result: FilterResult) -> tuple[Tensor, Tensor]:
     e = torch.where(result.observed, result.innovation, torch.zeros_like(result.innovation))
     S = result.innovation_cov * (obs.unsqueeze(-1) * obs.unsqueeze(-2)) + torch.diag_embed(1 - obs)
     L = safe_cholesky(S, name="innovation covariance")
-    z = torch.linalg.solve_triangular(L, e.unsqueeze(-1), upper=False).squeeze(-1)
+    z = solve_tril(L, e.unsqueeze(-1)).squeeze(-1)
     return (z * z).sum(-1), obs.sum(-1)
 
 
@@ -48,7 +50,7 @@ def nees(x_true: Tensor, mean: Tensor, cov: Tensor) -> Tensor:
             f"{tuple(cov.shape)} must be (..., n), (..., n), (..., n, n)"
         )
     L = safe_cholesky(cov, name="estimate covariance")
-    z = torch.linalg.solve_triangular(L, (x_true - mean).unsqueeze(-1), upper=False).squeeze(-1)
+    z = solve_tril(L, (x_true - mean).unsqueeze(-1)).squeeze(-1)
     return (z * z).sum(-1)
 
 
@@ -64,3 +66,23 @@ def rmse(x_true: Tensor, mean: Tensor, dim: int | tuple[int, ...] = -2) -> Tenso
         RMSE, shape of the input with ``dim`` reduced (default ``(..., n)``).
     """
     return ((x_true - mean) ** 2).mean(dim=dim).sqrt()
+
+
+def coverage(x_true: Tensor, mean: Tensor, cov: Tensor, level: float = 0.95) -> Tensor:
+    """Fraction of steps whose per-state error lies inside the central ``level`` Gaussian interval.
+
+    Args:
+        x_true: true states, shape ``(..., T, n)``.
+        mean: estimated means, shape ``(..., T, n)``.
+        cov: estimated covariances, shape ``(..., T, n, n)`` (only the diagonal is used).
+        level: nominal probability of the interval (default 95%).
+
+    Returns:
+        Empirical coverage per state, shape ``(..., n)``; ``level`` when the filter is calibrated.
+    """
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+    z = math.sqrt(2.0) * float(torch.special.erfinv(torch.tensor(level, dtype=torch.float64)))
+    sd = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
+    inside = ((x_true - mean).abs() <= z * sd).to(mean.dtype)
+    return inside.mean(dim=-2)

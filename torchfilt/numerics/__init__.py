@@ -18,19 +18,32 @@ from torchfilt.numerics.lsq import (
     batched_jacobian,
     bounded_least_squares,
 )
+from torchfilt.numerics.riccati import (
+    SteadyStateKalman,
+    check_detectable,
+    solve_dare,
+    steady_state_kalman,
+)
+from torchfilt.numerics.small import cholesky_solve, solve_tril
 from torchfilt.numerics.stats import chi2_quantile, gaussian_log_prob
 
 __all__ = [
     "Box",
     "LeastSquaresResult",
     "SolverStatus",
+    "SteadyStateKalman",
     "batched_jacobian",
     "bounded_least_squares",
+    "check_detectable",
     "chi2_quantile",
     "cholesky_ok",
+    "cholesky_solve",
     "gaussian_log_prob",
     "psd_solve",
     "safe_cholesky",
+    "solve_dare",
+    "solve_tril",
+    "steady_state_kalman",
     "symmetrize",
     "tria",
 ]

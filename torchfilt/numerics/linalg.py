@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from torchfilt.exceptions import CholeskyJitterWarning
+from torchfilt.numerics import small
 
 __all__ = ["cholesky_ok", "psd_solve", "safe_cholesky", "symmetrize", "tria"]
 
@@ -68,7 +69,7 @@ def safe_cholesky(
     Returns:
         Lower-triangular ``L`` with ``L L^T = A (+ jitter I)``, shape ``(..., n, n)``.
     """
-    L, info = torch.linalg.cholesky_ex(A)
+    L, info = small.cholesky_ex(A)
     if _compiling():
         bad = info > 0
         return torch.where(bad[..., None, None], torch.full_like(L, float("nan")), L)
@@ -86,7 +87,7 @@ def safe_cholesky(
         if not bool(retry.any()):
             break
         jitter = scale * JITTER_BASE ** (k + 1)
-        L2, info2 = torch.linalg.cholesky_ex(A + jitter[..., None, None] * eye)
+        L2, info2 = small.cholesky_ex(A + jitter[..., None, None] * eye)
         ok = retry & (info2 == 0)
         L = torch.where(ok[..., None, None], L2, L)
         if bool(ok.any()):
@@ -121,7 +122,7 @@ def cholesky_ok(A: Tensor) -> Tensor:
     Returns:
         Boolean tensor, shape ``(...)``.
     """
-    _, info = torch.linalg.cholesky_ex(A)
+    _, info = small.cholesky_ex(A)
     return (info == 0) & torch.isfinite(A).all(dim=-1).all(dim=-1)
 
 
@@ -139,7 +140,7 @@ def psd_solve(A: Tensor, B: Tensor, *, L: Tensor | None = None, name: str = "mat
     """
     if L is None:
         L = safe_cholesky(symmetrize(A), name=name)
-    return torch.cholesky_solve(B, L)
+    return small.cholesky_solve(B, L)
 
 
 def tria(A: Tensor) -> Tensor:

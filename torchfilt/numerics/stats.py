@@ -7,6 +7,8 @@ import math
 import torch
 from torch import Tensor
 
+from torchfilt.numerics.small import solve_tril
+
 __all__ = ["chi2_quantile", "gaussian_log_prob"]
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -25,7 +27,7 @@ def gaussian_log_prob(e: Tensor, L: Tensor, dim: Tensor | int | None = None) -> 
     Returns:
         ``log N(e; 0, L L^T)``, shape ``(...)``.
     """
-    z = torch.linalg.solve_triangular(L, e.unsqueeze(-1), upper=False).squeeze(-1)
+    z = solve_tril(L, e.unsqueeze(-1)).squeeze(-1)
     maha = (z * z).sum(-1)
     logdet = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
     if dim is None:

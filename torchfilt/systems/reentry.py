@@ -17,7 +17,7 @@ import functools
 import torch
 from torch import Tensor
 
-from torchfilt.models import StateSpaceModel, rk4
+from torchfilt.models import StateSpaceModel
 from torchfilt.systems.simulate import Simulation, simulate
 
 __all__ = [
@@ -67,8 +67,28 @@ def drift(x: Tensor, u: Tensor | None = None) -> Tensor:
 def transition(
     x: Tensor, u: Tensor | None = None, *, dt: float = DT, substeps: int = SUBSTEPS
 ) -> Tensor:
-    """One sampling period of the dynamics (RK4), ``(..., 3) -> (..., 3)``."""
-    return rk4(drift, x, None, dt, substeps)
+    """One sampling period of the dynamics (RK4), ``(..., 3) -> (..., 3)``.
+
+    Equal to ``rk4(drift, x, None, dt, substeps)``, written out on the components: ``x3`` is
+    constant, so only ``(x1, x2)`` are integrated (the same RK4 arithmetic with half the work).
+    """
+    x1, x2, x3 = x[..., 0], x[..., 1], x[..., 2]
+    h = dt / substeps
+
+    def acc(a: Tensor, v: Tensor) -> Tensor:  # dx2/dt at altitude a, velocity v
+        return -torch.exp(-GAMMA * a) * v * v * x3
+
+    for _ in range(substeps):
+        k1a, k1v = -x2, acc(x1, x2)
+        a2, v2 = x1 + 0.5 * h * k1a, x2 + 0.5 * h * k1v
+        k2a, k2v = -v2, acc(a2, v2)
+        a3, v3 = x1 + 0.5 * h * k2a, x2 + 0.5 * h * k2v
+        k3a, k3v = -v3, acc(a3, v3)
+        a4, v4 = x1 + h * k3a, x2 + h * k3v
+        k4a, k4v = -v4, acc(a4, v4)
+        x1 = x1 + (h / 6.0) * (k1a + 2.0 * k2a + 2.0 * k3a + k4a)
+        x2 = x2 + (h / 6.0) * (k1v + 2.0 * k2v + 2.0 * k3v + k4v)
+    return torch.stack([x1, x2, x3], dim=-1)
 
 
 def measurement(

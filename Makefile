@@ -1,0 +1,49 @@
+# torchfilt developer entry points. `make demo` and `make test` are the README's quick start.
+#
+# The CPU build of torch is installed first and pinned, so that the unpinned `torch>=2.1` in
+# pyproject.toml is already satisfied and pip never fetches a multi-GB CUDA build. On a machine
+# where torch==2.13.0 is not on disk, point pip at the CPU wheels:
+#   make test PIP_TORCH_ARGS="--index-url https://download.pytorch.org/whl/cpu"
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+TORCH_SPEC ?= torch==2.13.0
+PIP_TORCH_ARGS ?=
+OUT ?= out
+
+.PHONY: setup demo test test-slow test-all lint bench reproduce clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q $(PIP_TORCH_ARGS) "$(TORCH_SPEC)"
+	$(BIN)/python -m pip install -q -e ".[dev]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/python scripts/quickstart.py --out $(OUT)/quickstart
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -q -m slow
+
+test-all: $(STAMP)
+	$(BIN)/python -m pytest -q -m "slow or not slow"
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/mypy
+
+bench: $(STAMP)
+	$(BIN)/python scripts/bench_filter.py --out $(OUT)/bench_filter
+
+reproduce: $(STAMP)
+	$(BIN)/python scripts/reproduce_reentry.py --out $(OUT)/reentry
+
+clean:
+	rm -rf $(VENV) $(OUT) .pytest_cache .ruff_cache .mypy_cache .hypothesis

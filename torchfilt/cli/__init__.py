@@ -1,0 +1,168 @@
+"""The ``torchfilt`` command line: train, filter, evaluate, simulate, info.
+
+Each command is a thin layer over its Python twin in :mod:`torchfilt.pipeline` /
+:mod:`torchfilt.training`. Errors in the user's input (bad files, shapes, options) are reported in
+one line with exit status 2; ``--debug`` shows the traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+__all__ = ["main"]
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    from torchfilt.io.synth import simulate_dataset
+
+    m = simulate_dataset(
+        args.system,
+        args.out,
+        recordings=args.recordings,
+        steps=args.steps,
+        seed=args.seed,
+        missing=args.missing,
+        fmt=f".{args.format}",
+    )
+    counts = {s: sum(r.split == s for r in m.recordings) for s in ("train", "validation", "test")}
+    print(f"wrote {len(m.recordings)} recordings of {args.system} to {args.out} ({counts})")
+    return 0
+
+
+def _filter(args: argparse.Namespace) -> int:
+    import torch
+
+    from torchfilt.pipeline import filter_recordings
+
+    summary = filter_recordings(
+        args.model,
+        args.recordings,
+        args.out,
+        smooth=args.smooth,
+        plot=args.plot,
+        device=args.device,
+        dtype=torch.float32 if args.float32 else torch.float64,
+        sqrt=args.sqrt,
+    )
+    for e in summary["recordings"]:
+        met = e.get("filtered_metrics") or {}
+        extra = f", NEES {met['nees']:.3g}" if met else ""
+        nis = (
+            ""
+            if e["mean_nis"] is None
+            else f", mean NIS {e['mean_nis']:.3g} (dof {e['mean_nis_dof']:.2g})"
+        )
+        status = "" if e["finite"] else " (diverged: non-finite estimates)"
+        print(
+            f"{Path(e['recording']).name}: {e['rows']} rows{nis}{extra} -> {e['filtered']}{status}"
+        )
+    print(f"wrote estimates to {args.out}")
+    return 0
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from torchfilt.pipeline import evaluate_outputs
+
+    res = evaluate_outputs(args.dir, which="smoothed" if args.smoothed else "filtered")
+    pooled = res["pooled"]
+    print(f"{res['which']} estimates, {len(res['recordings'])} recordings, {pooled['steps']} steps")
+    cov_key = next(k for k in pooled if k.startswith("coverage"))
+    for i, s in enumerate(res["states"]):
+        print(f"  {s:>20}: RMSE {pooled['rmse'][i]:.4g}, {cov_key} {pooled[cov_key][i]:.1%}")
+    print(f"  mean NEES {pooled['nees']:.3g} (consistent: {pooled['nees_expected']})")
+    return 0
+
+
+def _train(args: argparse.Namespace) -> int:
+    from torchfilt.training import train_recipe
+
+    bundle = train_recipe(args.recipe, args.out, resume=args.resume, progress=not args.quiet)
+    print(f"model bundle: {bundle}")
+    return 0
+
+
+def _info(args: argparse.Namespace) -> int:
+    from torchfilt.pipeline import resolve_model
+
+    spec = resolve_model(args.model)
+    print(f"model: {spec.source}")
+    print(f"  states:       {', '.join(f'{n} [{u}]' if u else n for n, u in spec.states)}")
+    print(f"  measurements: {', '.join(f'{n} [{u}]' if u else n for n, u in spec.measurements)}")
+    print(f"  inputs:       {', '.join(n for n, _ in spec.inputs) or '(none)'}")
+    print(f"  sample time:  {spec.sample_time}")
+    print(f"  transition:   {type(spec.model.transition).__name__}")
+    print(f"  measurement:  {type(spec.model.measurement).__name__}")
+    if spec.info:
+        print(json.dumps(spec.info, indent=2, default=str))
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="torchfilt", description="Cubature Kalman filtering with learned models."
+    )
+    p.add_argument("--debug", action="store_true", help="show tracebacks")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("train", help="train a model from a recipe (trainers/*.toml)")
+    s.add_argument("recipe", type=Path)
+    s.add_argument("--out", type=Path, required=True, help="run directory")
+    s.add_argument(
+        "--resume", action="store_true", help="continue from the last checkpoint in --out"
+    )
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(fn=_train)
+
+    s = sub.add_parser("filter", help="filter (and smooth) recordings with a model")
+    s.add_argument("recordings", nargs="+", type=Path, metavar="REC")
+    s.add_argument("--model", required=True, help="model bundle (.pt) or system:NAME")
+    s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--smooth", action="store_true", help="also run the RTS smoother")
+    s.add_argument("--plot", action="store_true", help="write a PNG report per recording")
+    s.add_argument("--device", default="cpu", help="torch device, e.g. cuda")
+    s.add_argument("--sqrt", action="store_true", help="square-root CKF")
+    s.add_argument("--float32", action="store_true", help="compute in float32")
+    s.set_defaults(fn=_filter)
+
+    s = sub.add_parser(
+        "evaluate", help="compare estimates with logged truth (RMSE, NEES, coverage)"
+    )
+    s.add_argument("dir", type=Path, help="output folder of torchfilt filter")
+    s.add_argument("--smoothed", action="store_true", help="evaluate the smoothed estimates")
+    s.set_defaults(fn=_evaluate)
+
+    s = sub.add_parser("simulate", help="write synthetic recordings from a built-in system")
+    s.add_argument("system", help="reentry, pendulum, ...")
+    s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--recordings", type=int, default=10)
+    s.add_argument("--steps", type=int, default=None)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument(
+        "--missing", type=float, default=0.0, help="probability a measurement is missing"
+    )
+    s.add_argument("--format", choices=["csv", "npz"], default="csv")
+    s.set_defaults(fn=_simulate)
+
+    s = sub.add_parser("info", help="describe a model bundle (or system:NAME)")
+    s.add_argument("model")
+    s.set_defaults(fn=_info)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``torchfilt`` command."""
+    args = _parser().parse_args(argv)
+    try:
+        return int(args.fn(args))
+    except (ValueError, TypeError, FileNotFoundError, KeyError) as e:
+        if args.debug:
+            raise
+        print(f"torchfilt {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"torchfilt {args.command}: interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,130 @@
+"""One figure per recording: states with bands and truth, measurements against their prediction, NIS."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from matplotlib.figure import Figure
+from torch import Tensor
+
+from torchfilt.filters import FilterResult, SmootherResult
+from torchfilt.plots._util import label, names, to_numpy
+from torchfilt.plots.estimates import Z95, nis_panel
+from torchfilt.plots.style import MEASUREMENT_COLOR, PALETTE, TRUTH_COLOR, style
+
+__all__ = ["plot_recording"]
+
+
+def plot_recording(
+    filtered: FilterResult,
+    *,
+    smoothed: SmootherResult | None = None,
+    times: Tensor | np.ndarray | None = None,
+    truth: Tensor | np.ndarray | None = None,
+    measurements: Tensor | np.ndarray | None = None,
+    state_names: Sequence[str] | None = None,
+    state_units: Sequence[str | None] | None = None,
+    measurement_names: Sequence[str] | None = None,
+    measurement_units: Sequence[str | None] | None = None,
+    time_unit: str | None = "s",
+    title: str | None = None,
+) -> Figure:
+    """A report figure for one filtered (and optionally smoothed) recording.
+
+    Rows: each state (filtered mean with its 95% band, the smoothed mean and band if given, truth
+    dashed if known); each measurement channel (the readings as dots, the predicted measurement
+    with the 95% band of the innovation covariance); the NIS against its 95% chi-square band.
+
+    Args:
+        filtered: the filter result of one sequence (``mean (T, n)``).
+        smoothed: the smoother result of the same sequence, if any.
+        times: times of the ``T`` steps.
+        truth: true states ``(T, n)``; rows that are all NaN are not drawn.
+        measurements: the measurements ``(T, m)`` (NaN where missing).
+        state_names, state_units, measurement_names, measurement_units: labels.
+        time_unit: unit of ``times``.
+        title: figure title.
+
+    Returns:
+        The figure.
+    """
+    mean = to_numpy(filtered.mean)
+    if mean.ndim != 2:
+        raise ValueError(f"plot_recording takes one sequence: mean (T, n), got {mean.shape}")
+    T, n = mean.shape
+    m = filtered.innovation.shape[-1]
+    t = np.arange(T, dtype=float) if times is None else to_numpy(times)
+    sn, mn = names("x", n, state_names), names("y", m, measurement_names)
+    su = list(state_units) if state_units is not None else [None] * n
+    mu = list(measurement_units) if measurement_units is not None else [None] * m
+    x_true = None if truth is None else to_numpy(truth)
+    if x_true is not None and not np.isfinite(x_true).any():
+        x_true = None
+    with style():
+        fig = Figure(figsize=(8.5, 1.9 * (n + m + 1) + 0.6))
+        axes = list(fig.subplots(n + m + 1, 1, sharex=True, squeeze=False)[:, 0])
+        sd = np.sqrt(np.clip(np.diagonal(to_numpy(filtered.cov), axis1=-2, axis2=-1), 0, None))
+        for i in range(n):
+            ax = axes[i]
+            ax.fill_between(
+                t,
+                mean[:, i] - Z95 * sd[:, i],
+                mean[:, i] + Z95 * sd[:, i],
+                color=PALETTE[0],
+                alpha=0.15,
+                linewidth=0,
+                label="filter 95%",
+            )
+            ax.plot(t, mean[:, i], color=PALETTE[0], label="filter")
+            if smoothed is not None:
+                ms = to_numpy(smoothed.mean)
+                ss = np.sqrt(
+                    np.clip(np.diagonal(to_numpy(smoothed.cov), axis1=-2, axis2=-1), 0, None)
+                )
+                ax.fill_between(
+                    t,
+                    ms[:, i] - Z95 * ss[:, i],
+                    ms[:, i] + Z95 * ss[:, i],
+                    color=PALETTE[1],
+                    alpha=0.18,
+                    linewidth=0,
+                    label="smoother 95%",
+                )
+                ax.plot(t, ms[:, i], color=PALETTE[1], label="smoother")
+            if x_true is not None:
+                ax.plot(
+                    t, x_true[:, i], color=TRUTH_COLOR, linestyle="--", linewidth=1.1, label="truth"
+                )
+            ax.set_ylabel(label(sn[i], su[i]))
+            ax.margins(x=0)
+        ym = to_numpy(filtered.measurement_mean)
+        ysd = np.sqrt(
+            np.clip(np.diagonal(to_numpy(filtered.innovation_cov), axis1=-2, axis2=-1), 0, None)
+        )
+        y = None if measurements is None else to_numpy(measurements)
+        for j in range(m):
+            ax = axes[n + j]
+            ax.fill_between(
+                t,
+                ym[:, j] - Z95 * ysd[:, j],
+                ym[:, j] + Z95 * ysd[:, j],
+                color=PALETTE[2],
+                alpha=0.18,
+                linewidth=0,
+                label="predicted 95%",
+            )
+            ax.plot(t, ym[:, j], color=PALETTE[2], label="predicted")
+            if y is not None:
+                ax.plot(t, y[:, j], ".", color=MEASUREMENT_COLOR, markersize=3.5, label="measured")
+            ax.set_ylabel(label(mn[j], mu[j]))
+            ax.margins(x=0)
+        nis_panel(axes[-1], filtered, t)
+        axes[-1].legend(loc="upper right", ncols=2)
+        axes[0].legend(loc="best", ncols=3)
+        if m:
+            axes[n].legend(loc="best", ncols=3)
+        axes[-1].set_xlabel(label("time", time_unit))
+        if title:
+            fig.suptitle(title)
+    return fig
