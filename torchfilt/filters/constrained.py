@@ -195,7 +195,7 @@ class ConstrainedCKF(GaussianFilter):
         ``innovation_cov`` come from the constrained update points, and ``log_likelihood`` is the
         Gaussian approximation ``sum_k log N(z_k; z-_k, P_zz)`` built from them.
         """
-        return self._run(y, u, x0, P0, mask, stacklevel=5)[0]
+        return self._run(y, u, x0, P0, mask, stacklevel=4)[0]
 
     def filter_with_info(
         self,
@@ -207,7 +207,7 @@ class ConstrainedCKF(GaussianFilter):
         mask: Tensor | None = None,
     ) -> tuple[FilterResult, ConstrainedInfo]:
         """:meth:`filter`, plus the solver's iterations and status per step and point."""
-        return self._run(y, u, x0, P0, mask, stacklevel=5)
+        return self._run(y, u, x0, P0, mask, stacklevel=4)
 
     def smooth(
         self,

@@ -25,7 +25,9 @@ Stopping rule (the stated tolerance): with ``d0`` the undamped step,
 
 is twice the cost decrease the Gauss-Newton model predicts, i.e. ``sqrt(delta)`` is the remaining
 step length in the ``J^T J`` metric. A problem has converged when ``sqrt(delta) <= tol`` or when
-``delta / 2 <= ROUNDOFF * eps * F`` (the predicted decrease is below the cost's round-off).
+``delta / 2 <= ROUNDOFF * eps * F`` (the predicted decrease is below the cost's round-off) or an
+accepted step changes no coordinate by more than ``ROUNDOFF * eps * |x_j|`` (the step is below
+the resolution of ``x``, as happens for priors whose precision spans the whole float range).
 """
 
 from __future__ import annotations
@@ -81,7 +83,7 @@ class SolverStatus(IntEnum):
     MAX_ITER = 0
     #: ``sqrt(delta) <= tol``.
     CONVERGED = 1
-    #: The predicted decrease is below the round-off of the cost.
+    #: The predicted decrease, or the step, is below floating-point resolution.
     ROUNDOFF = 2
 
 
@@ -159,19 +161,27 @@ def _evaluate(residual: Residual, jacobian: Residual | None, x: Tensor) -> tuple
     return r.detach(), J.detach()
 
 
-def _reduced_factor(A: Tensor, free: Tensor, extra: Tensor) -> Tensor:
-    """Cholesky factor of ``A`` on the free block plus ``extra`` there, identity elsewhere."""
+def _reduced_solve(A: Tensor, dA: Tensor, free: Tensor, rhs: Tensor, mu: Tensor | None) -> Tensor:
+    """Solve ``(A_FF + mu diag(A_FF)) d_F = rhs_F`` (``d = 0`` off the free set).
+
+    The system is Jacobi-scaled first (``D^{-1/2} A D^{-1/2}``, ``D = diag(A)``), so its
+    conditioning is that of the correlations, not of the variables' units (a filter's prior
+    precision easily spans 1e17); a relative ridge of ``eps`` keeps a rank-deficient block solvable.
+    """
+    eps = torch.finfo(A.dtype).eps
+    sc = dA.rsqrt()
+    As = A * sc.unsqueeze(-1) * sc.unsqueeze(-2)
     ff = free.unsqueeze(-1) & free.unsqueeze(-2)
-    M = torch.where(ff, A, torch.zeros_like(A))
-    M = M + torch.diag_embed(torch.where(free, extra, torch.ones_like(extra)))
+    ridge = eps if mu is None else eps + mu.unsqueeze(-1)
+    diag = torch.where(free, ridge + torch.zeros_like(dA), torch.ones_like(dA))
+    M = torch.where(ff, As, torch.zeros_like(As)) + torch.diag_embed(diag)
     L, info = torch.linalg.cholesky_ex(M)
-    if bool((info > 0).any()):
-        # rank-deficient free block: a larger ridge (relative to the element's scale)
-        bump = extra.amax(-1, keepdim=True) * 1e6 + torch.finfo(A.dtype).tiny
-        M2 = M + torch.diag_embed(torch.where(free, bump.expand_as(extra), torch.zeros_like(extra)))
-        L2, _ = torch.linalg.cholesky_ex(M2)
+    if bool((info > 0).any()):  # numerically singular free block: a larger relative ridge
+        bump = torch.where(free, math.sqrt(eps) + torch.zeros_like(dA), torch.zeros_like(dA))
+        L2, _ = torch.linalg.cholesky_ex(M + torch.diag_embed(bump))
         L = torch.where((info > 0)[..., None, None], L2, L)
-    return L
+    y = torch.cholesky_solve((sc * torch.where(free, rhs, torch.zeros_like(rhs))).unsqueeze(-1), L)
+    return sc * y.squeeze(-1)
 
 
 def bounded_least_squares(
@@ -276,13 +286,13 @@ def bounded_least_squares(
             g = torch.where(finite.unsqueeze(-1), g, torch.zeros_like(g))
             A = torch.where(finite[..., None, None], A, torch.eye(n, dtype=dtype, device=x.device))
             diag = A.diagonal(dim1=-2, dim2=-1)
+            # a zero column (x_j does not enter the residual) borrows the largest curvature
             scale = diag.amax(-1, keepdim=True).clamp_min(torch.finfo(dtype).tiny)
-            dA = torch.maximum(diag, eps * scale)
+            dA = torch.where(diag > 0, diag, scale)
             s = g / dA
             bind = ((g > 0) & (x - lo <= s)) | ((g < 0) & (hi - x <= -s))
             free = bind.logical_not()
-            L0 = _reduced_factor(A, free, eps * scale.expand_as(dA))
-            d0 = torch.cholesky_solve(torch.where(free, -g, 0.0).unsqueeze(-1), L0).squeeze(-1)
+            d0 = _reduced_solve(A, dA, free, -g, None)
             xb = torch.clamp(x - s, lo, hi)
             delta = -(torch.where(free, g * d0, 0.0)).sum(-1) + torch.where(
                 bind, g * (x - xb), 0.0
@@ -303,8 +313,7 @@ def bounded_least_squares(
             if not bool(stepping.any()):
                 break
             if bool((mu > 0).any()):
-                L = _reduced_factor(A, free, eps * scale.expand_as(dA) + mu.unsqueeze(-1) * dA)
-                d = torch.cholesky_solve(torch.where(free, -g, 0.0).unsqueeze(-1), L).squeeze(-1)
+                d = _reduced_solve(A, dA, free, -g, mu)
                 d = torch.where(conv.unsqueeze(-1), d0, d)
             else:
                 d = d0
@@ -344,7 +353,11 @@ def bounded_least_squares(
             mu = torch.where(mu < MU_MIN, torch.zeros_like(mu), mu)
             stalled = need & (mu > MU_MAX)
             status = torch.where(stalled, int(SolverStatus.STALLED), status)
-            done = done | stalled | conv
+            # an accepted step below the resolution of x: no further progress is representable
+            frozen = moving & need.logical_not()
+            frozen = frozen & ((x_new - x).abs() <= ROUNDOFF * eps * x.abs()).all(-1)
+            status = torch.where(frozen, int(SolverStatus.ROUNDOFF), status)
+            done = done | stalled | conv | frozen
             iters = iters + moving.long()
             x, F = x_new, F_new
             if bool(done.all()) or it == max_iter:
