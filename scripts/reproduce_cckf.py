@@ -128,9 +128,11 @@ def evaluate(truth: torch.Tensor, res: FilterResult, info: Any) -> dict[str, Any
     return out
 
 
-def reaction_case(start: str, runs: int, seed: int) -> tuple[dict, dict, dict, torch.Tensor]:
+def reaction_case(
+    start: str, runs: int, seed: int, steps: int = reaction.STEPS
+) -> tuple[dict, dict, dict, torch.Tensor]:
     """Run every filter on ``runs`` simulations of ``start``; metrics, errors, results, truth."""
-    sim = reaction.simulate_truth(runs, start=start, seed=seed)  # type: ignore[arg-type]
+    sim = reaction.simulate_truth(runs, start=start, seed=seed, steps=steps)  # type: ignore[arg-type]
     metrics, errors, results = {}, {}, {}
     for name, fn in reaction_filters(start).items():
         t0 = time.perf_counter()
@@ -279,10 +281,11 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("--runs", type=int, default=100, help="Monte Carlo runs per 2A->B start")
+    ap.add_argument("--steps", type=int, default=reaction.STEPS, help="2A->B steps (>= 40)")
     ap.add_argument("--reentry-runs", type=int, default=1000, help="re-entry runs (>= 100)")
     ap.add_argument("--seed", type=int, default=0, help="base seed (start k uses seed + k)")
     ap.add_argument("--out", type=Path, default=Path("out/cckf"))
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=1, help="intra-op threads")
     ap.add_argument("--skip-reentry", action="store_true")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -296,7 +299,7 @@ def main(argv: list[str] | None = None) -> int:
         "hr": "H&R start: x0 = [3, 1], prior [0.1, 4.5]",
     }
     for k, start in enumerate(("paper", "hr")):
-        metrics, errors, results, truth = reaction_case(start, args.runs, args.seed + k)
+        metrics, errors, results, truth = reaction_case(start, args.runs, args.seed + k, args.steps)
         cases[start] = metrics
         targets[start] = check_targets(metrics)
         headers = [
@@ -328,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
         ]
         print(
             f"\n2A -> B, {titles[start]}; {args.runs} runs, seed {args.seed + k}, "
-            f"T = {reaction.STEPS}, n = 2"
+            f"T = {args.steps}, n = 2"
         )
         print(table(headers, rows, fmt="{:.3g}"))
         print(
@@ -340,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
             path = args.out / f"{name}_{start}.png"
             fig.savefig(path)
             figures.append(path.name)
-        times = torch.arange(1, reaction.STEPS + 1, dtype=torch.float64) * reaction.DT
+        times = torch.arange(1, args.steps + 1, dtype=torch.float64) * reaction.DT
         fig = plot_errors(
             {n.replace(f", theta {DEFAULT_THETA}", ""): errors[n] for n in LINES},
             times=times,
@@ -367,7 +370,7 @@ def main(argv: list[str] | None = None) -> int:
         "experiment": "cckf",
         "runs": args.runs,
         "seed": args.seed,
-        "steps": reaction.STEPS,
+        "steps": args.steps,
         "first_window": FIRST,
         "diverged_error": DIVERGED_ERROR,
         "reaction": cases,

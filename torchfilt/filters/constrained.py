@@ -142,9 +142,9 @@ class ConstrainedCKF(GaussianFilter):
         max_iter: NDDR solver iteration limit.
 
     Example:
-        >>> import torch, torchfilt
+        >>> from torchfilt.filters import ConstrainedCKF
         >>> from torchfilt.systems import reaction
-        >>> filt = torchfilt.ConstrainedCKF(reaction.model(), lower=[0.0, 0.0], upper=[100.0, 100.0])
+        >>> filt = ConstrainedCKF(reaction.model(), lower=[0.0, 0.0], upper=[100.0, 100.0])
         >>> sim = reaction.simulate_truth(runs=4, seed=0)
         >>> res = filt.filter(sim.measurements, x0=reaction.prior_mean(), P0=reaction.prior_cov())
         >>> bool((res.mean >= 0).all())

@@ -148,10 +148,13 @@ def batched_jacobian(
     return (r, J) if create_graph else (r.detach(), J.detach())
 
 
-def _evaluate(residual: Residual, jacobian: Residual | None, x: Tensor) -> tuple[Tensor, Tensor]:
+def _evaluate(
+    residual: Residual, jacobian: Residual | None, x: Tensor, r: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    """Residual and Jacobian at ``x`` (``r``: the residual there, if already known)."""
     if jacobian is None:
         return batched_jacobian(residual, x)
-    r = residual(x)
+    r = residual(x) if r is None else r
     J = jacobian(x)
     if J.shape != (*r.shape, x.shape[-1]):
         raise ShapeError(
@@ -265,8 +268,9 @@ def bounded_least_squares(
                 f"residual batch shape {tuple(r.shape[:-1])}, x0 {tuple(x.shape[:-1])} and "
                 f"bounds {tuple(box.batch_shape)} do not broadcast"
             ) from None
+        expanded = x.shape[:-1] != batch
         x = x.expand(*batch, n).clone()
-        r, J = _evaluate(residual, jacobian, x)
+        r, J = _evaluate(residual, jacobian, x, None if expanded else r)
         lo, hi = lo_in.detach().expand(*batch, n), hi_in.detach().expand(*batch, n)
         status = torch.full(batch, int(SolverStatus.MAX_ITER), dtype=torch.long, device=x.device)
         iters = torch.zeros(batch, dtype=torch.long, device=x.device)
