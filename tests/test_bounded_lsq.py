@@ -315,6 +315,8 @@ def test_argument_errors():
         bounded_least_squares(
             lambda x: torch.zeros(3, 2, dtype=D) + x.sum(), torch.zeros(4, 2, dtype=D)
         )
+    with pytest.raises(ValueError, match="tol must be positive"):
+        bounded_least_squares(lambda x: x, torch.zeros(2, dtype=D), tol=0.0)
     with pytest.raises(ShapeError, match="jacobian returned shape"):
         bounded_least_squares(
             lambda x: x, torch.zeros(2, dtype=D), jacobian=lambda x: torch.eye(3, dtype=D)

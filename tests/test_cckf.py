@@ -282,6 +282,23 @@ def test_constant_model_variances_equal_extra_noise():
     assert torch.allclose(a.cov, b.cov, rtol=REF_RTOL, atol=REF_ATOL)
 
 
+def test_point_variance_at_the_mean():
+    """point_variance="mean": one variance, at the (projected) mean, for every point: with a
+    variance that does not depend on x it equals "total"; with one that does, it differs."""
+    p = linear_problem(14, m=1)
+    box = (t([-1.0, -1.0, -1.0]), t([1.0, 1.0, 1.0]))
+    kw = dict(x0=t(p["m0"]), P0=t(p["P0"]))
+    res = {}
+    for b in (0.0, 0.5):
+        h = VarianceModel(t(p["H"]), 0.1, b)
+        model = StateSpaceModel(lambda x: x @ t(p["A"]).mT, h, Q=t(p["Q"]), R=t(p["R"]))
+        for mode in ("total", "mean"):
+            filt = ConstrainedCKF(model, *box, covariance="corrected", point_variance=mode)
+            res[b, mode] = filt.filter(t(p["y"]), **kw)
+    assert torch.allclose(res[0.0, "mean"].mean, res[0.0, "total"].mean, rtol=0, atol=TIGHT)
+    assert not torch.allclose(res[0.5, "mean"].mean, res[0.5, "total"].mean, rtol=0, atol=1e-6)
+
+
 def test_per_point_transition_variance_in_the_prediction():
     """P- = spread + sum_i omega_i V_f(X_i) + Q, with the constrained weights."""
     from torchfilt.cubature import constrained_points

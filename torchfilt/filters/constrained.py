@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Sequence
-from typing import Literal, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import torch
 from torch import Tensor
@@ -209,15 +209,7 @@ class ConstrainedCKF(GaussianFilter):
         """:meth:`filter`, plus the solver's iterations and status per step and point."""
         return self._run(y, u, x0, P0, mask, stacklevel=4)
 
-    def smooth(
-        self,
-        y: Tensor,
-        u: Tensor | None = None,
-        *,
-        x0: Tensor,
-        P0: Tensor,
-        mask: Tensor | None = None,
-    ) -> SmootherResult:
+    def smooth(self, *args: Any, **kwargs: Any) -> SmootherResult:
         """Not available: the RTS smoother would not keep the smoothed means inside the box."""
         raise NotImplementedError(
             "ConstrainedCKF has no smoother: a Rauch-Tung-Striebel pass would not respect the bounds"

@@ -256,6 +256,8 @@ def bounded_least_squares(
     dtype = x0.dtype
     eps = torch.finfo(dtype).eps
     tol = math.sqrt(eps) if tol is None else float(tol)
+    if not tol > 0:
+        raise ValueError(f"tol must be positive, got {tol}")
     lo_in, hi_in = box.lower.to(x0), box.upper.to(x0)
 
     with torch.no_grad():
