@@ -396,12 +396,15 @@ class ConstrainedCKF(GaussianFilter):
             L_R, torch.eye(m, dtype=mean.dtype, device=mean.device), upper=False
         )  # (..., 1 or 2n, m, m)
 
+        ones_n, ones_m = mean.new_ones(n), mean.new_ones(m)
+
         def h_mean(x: Tensor) -> Tensor:
             return h.predict(x, uP).mean
 
         def residual(x: Tensor) -> Tensor:  # (..., 2n, n) -> (..., 2n, n + m)
-            rp = (W_P * (x - Xu).unsqueeze(-2)).sum(-1)
-            rm = (W_R * ((z - h_mean(x)) * o).unsqueeze(-2)).sum(-1)
+            # W v as (W * v) @ 1: much faster than a batched matmul for tiny matrices on CPU
+            rp = (W_P * (x - Xu).unsqueeze(-2)) @ ones_n
+            rm = (W_R * ((z - h_mean(x)) * o).unsqueeze(-2)) @ ones_m
             return torch.cat([rp, rm], dim=-1)
 
         def jacobian(x: Tensor) -> Tensor:  # (..., 2n, n + m, n); autograd only through h

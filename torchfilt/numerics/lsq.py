@@ -42,6 +42,7 @@ import torch
 from torch import Tensor
 
 from torchfilt.exceptions import ConvergenceWarning, ShapeError
+from torchfilt.numerics import small
 from torchfilt.numerics.box import Box
 
 __all__ = [
@@ -164,6 +165,31 @@ def _evaluate(
     return r.detach(), J.detach()
 
 
+#: Up to this many residuals, J^T J and J^T r are formed as sums of outer products (torch's batched
+#: products and last-dimension reductions of tiny matrices are an order of magnitude slower on CPU).
+SMALL_K = 8
+
+
+def _dot(a: Tensor, b: Tensor) -> Tensor:
+    """``sum_j a_j b_j`` over the last dimension (broadcasting), shape ``(...)``."""
+    p = a * b
+    return p @ p.new_ones(p.shape[-1])
+
+
+def _normal_equations(J: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
+    """``A = J^T J`` ``(..., n, n)`` and ``g = J^T r`` ``(..., n)`` for ``J (..., k, n)``."""
+    k = J.shape[-2]
+    if k > SMALL_K:
+        return J.mT @ J, (J.mT @ r.unsqueeze(-1)).squeeze(-1)
+    A = J[..., 0, :, None] * J[..., 0, None, :]
+    g = J[..., 0, :] * r[..., :1]
+    for i in range(1, k):
+        Ji = J[..., i, :]
+        A = A + Ji.unsqueeze(-1) * Ji.unsqueeze(-2)
+        g = g + Ji * r[..., i : i + 1]
+    return A, g
+
+
 def _reduced_solve(A: Tensor, dA: Tensor, free: Tensor, rhs: Tensor, mu: Tensor | None) -> Tensor:
     """Solve ``(A_FF + mu diag(A_FF)) d_F = rhs_F`` (``d = 0`` off the free set).
 
@@ -178,12 +204,12 @@ def _reduced_solve(A: Tensor, dA: Tensor, free: Tensor, rhs: Tensor, mu: Tensor 
     ridge = eps if mu is None else eps + mu.unsqueeze(-1)
     diag = torch.where(free, ridge + torch.zeros_like(dA), torch.ones_like(dA))
     M = torch.where(ff, As, torch.zeros_like(As)) + torch.diag_embed(diag)
-    L, info = torch.linalg.cholesky_ex(M)
+    L, info = small.cholesky_ex(M)
     if bool((info > 0).any()):  # numerically singular free block: a larger relative ridge
         bump = torch.where(free, math.sqrt(eps) + torch.zeros_like(dA), torch.zeros_like(dA))
-        L2, _ = torch.linalg.cholesky_ex(M + torch.diag_embed(bump))
+        L2, _ = small.cholesky_ex(M + torch.diag_embed(bump))
         L = torch.where((info > 0)[..., None, None], L2, L)
-    y = torch.cholesky_solve((sc * torch.where(free, rhs, torch.zeros_like(rhs))).unsqueeze(-1), L)
+    y = small.cholesky_solve((sc * torch.where(free, rhs, torch.zeros_like(rhs))).unsqueeze(-1), L)
     return sc * y.squeeze(-1)
 
 
@@ -279,10 +305,9 @@ def bounded_least_squares(
         mu = torch.zeros(batch, dtype=dtype, device=x.device)
         done = torch.zeros(batch, dtype=torch.bool, device=x.device)
         opt = torch.zeros(batch, dtype=dtype, device=x.device)
-        F = 0.5 * (r * r).sum(-1)
+        F = 0.5 * _dot(r, r)
         for it in range(max_iter + 1):
-            g = (J.mT @ r.unsqueeze(-1)).squeeze(-1)
-            A = J.mT @ J
+            A, g = _normal_equations(J, r)
             finite = (
                 torch.isfinite(F) & torch.isfinite(g).all(-1) & torch.isfinite(A).all(-1).all(-1)
             )
@@ -300,9 +325,7 @@ def bounded_least_squares(
             free = bind.logical_not()
             d0 = _reduced_solve(A, dA, free, -g, None)
             xb = torch.clamp(x - s, lo, hi)
-            delta = -(torch.where(free, g * d0, 0.0)).sum(-1) + torch.where(
-                bind, g * (x - xb), 0.0
-            ).sum(-1)
+            delta = _dot(g, torch.where(bind, x - xb, -d0))
             delta = delta.clamp_min(0.0)
             opt = torch.where(done, opt, delta.sqrt())
             by_tol = delta.sqrt() <= tol
@@ -332,8 +355,8 @@ def bounded_least_squares(
             for bt in range(max_backtracks):
                 xt = torch.clamp(x + alpha.unsqueeze(-1) * d, lo, hi)
                 rt = residual(xt)
-                Ft = 0.5 * (rt * rt).sum(-1).expand(batch)
-                armijo = Ft <= F + ARMIJO * (g * (xt - x)).sum(-1)
+                Ft = 0.5 * _dot(rt, rt).expand(batch)
+                armijo = Ft <= F + ARMIJO * _dot(g, xt - x)
                 polish = Ft <= F + ROUNDOFF * eps * F.abs()
                 ok = need & torch.isfinite(Ft) & torch.where(conv, polish, armijo)
                 x_new = torch.where(ok.unsqueeze(-1), xt, x_new)
@@ -347,9 +370,7 @@ def bounded_least_squares(
             moving = stepping & conv.logical_not()
             # gain ratio of the accepted step: actual over model-predicted decrease
             step = x_new - x
-            pred = -(
-                (g * step).sum(-1) + 0.5 * (step * (A @ step.unsqueeze(-1)).squeeze(-1)).sum(-1)
-            )
+            pred = -(_dot(g, step) + 0.5 * _dot(step, _dot(A, step.unsqueeze(-2))))
             gain = (F - F_new) / pred.clamp_min(torch.finfo(dtype).tiny)
             mu = torch.where(
                 full & (gain > GAIN_HIGH),
@@ -369,7 +390,7 @@ def bounded_least_squares(
             if bool(done.all()) or it == max_iter:
                 break
             r, J = _evaluate(residual, jacobian, x)
-            F = 0.5 * (r * r).sum(-1)
+            F = 0.5 * _dot(r, r)
 
     x = _attach_gradient(residual, jacobian, x, lo_in, hi_in)
     if warn and not bool((status > 0).all()):
