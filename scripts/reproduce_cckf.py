@@ -210,7 +210,10 @@ def reentry_case(
         with torch.no_grad(), warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", torchfilt.NumericsWarning)
             res, info = fn()
-        s = summarize_reentry(truth, res)
+        with warnings.catch_warnings(record=True) as jitter:  # NEES of near-singular covariances
+            warnings.simplefilter("always", torchfilt.CholeskyJitterWarning)
+            s = summarize_reentry(truth, res)
+        s["nees_jittered_covariances"] = len(jitter)
         finite = torch.isfinite(res.mean).all(-1).all(-1)
         late_alt = (res.mean[..., -10:, 0] - truth[..., -10:, 0]).abs().mean(-1)
         lost = finite & ~(late_alt <= LOST_ALTITUDE_ERROR)
