@@ -7,6 +7,7 @@ from __future__ import annotations
 
 __all__ = [
     "CholeskyJitterWarning",
+    "ConvergenceWarning",
     "DivergenceWarning",
     "NotDetectableError",
     "NumericsWarning",
@@ -25,6 +26,10 @@ class NumericsWarning(TorchfiltWarning, RuntimeWarning):
 
 class CholeskyJitterWarning(NumericsWarning):
     """A matrix was not numerically positive definite and jitter was added to factor it."""
+
+
+class ConvergenceWarning(NumericsWarning):
+    """An iterative solver stopped before meeting its tolerance for some problems of a batch."""
 
 
 class DivergenceWarning(NumericsWarning):

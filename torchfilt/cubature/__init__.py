@@ -6,6 +6,7 @@ CKF with :class:`UnscentedRule` is the UKF and with :class:`GaussHermiteRule` th
 filter.
 """
 
+from torchfilt.cubature.constrained import ConstrainedPoints, constrained_points
 from torchfilt.cubature.rules import (
     CubatureRule,
     GaussHermiteRule,
@@ -15,9 +16,11 @@ from torchfilt.cubature.rules import (
 )
 
 __all__ = [
+    "ConstrainedPoints",
     "CubatureRule",
     "GaussHermiteRule",
     "SphericalRadialRule",
     "UnscentedRule",
+    "constrained_points",
     "sigma_points",
 ]

@@ -1,5 +1,6 @@
 """Filters and smoothers: the batched cubature Gaussian filter, RTS smoothing and metrics."""
 
+from torchfilt.filters.constrained import ConstrainedCKF, ConstrainedInfo
 from torchfilt.filters.gaussian import CKF, GaussianFilter
 from torchfilt.filters.metrics import coverage, nees, nis, rmse
 from torchfilt.filters.results import FilterResult, SmootherResult
@@ -7,6 +8,8 @@ from torchfilt.filters.smoother import rts_smooth
 
 __all__ = [
     "CKF",
+    "ConstrainedCKF",
+    "ConstrainedInfo",
     "FilterResult",
     "GaussianFilter",
     "SmootherResult",

@@ -56,12 +56,15 @@ class _Step(NamedTuple):
 
 
 def _point_noise(pred: Prediction, wc: Tensor) -> Tensor | None:
-    """``sum_i wc_i V(X_i)`` as a matrix ``(..., d, d)``, or None when the model has none."""
+    """``sum_i wc_i V(X_i)`` as a matrix ``(..., d, d)``, or None when the model has none.
+
+    ``wc`` is ``(P,)`` or batched ``(..., P)``.
+    """
     out = None
     if pred.var is not None:
-        out = torch.diag_embed(wc @ pred.var)
+        out = torch.diag_embed(torch.einsum("...p,...pd->...d", wc, pred.var))
     if pred.cov is not None:
-        c = torch.einsum("p,...pij->...ij", wc, pred.cov)
+        c = torch.einsum("...p,...pij->...ij", wc, pred.cov)
         out = c if out is None else out + c
     return out
 
@@ -360,7 +363,14 @@ class GaussianFilter(nn.Module):
             unaffected.
         """
         inp = self._check(y, u, x0, P0, mask)
+        outs = self._scan(inp, self._step_fn)
+        return self._assemble(inp, outs, stacklevel=3)
+
+    def _scan(self, inp: _Inputs, step_fn: Callable[..., _Step]) -> list[_Step]:
+        """Run ``step_fn`` over time from the prior, handing it each step's data and noise."""
         T = inp.y.shape[-2]
+        if T == 0:
+            raise ShapeError("y: the time dimension T must be at least 1")
         mean, cov = inp.x0, inp.P0
         sqrt = safe_cholesky(cov, name="P0")
         f, h = self.model.transition, self.model.measurement
@@ -382,17 +392,19 @@ class GaussianFilter(nn.Module):
             else:
                 R, Rs = const_R, const_Rs
             ut = None if inp.u is None else inp.u[..., t, :]
-            st = self._step_fn(
+            st = step_fn(
                 *pts, mean, cov, sqrt, inp.y[..., t, :], inp.obs[..., t, :], ut, Q, Qs, R, Rs
             )
             outs.append(st)
             mean, cov, sqrt = st.mean, st.cov, st.sqrt
+        return outs
+
+    def _assemble(self, inp: _Inputs, outs: list[_Step], *, stacklevel: int) -> FilterResult:
+        """Stack per-step outputs into a :class:`FilterResult`; warn about non-finite sequences."""
 
         def stack(i: int, dim: int) -> Tensor:
             return torch.stack([o[i] for o in outs], dim=dim)
 
-        if T == 0:
-            raise ShapeError("y: the time dimension T must be at least 1")
         res = FilterResult(
             mean=stack(0, -2),
             cov=stack(1, -3),
@@ -412,7 +424,7 @@ class GaussianFilter(nn.Module):
                 f"{bad} of {finite.numel()} sequences produced non-finite estimates "
                 "(covariance lost definiteness or the model returned non-finite values)",
                 DivergenceWarning,
-                stacklevel=2,
+                stacklevel=stacklevel,
             )
         return res
 

@@ -4,12 +4,19 @@ Nothing here knows about filters or models. Shapes follow the ``(..., n, n)`` co
 number of leading batch dimensions.
 """
 
+from torchfilt.numerics.box import Box
 from torchfilt.numerics.linalg import (
     cholesky_ok,
     psd_solve,
     safe_cholesky,
     symmetrize,
     tria,
+)
+from torchfilt.numerics.lsq import (
+    LeastSquaresResult,
+    SolverStatus,
+    batched_jacobian,
+    bounded_least_squares,
 )
 from torchfilt.numerics.riccati import (
     SteadyStateKalman,
@@ -21,7 +28,12 @@ from torchfilt.numerics.small import cholesky_solve, solve_tril
 from torchfilt.numerics.stats import chi2_quantile, gaussian_log_prob
 
 __all__ = [
+    "Box",
+    "LeastSquaresResult",
+    "SolverStatus",
     "SteadyStateKalman",
+    "batched_jacobian",
+    "bounded_least_squares",
     "check_detectable",
     "chi2_quantile",
     "cholesky_ok",

@@ -45,6 +45,7 @@ def safe_cholesky(
     max_tries: int = MAX_JITTER_TRIES,
     on_failure: Literal["nan", "raise"] = "nan",
     name: str = "matrix",
+    warn: bool = True,
 ) -> Tensor:
     """Lower Cholesky factor of symmetric positive (semi-)definite matrices, adding jitter if needed.
 
@@ -62,6 +63,8 @@ def safe_cholesky(
         max_tries: number of jitter retries.
         on_failure: ``"nan"`` or ``"raise"``.
         name: name of the matrix in warnings and errors.
+        warn: emit the jitter warning (``False`` where a singular ``A`` is a legitimate result,
+            e.g. a covariance that is exactly singular by construction).
 
     Returns:
         Lower-triangular ``L`` with ``L L^T = A (+ jitter I)``, shape ``(..., n, n)``.
@@ -92,7 +95,7 @@ def safe_cholesky(
             used = max(used, rel)
         retry = retry & ~ok
     failed = retry | ~finite
-    if used > 0.0:
+    if used > 0.0 and warn:
         warnings.warn(
             f"{name} was not numerically positive definite; added diagonal jitter up to "
             f"{used:.1e} x mean|diag| to factor it",
