@@ -40,10 +40,12 @@ lint: $(STAMP)
 	$(BIN)/mypy
 
 bench: $(STAMP)
-	$(BIN)/python scripts/bench_filter.py --out $(OUT)/bench_filter
+	$(BIN)/python scripts/bench_filter.py --cckf --out $(OUT)/bench_filter
 
 reproduce: $(STAMP)
 	$(BIN)/python scripts/reproduce_reentry.py --out $(OUT)/reentry
+	$(BIN)/python scripts/reproduce_cckf.py --out $(OUT)/cckf
+	$(BIN)/python scripts/reproduce_dmc.py --out $(OUT)/dmc
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache .ruff_cache .mypy_cache .hypothesis

@@ -175,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.cckf:
         from bench_cckf import run_cckf_benchmark  # type: ignore[import-not-found]
 
-        cckf = run_cckf_benchmark(threads=args.threads)
+        cckf = run_cckf_benchmark(repeats=max(3, args.repeats))
 
     fp_rate = rows[0]["sequence_steps_per_s"]
     for r in rows:

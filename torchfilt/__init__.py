@@ -17,6 +17,7 @@ from torchfilt.dmc import (
 )
 from torchfilt.exceptions import (
     CholeskyJitterWarning,
+    ConvergenceWarning,
     DivergenceWarning,
     NotDetectableError,
     NumericsWarning,
@@ -24,6 +25,8 @@ from torchfilt.exceptions import (
 )
 from torchfilt.filters import (
     CKF,
+    ConstrainedCKF,
+    ConstrainedInfo,
     FilterResult,
     GaussianFilter,
     SmootherResult,
@@ -40,7 +43,14 @@ from torchfilt.models import (
     StateSpaceModel,
     TimeVarying,
 )
-from torchfilt.numerics import solve_dare, steady_state_kalman
+from torchfilt.numerics import (
+    Box,
+    LeastSquaresResult,
+    SolverStatus,
+    bounded_least_squares,
+    solve_dare,
+    steady_state_kalman,
+)
 from torchfilt.systems import simulate
 
 __version__ = "0.1.0"
@@ -49,14 +59,19 @@ __all__ = [
     "CKF",
     "FOPDT",
     "IPDT",
+    "Box",
     "CholeskyJitterWarning",
     "ConditionalModel",
+    "ConstrainedCKF",
+    "ConstrainedInfo",
+    "ConvergenceWarning",
     "DMCController",
     "DivergenceWarning",
     "FilterResult",
     "GaussHermiteRule",
     "GaussianFilter",
     "LMGPredictor",
+    "LeastSquaresResult",
     "LinearGaussianModel",
     "NotDetectableError",
     "NumericsWarning",
@@ -64,11 +79,13 @@ __all__ = [
     "Prediction",
     "ShapeError",
     "SmootherResult",
+    "SolverStatus",
     "SphericalRadialRule",
     "StateSpaceModel",
     "StepResponseModel",
     "TimeVarying",
     "UnscentedRule",
+    "bounded_least_squares",
     "coverage",
     "cubature",
     "dmc",

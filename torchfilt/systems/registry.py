@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from torchfilt.models import StateSpaceModel
-from torchfilt.systems import pendulum, reentry
+from torchfilt.systems import pendulum, reaction, reentry
 
 __all__ = ["SYSTEMS", "SystemSpec", "get_system"]
 
@@ -74,6 +74,13 @@ def _pendulum_initial(runs: int, gen: torch.Generator) -> Tensor:
     )
 
 
+def _reaction_initial(runs: int, gen: torch.Generator) -> Tensor:
+    """Partial pressures drawn uniformly in [0.5, 10] x [0.5, 5] (covers both papers' starts)."""
+    lo = torch.tensor([0.5, 0.5], dtype=torch.float64)
+    hi = torch.tensor([10.0, 5.0], dtype=torch.float64)
+    return lo + (hi - lo) * torch.rand(runs, 2, generator=gen, dtype=torch.float64)
+
+
 SYSTEMS: dict[str, SystemSpec] = {
     "reentry": SystemSpec(
         name="reentry",
@@ -86,6 +93,18 @@ SYSTEMS: dict[str, SystemSpec] = {
         initial=_reentry_initial,
         prior_mean=lambda: torch.tensor(reentry.PRIOR_MEAN, dtype=torch.float64),
         prior_cov=reentry.prior_cov,
+    ),
+    "reaction": SystemSpec(
+        name="reaction",
+        description="gas-phase reaction 2A -> B, total pressure measured (Liu, Zhang & Chu 2018)",
+        model=reaction.model,
+        states=[("PA", "atm"), ("PB", "atm")],
+        measurements=[("pressure", "atm")],
+        sample_time=reaction.DT,
+        steps=reaction.STEPS,
+        initial=_reaction_initial,
+        prior_mean=lambda: reaction.prior_mean("paper"),
+        prior_cov=reaction.prior_cov,
     ),
     "pendulum": SystemSpec(
         name="pendulum",
