@@ -94,7 +94,10 @@ def sigma_points(mean: Tensor, sqrt: Tensor, xi: Tensor) -> Tensor:
     Returns:
         Points, shape ``(..., P, n)``.
     """
-    return mean.unsqueeze(-2) + xi @ sqrt.mT
+    # Stored component-major: X[..., i] (one state component of every point) is contiguous, so
+    # models that index x[..., i] work on contiguous vectors (which torch.compile vectorises).
+    Xt = mean.movedim(-1, 0).unsqueeze(-1) + (sqrt @ xi.mT).movedim(-2, 0)  # (n, ..., P)
+    return Xt.movedim(0, -1)
 
 
 class SphericalRadialRule(CubatureRule):
