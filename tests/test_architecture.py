@@ -7,6 +7,7 @@ PKG = Path(__file__).resolve().parents[1] / "torchfilt"
 
 #: numerics -> cubature -> models -> filters -> systems/dmc -> io -> training/plots -> pipeline -> cli
 LAYERS = {
+    "_version": 0,
     "exceptions": 0,
     "numerics": 1,
     "cubature": 2,

@@ -6,6 +6,7 @@ Layers (each imports only from those before it):
 """
 
 from torchfilt import cubature, dmc, exceptions, filters, models, numerics, systems
+from torchfilt._version import __version__
 from torchfilt.cubature import GaussHermiteRule, SphericalRadialRule, UnscentedRule
 from torchfilt.dmc import (
     FOPDT,
@@ -53,8 +54,6 @@ from torchfilt.numerics import (
 )
 from torchfilt.systems import simulate
 
-__version__ = "0.1.0"
-
 __all__ = [
     "CKF",
     "FOPDT",
@@ -85,6 +84,7 @@ __all__ = [
     "StepResponseModel",
     "TimeVarying",
     "UnscentedRule",
+    "__version__",
     "bounded_least_squares",
     "coverage",
     "cubature",

@@ -6,7 +6,7 @@ or reference, when the log has it), an ``input`` or a ``measurement`` (NaN = not
 See ``data/FORMAT.md`` for the file format.
 """
 
-from torchfilt.io.atomic import atomic_write_bytes, atomic_write_text, sha256_file
+from torchfilt.io.atomic import atomic_write, atomic_write_bytes, atomic_write_text, sha256_file
 from torchfilt.io.dataset import Dataset, load_dataset
 from torchfilt.io.errors import DataError
 from torchfilt.io.manifest import ROLES, Channel, Manifest, RecordingEntry
@@ -20,6 +20,7 @@ __all__ = [
     "Manifest",
     "Recording",
     "RecordingEntry",
+    "atomic_write",
     "atomic_write_bytes",
     "atomic_write_text",
     "load_dataset",

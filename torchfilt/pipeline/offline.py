@@ -6,7 +6,6 @@ import json
 import warnings
 from collections import defaultdict
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -17,48 +16,14 @@ from torch import Tensor
 
 from torchfilt.exceptions import NumericsWarning
 from torchfilt.filters import CKF, coverage, nees, nis, rmse
-from torchfilt.io import Channel, DataError, Recording, atomic_write_text, read_recording
+from torchfilt.io import DataError, Recording, atomic_write_text, read_recording
 from torchfilt.io.estimates import Estimates, write_estimates
-from torchfilt.models import StateSpaceModel
-from torchfilt.systems import get_system
+from torchfilt.training.bundle import ModelSpec, load_model_spec
 
 __all__ = ["INDEX_NAME", "ModelSpec", "filter_recordings", "resolve_model"]
 
 #: Summary file that ``filter_recordings`` writes into its output folder (read by evaluate).
 INDEX_NAME = "filter_summary.json"
-
-
-@dataclass
-class ModelSpec:
-    """A state-space model plus what is needed to run it on recordings.
-
-    Attributes:
-        model: the model.
-        states, measurements, inputs: channel ``(name, unit)`` pairs, in model order.
-        sample_time: time between steps the model was built for.
-        prior_mean: default prior mean ``(n,)`` (state at the first row of a recording).
-        prior_cov: default prior covariance ``(n, n)``.
-        source: where the model came from (bundle path or ``system:NAME``).
-        info: extra description (training data fingerprint, options, ...).
-    """
-
-    model: StateSpaceModel
-    states: list[tuple[str, str]]
-    measurements: list[tuple[str, str]]
-    inputs: list[tuple[str, str]]
-    sample_time: float
-    prior_mean: Tensor
-    prior_cov: Tensor
-    source: str
-    info: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def channels(self) -> tuple[Channel, ...]:
-        return (
-            *(Channel(n, "state", u) for n, u in self.states),
-            *(Channel(n, "input", u) for n, u in self.inputs),
-            *(Channel(n, "measurement", u) for n, u in self.measurements),
-        )
 
 
 def resolve_model(spec: str | Path | ModelSpec) -> ModelSpec:
@@ -67,20 +32,7 @@ def resolve_model(spec: str | Path | ModelSpec) -> ModelSpec:
         return spec
     s = str(spec)
     if s.startswith("system:"):
-        sysspec = get_system(s.split(":", 1)[1])
-        return ModelSpec(
-            model=sysspec.model(),
-            states=list(sysspec.states),
-            measurements=list(sysspec.measurements),
-            inputs=list(sysspec.inputs),
-            sample_time=sysspec.sample_time,
-            prior_mean=sysspec.prior_mean(),
-            prior_cov=sysspec.prior_cov(),
-            source=s,
-            info={"description": sysspec.description},
-        )
-    from torchfilt.training.bundle import load_model_spec
-
+        return ModelSpec.from_system(s.split(":", 1)[1])
     return load_model_spec(s)
 
 

@@ -58,25 +58,31 @@ def prior_cov(dtype: torch.dtype = torch.float64) -> Tensor:
     return torch.diag(torch.tensor(PRIOR_COV_DIAG, dtype=dtype))
 
 
-def drift(x: Tensor, u: Tensor | None = None) -> Tensor:
-    """Continuous dynamics ``dx/dt``, ``(..., 3) -> (..., 3)``."""
+def drift(x: Tensor, u: Tensor | None = None, *, gamma: float = GAMMA) -> Tensor:
+    """Continuous dynamics ``dx/dt``, ``(..., 3) -> (..., 3)`` (``gamma``: air-density decay)."""
     x1, x2, x3 = x[..., 0], x[..., 1], x[..., 2]
-    return torch.stack([-x2, -torch.exp(-GAMMA * x1) * x2 * x2 * x3, torch.zeros_like(x3)], -1)
+    return torch.stack([-x2, -torch.exp(-gamma * x1) * x2 * x2 * x3, torch.zeros_like(x3)], -1)
 
 
 def transition(
-    x: Tensor, u: Tensor | None = None, *, dt: float = DT, substeps: int = SUBSTEPS
+    x: Tensor,
+    u: Tensor | None = None,
+    *,
+    dt: float = DT,
+    substeps: int = SUBSTEPS,
+    gamma: float = GAMMA,
 ) -> Tensor:
     """One sampling period of the dynamics (RK4), ``(..., 3) -> (..., 3)``.
 
-    Equal to ``rk4(drift, x, None, dt, substeps)``, written out on the components: ``x3`` is
+    Equal to ``rk4(drift, x, None, dt, substeps)`` (a nominal model may change ``gamma``),
+    written out on the components: ``x3`` is
     constant, so only ``(x1, x2)`` are integrated (the same RK4 arithmetic with half the work).
     """
     x1, x2, x3 = x[..., 0], x[..., 1], x[..., 2]
     h = dt / substeps
 
     def acc(a: Tensor, v: Tensor) -> Tensor:  # dx2/dt at altitude a, velocity v
-        return -torch.exp(-GAMMA * a) * v * v * x3
+        return -torch.exp(-gamma * a) * v * v * x3
 
     for _ in range(substeps):
         k1a, k1v = -x2, acc(x1, x2)

@@ -5,6 +5,7 @@ Used by ``torchfilt simulate`` and the data-generation script to write synthetic
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -34,6 +35,8 @@ class SystemSpec:
         prior_cov: filter prior covariance ``(n, n)``.
         inputs: input channel names and units (none for autonomous systems).
         time_unit: unit of time.
+        nominal: ``(**params) -> f(x, u)``, the transition with changed physical parameters
+            (a nominal, possibly wrong, physics model to serve as a GP prior mean).
     """
 
     name: str
@@ -48,6 +51,18 @@ class SystemSpec:
     prior_cov: Callable[[], Tensor]
     inputs: list[tuple[str, str]] = field(default_factory=list)
     time_unit: str = "s"
+    nominal: Callable[..., Callable[..., Tensor]] | None = None
+
+    def nominal_transition(self, **params: float) -> Callable[..., Tensor]:
+        """The transition with its physical parameters replaced by ``params``."""
+        if self.nominal is None:
+            raise ValueError(f"system {self.name!r} has no nominal model with parameters")
+        try:
+            return self.nominal(**params)
+        except TypeError as e:
+            raise ValueError(
+                f"system {self.name!r}: bad nominal-model parameters {params}: {e}"
+            ) from None
 
 
 def _reentry_initial(runs: int, gen: torch.Generator) -> Tensor:
@@ -93,6 +108,7 @@ SYSTEMS: dict[str, SystemSpec] = {
         initial=_reentry_initial,
         prior_mean=lambda: torch.tensor(reentry.PRIOR_MEAN, dtype=torch.float64),
         prior_cov=reentry.prior_cov,
+        nominal=lambda gamma=reentry.GAMMA: functools.partial(reentry.transition, gamma=gamma),
     ),
     "reaction": SystemSpec(
         name="reaction",
@@ -105,6 +121,7 @@ SYSTEMS: dict[str, SystemSpec] = {
         initial=_reaction_initial,
         prior_mean=lambda: reaction.prior_mean("paper"),
         prior_cov=reaction.prior_cov,
+        nominal=lambda k1=reaction.K1: functools.partial(reaction.transition, k1=k1),
     ),
     "pendulum": SystemSpec(
         name="pendulum",

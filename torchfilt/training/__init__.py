@@ -1,0 +1,34 @@
+"""Training pipeline: recipes, run directories with dataset logs, metrics and checkpoints, bundles.
+
+``train_recipe`` is the Python twin of ``torchfilt train``; ``load_model`` reads a bundle back as a
+state-space model ready for the CKF.
+"""
+
+from torchfilt.training.bundle import (
+    BUNDLE_SCHEMA,
+    BundleError,
+    ModelSpec,
+    load_bundle,
+    load_model,
+    load_model_spec,
+    save_bundle,
+)
+from torchfilt.training.recipe import Recipe, RecipeError, load_recipe
+from torchfilt.training.run import RunError, train_recipe
+from torchfilt.training.validation import one_step_metrics
+
+__all__ = [
+    "BUNDLE_SCHEMA",
+    "BundleError",
+    "ModelSpec",
+    "Recipe",
+    "RecipeError",
+    "RunError",
+    "load_bundle",
+    "load_model",
+    "load_model_spec",
+    "load_recipe",
+    "one_step_metrics",
+    "save_bundle",
+    "train_recipe",
+]
