@@ -5,6 +5,14 @@
 predictive variance a :class:`~torchfilt.CKF` turns into ``Q`` and ``R`` (law of total variance).
 """
 
+import warnings
+
+with warnings.catch_warnings():
+    # linear_operator decorates functions with torch.jit.script at import, which recent torch
+    # deprecates; it is not ours to fix and must not break `-W error` users.
+    warnings.filterwarnings("ignore", category=DeprecationWarning, message=".*torch.jit.script")
+    import gpytorch  # noqa: F401
+
 from torchfilt.models.gp.config import GPConfig, GroupSpec
 from torchfilt.models.gp.measurement import GPMeasurement
 from torchfilt.models.gp.model import STATE_FORMAT, GPModel

@@ -50,6 +50,9 @@ class GPConfig:
         num_inducing: inducing points per output (``structure="sparse"``).
         noise_floor: lower bound of each output's likelihood noise variance, in target units.
         noise_fixed: the likelihood noise is held fixed (not learned).
+        constant_outputs: outputs whose (residual) target had no spread in the data, e.g. the
+            increment of a constant parameter. They get no GP: their prediction is the base plus
+            that constant, with zero variance.
     """
 
     role: Role
@@ -66,6 +69,7 @@ class GPConfig:
     num_inducing: int = 256
     noise_floor: tuple[float, ...] = field(default=())
     noise_fixed: bool = False
+    constant_outputs: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         if self.role not in ("transition", "measurement"):
@@ -98,6 +102,7 @@ class GPConfig:
             {"outputs": list(g.outputs), "features": list(g.features)} for g in self.groups
         ]
         out["noise_floor"] = list(self.noise_floor)
+        out["constant_outputs"] = list(self.constant_outputs)
         return out
 
     @classmethod
@@ -109,6 +114,7 @@ class GPConfig:
             for g in d.get("groups", ())
         )
         d["noise_floor"] = tuple(float(v) for v in d.get("noise_floor", ()))
+        d["constant_outputs"] = tuple(int(v) for v in d.get("constant_outputs", ()))
         return cls(**d)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from typing import NamedTuple
 
 import gpytorch
@@ -94,6 +95,7 @@ class GPGroup(nn.Module):
             inducing = train_x[rows].clone()  # (g, M, D)
             self.likelihood = gaussian_likelihood(floor, noise_init, noise_fixed)
             self.gp = SparseIndependentGP(inducing, kernel)
+            self.gp.init_prior()
         else:
             raise ValueError(f"unknown structure {structure!r}")
 
@@ -107,6 +109,12 @@ class GPGroup(nn.Module):
         return int(self.train_y.shape[1])
 
     # ------------------------------------------------------------------ training
+    def variational_parameters(self) -> list[nn.Parameter]:
+        """The natural parameters of ``q(u)`` (sparse groups; empty otherwise)."""
+        if self.structure != "sparse":
+            return []
+        return list(self.gp.variational_strategy._variational_distribution.parameters())
+
     def use_rows(self, rows: Tensor | None) -> None:
         """Train an exact group's hyperparameters on a subset of its rows (``None``: all rows)."""
         if self.structure == "sparse":
@@ -160,7 +168,10 @@ class GPGroup(nn.Module):
         self.gp.eval()
         self.likelihood.eval()
         ctx = gpytorch_default_settings() if fast_pred_var else exact_settings()
-        with ctx:
+        with ctx, warnings.catch_warnings():
+            # Predicting at the training inputs in eval mode is intended here (not a forgotten
+            # model.train()).
+            warnings.simplefilter("ignore", gpytorch.utils.warnings.GPInputWarning)
             if self.structure == "multitask":
                 out = self.likelihood(self.gp(z))
                 mean = out.mean  # (N, d)

@@ -32,9 +32,11 @@ from torchfilt.models.gp.noise import neighbour_noise
 from torchfilt.models.gp.noise import noise_floor as auto_floor
 from torchfilt.models.gp.optimize import Callback, Progress, run_adam
 from torchfilt.models.gp.predictor import (
+    AUTO_TOL,
     CHUNK_SIZE,
     FrozenGP,
     FrozenOutput,
+    VarianceMode,
     independent_block,
     multitask_block,
     sparse_block,
@@ -47,8 +49,6 @@ __all__ = ["STATE_FORMAT", "GPModel"]
 STATE_FORMAT = "torchfilt.gp/1"
 #: The initial noise (standardised) is the neighbour estimate, capped at this value.
 INIT_NOISE_MAX = 0.1
-
-Variance = Literal["exact", "lowrank"]
 
 
 class GPModel(ConditionalModel):
@@ -193,16 +193,19 @@ class GPModel(ConditionalModel):
             valid, target_std(torch.nan_to_num(resid)), torch.zeros((), dtype=dtype)
         )
         sel = resolve_inputs(inputs, d, feats.shape[-1], "inputs")
+        const_out = [j for j in range(d) if bool(target_std.constant[j])]
+        modelled = [j for j in range(d) if j not in const_out]
 
         # ---- output groups: same features and same observed rows share one batch GP
         specs: list[GroupSpec] = []
         if structure == "multitask":
-            if len(set(sel)) != 1:
+            if len({sel[j] for j in modelled}) > 1:
                 raise ValueError("inputs: a multitask GP needs one input selection for all outputs")
-            specs.append(GroupSpec(tuple(range(d)), sel[0]))
+            if modelled:
+                specs.append(GroupSpec(tuple(modelled), sel[modelled[0]]))
         else:
             keys: dict[tuple[tuple[int, ...], bytes], list[int]] = {}
-            for j in range(d):
+            for j in modelled:
                 key = (sel[j], valid[:, j].cpu().numpy().tobytes())
                 keys.setdefault(key, []).append(j)
             specs = [GroupSpec(tuple(outs), key[0]) for key, outs in keys.items()]
@@ -210,7 +213,7 @@ class GPModel(ConditionalModel):
         # ---- noise floor and initial / fixed noise, per output, standardised
         gen = torch.Generator().manual_seed(seed)
         scale2 = target_std.scale.pow(2)
-        est = torch.empty(d, dtype=dtype)
+        est = torch.zeros(d, dtype=dtype)
         for spec in specs:
             rows = valid[:, list(spec.outputs)].all(-1)
             z = z_all[rows][:, list(spec.features)]
@@ -231,12 +234,14 @@ class GPModel(ConditionalModel):
                 floor = _per_output(noise_floor, d, "noise_floor", dtype) / scale2
             init = torch.minimum(est, torch.full_like(est, INIT_NOISE_MAX)).clamp_min(0.0)
             init = torch.maximum(torch.nan_to_num(init, nan=INIT_NOISE_MAX), floor)
+        floor = floor.masked_fill(target_std.constant, 0.0)
         config = GPConfig(
             **{
                 **cfg0.to_dict(),
                 "groups": tuple(specs),
                 "noise_floor": tuple(float(v) for v in (floor * scale2)),
                 "noise_fixed": fixed,
+                "constant_outputs": tuple(const_out),
             }
         )
         groups = []
@@ -266,6 +271,7 @@ class GPModel(ConditionalModel):
         iterations: int = 200,
         lr: float = 0.05,
         *,
+        natural_lr: float = 0.1,
         subset: int | None = None,
         batch_size: int = 1024,
         seed: int = 0,
@@ -277,7 +283,8 @@ class GPModel(ConditionalModel):
 
         Args:
             iterations: total Adam iterations (including those of a resumed run).
-            lr: Adam learning rate.
+            lr: Adam learning rate (hyperparameters, inducing inputs).
+            natural_lr: natural-gradient step size for ``q(u)`` of a sparse model.
             subset: train an exact model's hyperparameters on a random subset of at most this
                 many rows per group (the model still conditions on every row afterwards).
             batch_size: minibatch size of a sparse model.
@@ -327,10 +334,18 @@ class GPModel(ConditionalModel):
             return total
 
         prog = Progress(type(self).__name__, iterations) if progress else None
+        natural = []
+        for grp in self.groups:
+            assert isinstance(grp, GPGroup)
+            if grp.structure == "sparse":
+                natural.append((grp.variational_parameters(), grp.num_points))
+        skip = {id(p) for ps, _ in natural for p in ps}
         try:
             losses = run_adam(
-                self.parameters(),
+                [p for p in self.parameters() if id(p) not in skip],
                 loss_fn,
+                natural=natural,
+                natural_lr=natural_lr,
                 iterations=iterations,
                 lr=lr,
                 start=start,
@@ -366,24 +381,34 @@ class GPModel(ConditionalModel):
 
     # ------------------------------------------------------------------ freezing
     def freeze(
-        self, variance: Variance = "exact", rank: int | None = None, chunk_size: int = CHUNK_SIZE
+        self,
+        variance: VarianceMode = "auto",
+        rank: int | None = None,
+        *,
+        tol: float = AUTO_TOL,
+        chunk_size: int = CHUNK_SIZE,
     ) -> GPModel:
         """Cache every training-set solve; :meth:`predict` then calls no GPyTorch code.
 
         Args:
-            variance: ``"exact"`` (a full root of ``(K + s^2 I)^{-1}``: exact, ``O(S^2)`` per
-                point) or ``"lowrank"`` (a rank-``rank`` root: ``O(S r)`` per point; never below
-                the exact variance). A sparse model always uses its inducing-point form.
+            variance: ``"auto"`` (default: per output group, the smallest low-rank root whose
+                predictive variance stays within ``tol`` of the exact one on validation points,
+                else exact), ``"exact"`` (the cached Cholesky factor: exact, ``O(S^2)`` per
+                point) or ``"lowrank"`` (a rank-``rank`` root: ``O(S r)`` per point, never below
+                the exact variance). A sparse model always uses its own inducing-point form.
             rank: rank of the low-rank root (required for ``"lowrank"``).
+            tol: relative variance tolerance of ``"auto"``.
             chunk_size: points per kernel chunk in large batches.
 
         Returns:
-            ``self``.
+            ``self``. :attr:`variance_forms` tells which form each group got.
         """
-        if variance not in ("exact", "lowrank"):
-            raise ValueError(f"variance must be 'exact' or 'lowrank', got {variance!r}")
+        if variance not in ("exact", "lowrank", "auto"):
+            raise ValueError(f"variance must be 'auto', 'exact' or 'lowrank', got {variance!r}")
         if variance == "lowrank" and (rank is None or rank < 1):
             raise ValueError("rank: a positive rank is required for variance='lowrank'")
+        if not tol > 0:
+            raise ValueError(f"tol must be positive, got {tol}")
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be positive, got {chunk_size}")
         blocks: list[torch.nn.Module] = []
@@ -403,42 +428,39 @@ class GPModel(ConditionalModel):
                     out_shift=tst.shift[outs],
                     out_scale=tst.scale[outs],
                 )
+                exact_args: dict[str, Any] = dict(
+                    train_x=grp.train_x, train_y=grp.train_y, variance=variance, rank=rank, tol=tol
+                )
                 if grp.structure == "independent":
-                    blocks.append(
-                        independent_block(
-                            train_x=grp.train_x,
-                            train_y=grp.train_y,
-                            variance=variance,
-                            rank=rank,
-                            **common,
-                        )
-                    )
+                    blocks.append(independent_block(**exact_args, **common))
                 elif grp.structure == "multitask":
-                    blocks.append(
-                        multitask_block(
-                            train_x=grp.train_x,
-                            train_y=grp.train_y,
-                            variance=variance,
-                            rank=rank,
-                            **common,
-                        )
-                    )
+                    blocks.append(multitask_block(**exact_args, **common))
                 else:
                     strat = grp.gp.variational_strategy
-                    dist = strat._variational_distribution
+                    var_mean, var_chol = grp.gp.variational_moments()
                     blocks.append(
                         sparse_block(
                             inducing=strat.inducing_points.detach(),
-                            var_mean=dist.variational_mean.detach(),
-                            var_chol=dist.chol_variational_covar.detach(),
+                            var_mean=var_mean.detach(),
+                            var_chol=var_chol.detach(),
                             jitter=float(strat.jitter_val),
                             **common,
                         )
                     )
-        mode = "sparse" if self.config.structure == "sparse" else variance
-        self.predictor = FrozenGP(blocks, self.out_dim, mode, rank, chunk_size)  # type: ignore[arg-type]
-        self._freeze_opts = {"variance": variance, "rank": rank, "chunk_size": chunk_size}
+        self.predictor = FrozenGP(blocks, self.target_std.shift, self.out_dim, chunk_size)
+        self._freeze_opts = {
+            "variance": variance,
+            "rank": rank,
+            "tol": tol,
+            "chunk_size": chunk_size,
+        }
         return self
+
+    @property
+    def variance_forms(self) -> list[tuple[str, int | None]]:
+        """Per output group, the frozen variance form (``"exact"``, ``"lowrank"``,
+        ``"sparse"``) and rank; empty when not frozen."""
+        return [] if self.predictor is None else self.predictor.forms
 
     def unfreeze(self) -> GPModel:
         """Drop the frozen predictor; :meth:`predict` then calls GPyTorch (exact settings)."""
@@ -517,7 +539,7 @@ class GPModel(ConditionalModel):
         dtype = self.target_std.scale.dtype
         zf = self.input_std(z.reshape(-1, z.shape[-1]).to(dtype))
         N = zf.shape[0]
-        mean = zf.new_zeros(N, d)
+        mean = self.target_std.shift.expand(N, d).clone()
         var = zf.new_zeros(N, d)
         cov = zf.new_zeros(N, d, d) if self.config.structure == "multitask" else None
         sc, sh = self.target_std.scale, self.target_std.shift
@@ -530,7 +552,9 @@ class GPModel(ConditionalModel):
             mean[:, outs] = post.mean * sc[outs] + sh[outs]
             var[:, outs] = post.var * sc[outs].pow(2)
             if cov is not None and post.cov is not None:
-                cov = post.cov * (sc.unsqueeze(-1) * sc.unsqueeze(-2))
+                o = torch.tensor(outs, device=cov.device)
+                s = sc[o]
+                cov[:, o.unsqueeze(-1), o.unsqueeze(0)] = post.cov * (s.unsqueeze(-1) * s)
         return FrozenOutput(
             mean.reshape(*lead, d).to(z.dtype),
             var.reshape(*lead, d).to(z.dtype),
@@ -567,7 +591,7 @@ class GPModel(ConditionalModel):
             h = grp.hyperparameters()
             fs = self.input_std.scale[list(spec.features)]
             if grp.structure == "multitask":
-                s = self.target_std.scale
+                s = self.target_std.scale[list(spec.outputs)]
                 out["task_covar"] = h["task_covar"] * (s.unsqueeze(-1) * s.unsqueeze(-2))
                 for q, ls in enumerate(h["lengthscale"]):
                     out[f"lengthscale.{q}"] = ls * fs

@@ -1,4 +1,5 @@
-"""The training loop: Adam on the negative log marginal likelihood (exact) or ELBO (sparse).
+"""The training loop: Adam on the negative log marginal likelihood (exact) or ELBO (sparse; plus
+natural-gradient steps for the variational distribution).
 
 Progress goes to stderr as a light line every tenth of the run (``progress=False`` silences it). A
 per-iteration callback receives a :class:`FitState` from which a checkpoint (model state +
@@ -8,12 +9,14 @@ continues from it.
 
 from __future__ import annotations
 
+import copy
 import math
 import sys
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any, NamedTuple, TextIO
 
+import gpytorch
 import torch
 from torch import Tensor, nn
 
@@ -30,7 +33,8 @@ class FitState(NamedTuple):
             training point, summed over outputs).
         elapsed: seconds since this call to ``fit`` started.
         model: the model being trained (a :class:`~torchfilt.models.gp.GPModel`).
-        optimizer: the ``torch.optim.Adam`` instance.
+        optimizer: the ``torch.optim.Adam`` instance (hyperparameters).
+        natural: the natural-gradient optimizers of sparse groups' ``q(u)`` (may be empty).
     """
 
     iteration: int
@@ -38,7 +42,8 @@ class FitState(NamedTuple):
     loss: float
     elapsed: float
     model: Any
-    optimizer: torch.optim.Optimizer
+    optimizer: torch.optim.Optimizer | None
+    natural: tuple[torch.optim.Optimizer, ...] = ()
 
     def hyperparameters(self) -> dict[str, Tensor]:
         """The model's current hyperparameters in target/input units (see ``GPModel.hyperparameters``)."""
@@ -47,9 +52,15 @@ class FitState(NamedTuple):
     def checkpoint(self) -> dict[str, Any]:
         """Model state, optimizer state and iteration: plain tensors and dicts, for
         ``torch.save`` and ``torch.load(weights_only=True)``; pass it to ``fit(..., resume=...)``."""
+        # state_dict() returns live references; the optimizers keep updating them in place.
         return {
             "model": self.model.to_state(),
-            "optimizer": self.optimizer.state_dict(),
+            "optimizer": {
+                "adam": None
+                if self.optimizer is None
+                else copy.deepcopy(self.optimizer.state_dict()),
+                "natural": [copy.deepcopy(o.state_dict()) for o in self.natural],
+            },
             "iteration": self.iteration,
         }
 
@@ -85,6 +96,8 @@ def run_adam(
     params: Iterable[nn.Parameter],
     loss_fn: Callable[[int], Tensor],
     *,
+    natural: Sequence[tuple[Sequence[nn.Parameter], int]] = (),
+    natural_lr: float = 0.1,
     iterations: int,
     lr: float,
     start: int = 0,
@@ -96,12 +109,15 @@ def run_adam(
     """Minimise ``loss_fn(iteration)`` with Adam from iteration ``start`` to ``iterations``.
 
     Args:
-        params: parameters to optimise.
+        params: parameters to optimise with Adam.
         loss_fn: the objective at an iteration (the iteration picks a minibatch).
+        natural: ``(parameters, num_data)`` of each sparse group's natural variational
+            parameters, stepped with GPyTorch's ``NGD`` (one optimizer per group).
+        natural_lr: natural-gradient step size.
         iterations: total planned iterations (``start`` of them already done).
         lr: learning rate.
         start: iterations already done (resume).
-        optimizer_state: an Adam ``state_dict`` to resume from.
+        optimizer_state: the ``"optimizer"`` entry of a checkpoint, to resume from.
         callback: called after each iteration with a :class:`FitState`; ``True`` stops.
         progress: progress printer, or ``None`` for silence.
         model: passed to the callback.
@@ -113,13 +129,21 @@ def run_adam(
         FloatingPointError: if the loss becomes non-finite.
     """
     plist = [p for p in params if p.requires_grad]
-    opt = torch.optim.Adam(plist, lr=lr)
+    opt = torch.optim.Adam(plist, lr=lr) if plist else None
+    ngd = tuple(gpytorch.optim.NGD(list(ps), num_data=n, lr=natural_lr) for ps, n in natural)
+    if opt is None and not ngd:  # nothing to learn (e.g. every output constant)
+        return []
     if optimizer_state is not None:
-        opt.load_state_dict(optimizer_state)
+        if opt is not None and optimizer_state.get("adam") is not None:
+            opt.load_state_dict(optimizer_state["adam"])
+        for o, st in zip(ngd, optimizer_state.get("natural", []), strict=False):
+            o.load_state_dict(st)
+    everything = ([opt] if opt is not None else []) + list(ngd)
     t0 = time.perf_counter()
     losses: list[float] = []
     for it in range(start + 1, iterations + 1):
-        opt.zero_grad(set_to_none=True)
+        for o in everything:
+            o.zero_grad(set_to_none=True)
         loss = loss_fn(it)
         value = float(loss.detach())
         if not math.isfinite(value):
@@ -128,12 +152,14 @@ def run_adam(
                 "or check the data for outliers"
             )
         loss.backward()
-        opt.step()
+        for o in everything:
+            o.step()
         losses.append(value)
         elapsed = time.perf_counter() - t0
         if progress is not None:
             progress(it, value, elapsed)
-        if callback is not None and callback(FitState(it, iterations, value, elapsed, model, opt)):
+        state = FitState(it, iterations, value, elapsed, model, opt, ngd)
+        if callback is not None and callback(state):
             if progress is not None:
                 progress(it, value, elapsed, final=True)
             break

@@ -1,17 +1,25 @@
 """The frozen predictor: a GP's posterior with every training-set solve cached, in plain torch.
 
-After training, ``alpha = (K + s^2 I)^{-1} (y - c)`` and a root ``R`` of ``(K + s^2 I)^{-1}`` (see
-:mod:`~torchfilt.models.gp.root`) do not change. A prediction at ``N`` points then costs kernel
-evaluations against the ``S`` training (or ``M`` inducing) inputs and two matrix products:
+After training, ``alpha = (K + s^2 I)^{-1} (y - c)`` and a factor for the variance do not change. A
+prediction at ``N`` points then costs kernel evaluations against the ``S`` training (or ``M``
+inducing) inputs, one matrix product for the mean and one for the variance:
 
     mean = c + k*^T alpha
-    var  = s_f^2 - |k*^T R|^2 + s^2                    (exact GP; exact or low-rank R)
-    var  = s_f^2 + j + k*^T W k* + s^2                  (SVGP: W = L^{-T} (S_u - I) L^{-1},
-                                                         L L^T = K_uu + j I, j GPyTorch's jitter)
+    var  = s_f^2 - q(k*) + s^2,  q(k*) = k*^T (K + s^2 I)^{-1} k*
 
-No GPyTorch call, no solve per step, differentiable in the points (autograd). Large batches are
-processed in chunks of ``chunk_size`` points (one ``(N, S)`` kernel matrix for a huge ``N`` is slower
-than several small ones). Inputs are standardised and outputs de-standardised inside.
+with three forms of ``q``:
+
+* ``"exact"``: ``q = |L^{-1} k*|^2`` with the cached Cholesky factor ``L`` (``O(S^2)`` per point);
+* ``"lowrank"``: ``q = |R^T k*|^2`` with a rank-``r`` root ``R`` (:mod:`~torchfilt.models.gp.root`;
+  ``O(S r)`` per point; the variance is never below the exact one);
+* ``"sparse"`` (SVGP): ``var = s_f^2 + j + k*^T W k* + s^2`` with ``W = L^{-T} (S_u - I) L^{-1}``,
+  ``L L^T = K_uu + j I`` (``j`` GPyTorch's variational jitter), the SVGP's own predictive variance.
+
+``variance="auto"`` picks, per output group, the smallest rank whose variance stays within ``tol``
+(relative, latent + noise) of the exact one on validation points (training inputs and jittered
+copies), and the exact form if no rank does. No GPyTorch call, no solve of the training system per
+step, differentiable in the points (autograd). Large batches are processed in chunks of
+``chunk_size`` points. Inputs are standardised and outputs de-standardised inside.
 """
 
 from __future__ import annotations
@@ -23,14 +31,21 @@ import torch
 from torch import Tensor, nn
 
 from torchfilt.models.gp.kernels import correlation, scaled_sq_dist
-from torchfilt.models.gp.root import exact_root, lowrank_root
+from torchfilt.models.gp.root import lowrank_root
 
-__all__ = ["FrozenGP", "FrozenOutput", "VarianceMode"]
+__all__ = ["AUTO_RANKS", "AUTO_TOL", "CHUNK_SIZE", "FrozenGP", "FrozenOutput", "VarianceMode"]
 
-VarianceMode = Literal["exact", "lowrank", "sparse"]
+VarianceMode = Literal["exact", "lowrank", "auto"]
 
 #: Default number of points per kernel chunk.
 CHUNK_SIZE = 128
+#: Ranks tried by ``variance="auto"``, smallest first.
+AUTO_RANKS = (16, 32, 64, 128, 256, 512)
+#: Default tolerance of ``variance="auto"``: relative error of the predictive variance.
+AUTO_TOL = 0.05
+#: Training points (at most) used to validate a low-rank root, and jitters (in lengthscales).
+AUTO_POINTS = 256
+AUTO_JITTERS = (0.1, 0.5)
 
 
 class FrozenOutput(NamedTuple):
@@ -48,7 +63,12 @@ class FrozenOutput(NamedTuple):
 
 
 class _Block(nn.Module):
-    """Frozen state of one output group (non-persistent buffers: recomputed, never saved)."""
+    """Frozen state of one output group (non-persistent buffers: recomputed, never saved).
+
+    Attributes:
+        form: ``"exact"``, ``"lowrank"`` or ``"sparse"``.
+        rank: rank of a low-rank form.
+    """
 
     outputs: Tensor
     features: Tensor
@@ -61,28 +81,44 @@ class _Block(nn.Module):
     noise: Tensor
     out_shift: Tensor
     out_scale: Tensor
+    factor: Tensor
+
+    def __init__(self, kernel: str, form: str, rank: int | None) -> None:
+        super().__init__()
+        self.kernel = kernel
+        self.form = form
+        self.rank = rank
 
     def _buf(self, name: str, value: Tensor | None) -> None:
         self.register_buffer(
             name, None if value is None else value.detach().clone(), persistent=False
         )
 
+    def _quad(self, c: Tensor) -> Tensor:
+        """``k*^T A k*`` for the block's variance factor, ``c`` ``(B, N, S)`` -> ``(B, N)``."""
+        if self.form == "exact":
+            w = torch.linalg.solve_triangular(self.factor, c.mT, upper=False)
+            return -w.pow(2).sum(-2)
+        if self.form == "lowrank":
+            return -(c @ self.factor).pow(2).sum(-1)
+        return ((c @ self.factor) * c).sum(-1)
+
     def forward(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:  # pragma: no cover
         raise NotImplementedError
 
 
 class _IndependentBlock(_Block):
-    """``g`` independent outputs: exact GP (exact or low-rank root) or SVGP (middle matrix)."""
+    """``g`` independent outputs sharing inputs (exact GP or SVGP)."""
 
     outputscale: Tensor
     prior_var: Tensor
-    root: Tensor | None
-    middle: Tensor | None
 
     def __init__(
         self,
         *,
         kernel: str,
+        form: str,
+        rank: int | None,
         outputs: Tensor,
         features: Tensor,
         in_shift: Tensor,
@@ -96,18 +132,15 @@ class _IndependentBlock(_Block):
         extra_diag: Tensor,
         out_shift: Tensor,
         out_scale: Tensor,
-        root: Tensor | None = None,
-        middle: Tensor | None = None,
+        factor: Tensor,
     ) -> None:
-        super().__init__()
-        self.kernel = kernel
-        scale = in_scale.unsqueeze(0) * lengthscale  # (g, D)
+        super().__init__(kernel, form, rank)
         pts = points / lengthscale.unsqueeze(-2)  # points: (g, S, D) standardised
         self._buf("outputs", outputs)
         self._buf("features", features)
         self._buf("in_shift", in_shift)
-        self._buf("scale", scale)
-        self._buf("points", pts)  # (g, S, D), inputs / lengthscale
+        self._buf("scale", in_scale.unsqueeze(0) * lengthscale)  # (g, D)
+        self._buf("points", pts)
         self._buf("points_sq", pts.pow(2).sum(-1))
         self._buf("alpha", alpha.unsqueeze(-1))  # (g, S, 1)
         self._buf("const", const)
@@ -116,37 +149,34 @@ class _IndependentBlock(_Block):
         self._buf("noise", noise)
         self._buf("out_shift", out_shift)
         self._buf("out_scale", out_scale)
-        self._buf("root", root)
-        self._buf("middle", middle)
+        self._buf("factor", factor)
+
+    def kernel_rows(self, z: Tensor) -> Tensor:
+        """``k(z, X)`` for every output, ``(N, F)`` -> ``(g, N, S)``."""
+        zs = (z[:, self.features] - self.in_shift).unsqueeze(0) / self.scale.unsqueeze(-2)
+        d2 = scaled_sq_dist(zs, self.points, self.points_sq)
+        return self.outputscale[:, None, None] * correlation(d2, self.kernel)
 
     def forward(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
-        zs = (z[:, self.features] - self.in_shift).unsqueeze(0) / self.scale.unsqueeze(-2)
-        d2 = scaled_sq_dist(zs, self.points, self.points_sq)  # (g, N, S)
-        K = self.outputscale[:, None, None] * correlation(d2, self.kernel)
-        mean = self.const.unsqueeze(-1) + (K @ self.alpha).squeeze(-1)  # (g, N)
-        if self.root is not None:
-            var = self.prior_var.unsqueeze(-1) - (K @ self.root).pow(2).sum(-1)
-        else:
-            assert self.middle is not None
-            var = self.prior_var.unsqueeze(-1) + ((K @ self.middle) * K).sum(-1)
-        var = var.clamp_min(0.0) + self.noise.unsqueeze(-1)
-        return (
-            (mean * self.out_scale.unsqueeze(-1) + self.out_shift.unsqueeze(-1)).T,
-            (var * self.out_scale.pow(2).unsqueeze(-1)).T,
-            None,
-        )
+        c = self.kernel_rows(z)  # (g, N, S)
+        mean = self.const.unsqueeze(-1) + (c @ self.alpha).squeeze(-1)  # (g, N)
+        var = (self.prior_var.unsqueeze(-1) + self._quad(c)).clamp_min(0.0)
+        var = var + self.noise.unsqueeze(-1)
+        s = self.out_scale.unsqueeze(-1)
+        return (mean * s + self.out_shift.unsqueeze(-1)).T, (var * s * s).T, None
 
 
 class _MultitaskBlock(_Block):
     """Correlated outputs (LMC): ``K = sum_q k_q (x) B_q`` in data-major order ``i * d + t``."""
 
     task_covar: Tensor
-    root: Tensor
 
     def __init__(
         self,
         *,
         kernel: str,
+        form: str,
+        rank: int | None,
         outputs: Tensor,
         features: Tensor,
         in_shift: Tensor,
@@ -159,16 +189,14 @@ class _MultitaskBlock(_Block):
         noise: Tensor,
         out_shift: Tensor,
         out_scale: Tensor,
-        root: Tensor,
+        factor: Tensor,
     ) -> None:
-        super().__init__()
-        self.kernel = kernel
-        scale = in_scale.unsqueeze(0) * lengthscale  # (Q, D)
+        super().__init__(kernel, form, rank)
         pts = points.unsqueeze(0) / lengthscale.unsqueeze(-2)  # (Q, S, D)
         self._buf("outputs", outputs)
         self._buf("features", features)
         self._buf("in_shift", in_shift)
-        self._buf("scale", scale)
+        self._buf("scale", in_scale.unsqueeze(0) * lengthscale)  # (Q, D)
         self._buf("points", pts)
         self._buf("points_sq", pts.pow(2).sum(-1))
         self._buf("task_covar", task_covar)  # (Q, d, d)
@@ -177,17 +205,23 @@ class _MultitaskBlock(_Block):
         self._buf("noise", noise)
         self._buf("out_shift", out_shift)
         self._buf("out_scale", out_scale)
-        self._buf("root", root)  # (S d, r)
+        self._buf("factor", factor)
+
+    def kernel_rows(self, z: Tensor) -> Tensor:
+        """Cross-covariances of the ``d`` outputs at ``z`` with the training system,
+        ``(N, F)`` -> ``(N, d, S d)``."""
+        zs = (z[:, self.features] - self.in_shift).unsqueeze(0) / self.scale.unsqueeze(-2)
+        k = correlation(scaled_sq_dist(zs, self.points, self.points_sq), self.kernel)
+        N, S, d = k.shape[1], k.shape[2], self.task_covar.shape[-1]
+        return torch.einsum("qns,qtu->ntsu", k, self.task_covar).reshape(N, d, S * d)
 
     def forward(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
-        zs = (z[:, self.features] - self.in_shift).unsqueeze(0) / self.scale.unsqueeze(-2)
-        d2 = scaled_sq_dist(zs, self.points, self.points_sq)  # (Q, N, S)
-        k = correlation(d2, self.kernel)
-        N, S = k.shape[1], k.shape[2]
-        d = self.task_covar.shape[-1]
-        Kfull = torch.einsum("qns,qtu->ntsu", k, self.task_covar).reshape(N, d, S * d)
-        mean = self.const + (Kfull @ self.alpha).squeeze(-1)  # (N, d)
-        A = Kfull @ self.root  # (N, d, r)
+        c = self.kernel_rows(z)  # (N, d, S d)
+        mean = self.const + (c @ self.alpha).squeeze(-1)  # (N, d)
+        if self.form == "exact":
+            A = torch.linalg.solve_triangular(self.factor, c.mT, upper=False).mT
+        else:
+            A = c @ self.factor  # (N, d, r)
         cov = self.task_covar.sum(0) - A @ A.mT + torch.diag_embed(self.noise)
         cov = 0.5 * (cov + cov.mT)
         s = self.out_scale
@@ -203,59 +237,65 @@ class FrozenGP(nn.Module):
 
     Args:
         blocks: one frozen block per output group.
+        fill_mean: mean of the outputs no block covers (constant outputs), shape ``(d,)``;
+            their variance is 0.
         out_dim: number of outputs ``d``.
-        variance: the variance mode the blocks were built with.
-        rank: the low-rank root's rank (``variance="lowrank"``).
         chunk_size: points per kernel chunk.
     """
+
+    fill_mean: Tensor
 
     def __init__(
         self,
         blocks: Sequence[nn.Module],
+        fill_mean: Tensor,
         out_dim: int,
-        variance: VarianceMode,
-        rank: int | None,
         chunk_size: int = CHUNK_SIZE,
     ) -> None:
         super().__init__()
         self.blocks = nn.ModuleList(blocks)
+        self.register_buffer("fill_mean", fill_mean.detach().clone(), persistent=False)
         self.out_dim = int(out_dim)
-        self.variance = variance
-        self.rank = rank
         self.chunk_size = int(chunk_size)
         self.correlated = any(isinstance(b, _MultitaskBlock) for b in blocks)
+        d = self.out_dim
+        first = blocks[0] if len(blocks) == 1 else None
+        self._whole = isinstance(first, _Block) and bool(
+            torch.equal(first.outputs.cpu(), torch.arange(d))
+        )
 
-    def _dtype(self) -> torch.dtype:
-        blk = self.blocks[0]
-        assert isinstance(blk, _Block)
-        return blk.alpha.dtype
+    @property
+    def forms(self) -> list[tuple[str, int | None]]:
+        """``(form, rank)`` of each block (output group)."""
+        return [(b.form, b.rank) for b in self.blocks]  # type: ignore[misc]
 
     def forward(self, z: Tensor) -> FrozenOutput:
         """Predictive moments at features ``z`` ``(..., F)``; returns ``(..., d)`` tensors."""
         lead = z.shape[:-1]
-        flat = z.reshape(-1, z.shape[-1]).to(self._dtype())
-        means, vars_, covs = [], [], []
-        for start in range(0, max(flat.shape[0], 1), self.chunk_size):
-            m, v, c = self._chunk(flat[start : start + self.chunk_size])
-            means.append(m)
-            vars_.append(v)
-            if c is not None:
-                covs.append(c)
+        flat = z.reshape(-1, z.shape[-1]).to(self.fill_mean.dtype)
         d = self.out_dim
-        mean = torch.cat(means).reshape(*lead, d).to(z.dtype)
-        var = torch.cat(vars_).reshape(*lead, d).to(z.dtype)
-        cov = torch.cat(covs).reshape(*lead, d, d).to(z.dtype) if covs else None
-        return FrozenOutput(mean, var, cov)
+        if flat.shape[0] <= self.chunk_size:
+            m, v, c = self._chunk(flat)
+        else:
+            parts = [
+                self._chunk(flat[i : i + self.chunk_size])
+                for i in range(0, flat.shape[0], self.chunk_size)
+            ]
+            m = torch.cat([p[0] for p in parts])
+            v = torch.cat([p[1] for p in parts])
+            c = None if parts[0][2] is None else torch.cat([p[2] for p in parts])  # type: ignore[misc]
+        return FrozenOutput(
+            m.reshape(*lead, d).to(z.dtype),
+            v.reshape(*lead, d).to(z.dtype),
+            None if c is None else c.reshape(*lead, d, d).to(z.dtype),
+        )
 
     def _chunk(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        if self._whole:
+            out: tuple[Tensor, Tensor, Tensor | None] = self.blocks[0](z)
+            return out
         N, d = z.shape[0], self.out_dim
-        if len(self.blocks) == 1:
-            m, v, c = self.blocks[0](z)
-            b = self.blocks[0]
-            assert isinstance(b, _Block)
-            if torch.equal(b.outputs, torch.arange(d, device=b.outputs.device)):
-                return m, v, c
-        mean = z.new_zeros(N, d)
+        mean = self.fill_mean.expand(N, d)
         var = z.new_zeros(N, d)
         cov = z.new_zeros(N, d, d) if self.correlated else None
         for blk in self.blocks:
@@ -271,6 +311,72 @@ class FrozenGP(nn.Module):
         return mean, var, cov
 
 
+# ---------------------------------------------------------------------- building blocks
+
+
+def _validation_points(train_x: Tensor, lengthscale: Tensor) -> Tensor:
+    """Training inputs and jittered copies (standardised) on which a low-rank root is checked."""
+    gen = torch.Generator(device="cpu").manual_seed(0)
+    S = train_x.shape[0]
+    idx = torch.randperm(S, generator=gen)[: min(S, AUTO_POINTS)].to(train_x.device)
+    base = train_x[idx]
+    ls = lengthscale.reshape(-1, train_x.shape[-1]).amin(0)
+    out = [base]
+    for j in AUTO_JITTERS:
+        noise = torch.randn(base.shape, generator=gen, dtype=base.dtype).to(base.device)
+        out.append(base + j * ls * noise)
+    return torch.cat(out)
+
+
+def _choose_form(
+    variance: VarianceMode,
+    rank: int | None,
+    tol: float,
+    Khat: Tensor,
+    L: Tensor,
+    rows: Tensor,
+    prior: Tensor,
+) -> tuple[str, int | None, Tensor]:
+    """Pick the variance form: exact (factor ``L``) or low rank (a root).
+
+    Args:
+        variance, rank, tol: the user's options.
+        Khat: ``K + s^2 I`` ``(B, S, S)``; L: its Cholesky factor.
+        rows: validation kernel rows ``(B, V, S)`` (``variance="auto"`` only).
+        prior: prior variance + noise, ``(B,)`` or per validation row ``(B, V)`` (``"auto"``).
+    """
+    S = Khat.shape[-1]
+    if variance == "exact":
+        return "exact", None, L
+    if variance == "lowrank":
+        assert rank is not None
+        return "lowrank", min(rank, S), lowrank_root(Khat, rank)
+    ranks = [r for r in AUTO_RANKS if r <= S // 2]
+    if not ranks:
+        return "exact", None, L
+    p = prior.unsqueeze(-1) if prior.dim() == 1 else prior
+    w = torch.linalg.solve_triangular(L, rows.mT, upper=False)
+    exact = p - w.pow(2).sum(-2)  # (B, V)
+    root = lowrank_root(Khat, ranks[-1])
+    proj = (rows @ root).pow(2)  # (B, V, r_max)
+    for r in ranks:
+        approx = p - proj[..., :r].sum(-1)
+        rel = (approx - exact).abs() / exact.clamp_min(torch.finfo(exact.dtype).tiny)
+        if float(rel.max()) <= tol:
+            return "lowrank", r, root[..., :r].contiguous()
+    return "exact", None, L
+
+
+def _cholesky(Khat: Tensor) -> Tensor:
+    L, info = torch.linalg.cholesky_ex(Khat)
+    if bool((info > 0).any()):
+        raise torch.linalg.LinAlgError(
+            "K + noise I is not positive definite in the frozen predictor; the noise floor is "
+            "too low for this dtype (train in float64 or raise noise_floor)"
+        )
+    return L
+
+
 def independent_block(
     *,
     kernel: str,
@@ -283,10 +389,11 @@ def independent_block(
     hyper: dict[str, Tensor],
     out_shift: Tensor,
     out_scale: Tensor,
-    variance: Literal["exact", "lowrank"],
+    variance: VarianceMode,
     rank: int | None,
+    tol: float = AUTO_TOL,
 ) -> _IndependentBlock:
-    """Freeze an exact independent group: Cholesky of ``K + s^2 I``, ``alpha`` and a root.
+    """Freeze an exact independent group: Cholesky of ``K + s^2 I``, ``alpha`` and the factor.
 
     Args:
         kernel: kernel name.
@@ -300,8 +407,9 @@ def independent_block(
             ``constant``, all ``(g,)``).
         out_shift: target shift of the outputs ``(g,)``.
         out_scale: target scale ``(g,)``.
-        variance: ``"exact"`` or ``"lowrank"``.
+        variance: ``"exact"``, ``"lowrank"`` or ``"auto"``.
         rank: rank of the low-rank root.
+        tol: tolerance of ``"auto"``.
     """
     ls, os_, noise, c = (
         hyper["lengthscale"],
@@ -313,16 +421,18 @@ def independent_block(
     K = os_[:, None, None] * correlation(scaled_sq_dist(pts, pts), kernel)
     S = train_x.shape[0]
     Khat = K + noise[:, None, None] * torch.eye(S, dtype=K.dtype, device=K.device)
-    L, info = torch.linalg.cholesky_ex(Khat)
-    if bool((info > 0).any()):
-        raise torch.linalg.LinAlgError(
-            "K + noise I is not positive definite in the frozen predictor; the noise floor is "
-            "too low for this dtype (train in float64 or raise noise_floor)"
-        )
+    L = _cholesky(Khat)
     alpha = torch.cholesky_solve((train_y - c.unsqueeze(-1)).unsqueeze(-1), L).squeeze(-1)
-    root = exact_root(L) if variance == "exact" else lowrank_root(Khat, int(rank or 0))
+    rows = prior = K.new_zeros(0)
+    if variance == "auto":
+        v = _validation_points(train_x, ls) / ls.unsqueeze(-2)  # (g, V, D)
+        rows = os_[:, None, None] * correlation(scaled_sq_dist(v, pts), kernel)
+        prior = os_ + noise
+    form, r, factor = _choose_form(variance, rank, tol, Khat, L, rows, prior)
     return _IndependentBlock(
         kernel=kernel,
+        form=form,
+        rank=r,
         outputs=outputs,
         features=features,
         in_shift=in_shift,
@@ -336,7 +446,7 @@ def independent_block(
         extra_diag=torch.zeros_like(os_),
         out_shift=out_shift,
         out_scale=out_scale,
-        root=root,
+        factor=factor,
     )
 
 
@@ -374,13 +484,15 @@ def sparse_block(
     M = inducing.shape[-2]
     eye = torch.eye(M, dtype=inducing.dtype, device=inducing.device)
     Kuu = os_[:, None, None] * correlation(scaled_sq_dist(pts, pts), kernel) + jitter * eye
-    L = torch.linalg.cholesky(Kuu)
+    L = _cholesky(Kuu)
     Linv = torch.linalg.solve_triangular(L, eye.expand_as(L), upper=False)
     C = var_chol.tril()
     middle = Linv.mT @ (C @ C.mT - eye) @ Linv
     alpha = (Linv.mT @ var_mean.unsqueeze(-1)).squeeze(-1)
     return _IndependentBlock(
         kernel=kernel,
+        form="sparse",
+        rank=None,
         outputs=outputs,
         features=features,
         in_shift=in_shift,
@@ -394,7 +506,7 @@ def sparse_block(
         extra_diag=torch.full_like(os_, jitter),
         out_shift=out_shift,
         out_scale=out_scale,
-        middle=0.5 * (middle + middle.mT),
+        factor=0.5 * (middle + middle.mT),
     )
 
 
@@ -410,8 +522,9 @@ def multitask_block(
     hyper: dict[str, Tensor],
     out_shift: Tensor,
     out_scale: Tensor,
-    variance: Literal["exact", "lowrank"],
+    variance: VarianceMode,
     rank: int | None,
+    tol: float = AUTO_TOL,
 ) -> _MultitaskBlock:
     """Freeze an LMC group: the ``(S d) x (S d)`` system in data-major order.
 
@@ -426,12 +539,23 @@ def multitask_block(
     k = correlation(scaled_sq_dist(pts, pts), kernel)  # (Q, S, S)
     K = torch.einsum("qij,qtu->itju", k, B).reshape(S * d, S * d)
     Khat = K + torch.diag(noise.repeat(S))
-    L = torch.linalg.cholesky(Khat)
+    L = _cholesky(Khat)
     resid = (train_y.T - c).reshape(-1, 1)  # data-major: row i * d + t
     alpha = torch.cholesky_solve(resid, L).squeeze(-1)
-    root = exact_root(L) if variance == "exact" else lowrank_root(Khat, int(rank or 0))
+    rows = prior = K.new_zeros(0)
+    if variance == "auto":
+        v = _validation_points(train_x, ls).unsqueeze(0) / ls.unsqueeze(-2)  # (Q, V, D)
+        kv = correlation(scaled_sq_dist(v, pts), kernel)  # (Q, V, S)
+        V = kv.shape[1]
+        rows = torch.einsum("qns,qtu->ntsu", kv, B).reshape(V * d, S * d).unsqueeze(0)
+        prior = (B.sum(0).diagonal() + noise).repeat(V).unsqueeze(0)  # (1, V d)
+    form, r, factor = _choose_form(
+        variance, rank, tol, Khat.unsqueeze(0), L.unsqueeze(0), rows, prior
+    )
     return _MultitaskBlock(
         kernel=kernel,
+        form=form,
+        rank=r,
         outputs=outputs,
         features=features,
         in_shift=in_shift,
@@ -444,5 +568,5 @@ def multitask_block(
         noise=noise,
         out_shift=out_shift,
         out_scale=out_scale,
-        root=root,
+        factor=factor.squeeze(0),
     )

@@ -1,6 +1,7 @@
 """Roots of ``(K + s^2 I)^{-1}`` for the predictive variance ``k** - |k*^T R|^2``.
 
-Exact: ``R = L^{-T}`` with ``L L^T = K + s^2 I`` (Cholesky), so ``|k*^T R|^2 = k*^T (K + s^2 I)^{-1} k*``.
+Exact (not built here: the predictor keeps the Cholesky factor ``L`` of ``K + s^2 I`` and solves
+``L w = k*``, which reads half the memory of a dense root): ``|w|^2 = k*^T (K + s^2 I)^{-1} k*``.
 
 Low rank: for an orthonormal basis ``Q`` (``S x r``) and the Ritz decomposition
 ``Q^T (K + s^2 I) Q = V diag(lam) V^T``, ``R = Q V diag(lam)^{-1/2}``. For any basis this gives a
@@ -16,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["exact_root", "lowrank_root"]
+__all__ = ["lowrank_root"]
 
 #: Extra basis vectors of the randomised range finder.
 OVERSAMPLE = 16
@@ -26,14 +27,11 @@ POWER_ITERS = 3
 ROOT_SEED = 0
 
 
-def exact_root(L: Tensor) -> Tensor:
-    """``R = L^{-T}`` from the Cholesky factor ``L`` ``(..., S, S)``; ``R R^T = (L L^T)^{-1}``."""
-    eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
-    return torch.linalg.solve_triangular(L, eye.expand_as(L), upper=False).mT
-
-
 def lowrank_root(Khat: Tensor, rank: int) -> Tensor:
     """A rank-``r`` root ``R`` ``(..., S, r)`` with ``R R^T <= (K + s^2 I)^{-1}`` on ``span(R)``.
+
+    Columns are ordered by decreasing Ritz value, so ``R[..., :q]`` is itself a valid rank-``q``
+    root (nested truncation).
 
     Args:
         Khat: ``K + s^2 I``, shape ``(..., S, S)``.
@@ -52,5 +50,5 @@ def lowrank_root(Khat: Tensor, rank: int) -> Tensor:
         Q = torch.linalg.qr(Khat @ Q).Q
     T = Q.mT @ Khat @ Q
     lam, V = torch.linalg.eigh(0.5 * (T + T.mT))
-    lam, V = lam[..., -r:], V[..., -r:]  # the r largest
+    lam, V = lam.flip(-1)[..., :r], V.flip(-1)[..., :r]  # the r largest, decreasing
     return (Q @ V) * lam.clamp_min(torch.finfo(Khat.dtype).tiny).rsqrt().unsqueeze(-2)

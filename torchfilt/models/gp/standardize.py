@@ -18,12 +18,14 @@ class Standardizer(nn.Module):
     Args:
         shift: per-column shift, shape ``(F,)``.
         scale: per-column positive scale, shape ``(F,)``.
+        constant: per-column flag, shape ``(F,)``: the column had no spread in the data.
     """
 
     shift: Tensor
     scale: Tensor
+    constant: Tensor
 
-    def __init__(self, shift: Tensor, scale: Tensor) -> None:
+    def __init__(self, shift: Tensor, scale: Tensor, constant: Tensor | None = None) -> None:
         super().__init__()
         if shift.shape != scale.shape or shift.dim() != 1:
             raise ValueError(
@@ -34,6 +36,9 @@ class Standardizer(nn.Module):
             raise ValueError("scale must be positive")
         self.register_buffer("shift", shift.clone())
         self.register_buffer("scale", scale.clone())
+        if constant is None:
+            constant = torch.zeros(shift.shape, dtype=torch.bool, device=shift.device)
+        self.register_buffer("constant", constant.clone())
 
     @classmethod
     def fit(cls, values: Tensor, valid: Tensor | None = None) -> Standardizer:
@@ -56,7 +61,7 @@ class Standardizer(nn.Module):
         var = (((v - mean) * w) ** 2).sum(0) / (count - 1.0).clamp_min(1.0)
         std = var.sqrt()
         const = std <= CONSTANT_RTOL * mean.abs().clamp_min(1.0)
-        return cls(mean, torch.where(const, torch.ones_like(std), std))
+        return cls(mean, torch.where(const, torch.ones_like(std), std), const)
 
     @property
     def size(self) -> int:

@@ -66,10 +66,12 @@ class GPTransition(GPModel):
             num_latents, task_rank: LMC size (``structure="multitask"``).
             num_inducing: inducing points per output (``structure="sparse"``, default 256).
             iterations: Adam iterations (default 200). lr: learning rate (default 0.05).
+            natural_lr: natural-gradient step for a sparse model's ``q(u)`` (default 0.1).
             subset: train hyperparameters of an exact model on at most this many random rows.
             batch_size: minibatch of a sparse model (default 1024).
-            variance: frozen variance mode, ``"exact"`` (default) or ``"lowrank"``; rank: its rank.
-            chunk_size: points per kernel chunk of the frozen predictor (default 128).
+            variance: frozen variance form, ``"auto"`` (default), ``"exact"`` or ``"lowrank"``;
+                rank: the low-rank root's rank; tol: tolerance of ``"auto"`` (default 0.05);
+                chunk_size: points per kernel chunk (default 128). See ``GPModel.freeze``.
             dtype: training dtype (default ``torch.float64``).
             seed: seeds every random choice (default 0).
             callback: per-iteration ``fn(FitState) -> bool | None``; ``True`` stops.
@@ -86,8 +88,17 @@ class GPTransition(GPModel):
 
 def _fit(cls: type[GPModel], pairs: Any, options: dict[str, Any]) -> GPModel:
     """Shared body of the ``fit`` class methods: build, train, freeze."""
-    train_keys = ("iterations", "lr", "subset", "batch_size", "callback", "progress", "resume")
-    freeze_keys = ("variance", "rank", "chunk_size")
+    train_keys = (
+        "iterations",
+        "lr",
+        "natural_lr",
+        "subset",
+        "batch_size",
+        "callback",
+        "progress",
+        "resume",
+    )
+    freeze_keys = ("variance", "rank", "tol", "chunk_size")
     train = {k: options.pop(k) for k in train_keys if k in options}
     freeze = {k: options.pop(k) for k in freeze_keys if k in options}
     seed = options.get("seed", 0)
