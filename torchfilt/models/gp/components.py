@@ -8,7 +8,7 @@ from torch import Tensor
 
 from torchfilt.models.gp.kernels import KERNELS
 
-__all__ = ["base_kernel", "gaussian_likelihood", "lengthscale_of"]
+__all__ = ["base_kernel", "bound_arg", "gaussian_likelihood", "lengthscale_of"]
 
 #: Initial ARD lengthscale in standardised input units.
 INIT_LENGTHSCALE = 1.0
@@ -47,6 +47,11 @@ def lengthscale_of(kernel: gpytorch.kernels.Kernel) -> Tensor:
     return kernel.lengthscale.squeeze(-2)
 
 
+def bound_arg(bound: Tensor) -> Tensor | float:
+    """GPyTorch's constraint ``repr`` formats a one-element bound as a scalar; give it one."""
+    return float(bound.reshape(())) if bound.numel() == 1 else bound
+
+
 def gaussian_likelihood(
     floor: Tensor, init: Tensor, fixed: bool
 ) -> gpytorch.likelihoods.GaussianLikelihood:
@@ -64,10 +69,11 @@ def gaussian_likelihood(
     bound = torch.zeros_like(floor) if fixed else floor
     lik = gpytorch.likelihoods.GaussianLikelihood(
         batch_shape=torch.Size([g]),
-        noise_constraint=gpytorch.constraints.GreaterThan(bound.unsqueeze(-1)),
+        noise_constraint=gpytorch.constraints.GreaterThan(bound_arg(bound.unsqueeze(-1))),
     ).to(floor.dtype)
     # GPyTorch stores bounds in the default dtype; copy the exact value in the model's dtype.
-    lik.noise_covar.raw_noise_constraint.lower_bound.copy_(bound.unsqueeze(-1))
+    low = lik.noise_covar.raw_noise_constraint.lower_bound
+    low.copy_(bound.unsqueeze(-1).reshape(low.shape))
     start = init if fixed else torch.maximum(init, 2.0 * floor)
     lik.noise = start.unsqueeze(-1).to(floor.dtype)
     if fixed:

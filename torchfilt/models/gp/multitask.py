@@ -6,7 +6,7 @@ import gpytorch
 import torch
 from torch import Tensor
 
-from torchfilt.models.gp.components import base_kernel
+from torchfilt.models.gp.components import base_kernel, bound_arg
 
 __all__ = ["ExactMultitaskGP", "multitask_likelihood"]
 
@@ -78,9 +78,10 @@ def multitask_likelihood(
         num_tasks=d,
         rank=0,
         has_global_noise=False,
-        noise_constraint=gpytorch.constraints.GreaterThan(bound),
+        noise_constraint=gpytorch.constraints.GreaterThan(bound_arg(bound)),
     ).to(floor.dtype)
-    lik.raw_task_noises_constraint.lower_bound.copy_(bound)
+    low = lik.raw_task_noises_constraint.lower_bound
+    low.copy_(bound.reshape(low.shape))
     lik.task_noises = (init if fixed else torch.maximum(init, 2.0 * floor)).to(floor.dtype)
     if fixed:
         lik.raw_task_noises.requires_grad_(False)
