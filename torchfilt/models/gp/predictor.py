@@ -72,15 +72,10 @@ class _Block(nn.Module):
 
     outputs: Tensor
     features: Tensor
-    in_shift: Tensor
-    scale: Tensor
     points: Tensor
     points_sq: Tensor
     alpha: Tensor
-    const: Tensor
     noise: Tensor
-    out_shift: Tensor
-    out_scale: Tensor
     factor: Tensor
 
     def __init__(self, kernel: str, form: str, rank: int | None) -> None:
@@ -94,24 +89,24 @@ class _Block(nn.Module):
             name, None if value is None else value.detach().clone(), persistent=False
         )
 
-    def _quad(self, c: Tensor) -> Tensor:
-        """``k*^T A k*`` for the block's variance factor, ``c`` ``(B, N, S)`` -> ``(B, N)``."""
-        if self.form == "exact":
-            w = torch.linalg.solve_triangular(self.factor, c.mT, upper=False)
-            return -w.pow(2).sum(-2)
-        if self.form == "lowrank":
-            return -(c @ self.factor).pow(2).sum(-1)
-        return ((c @ self.factor) * c).sum(-1)
-
     def forward(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:  # pragma: no cover
         raise NotImplementedError
 
 
 class _IndependentBlock(_Block):
-    """``g`` independent outputs sharing inputs (exact GP or SVGP)."""
+    """``g`` independent outputs sharing inputs (exact GP or SVGP).
 
-    outputscale: Tensor
-    prior_var: Tensor
+    Everything affine is folded into cached tensors: the points are mapped to
+    ``(z - shift) / (scale * lengthscale)`` by one ``addcmul``, the outputscale and the output
+    de-standardisation are folded into ``alpha``, the variance factor and the noise, so a call is
+    about a dozen tensor operations.
+    """
+
+    in_weight: Tensor
+    in_bias: Tensor
+    mean0: Tensor
+    var0: Tensor
+    qscale: Tensor
 
     def __init__(
         self,
@@ -136,40 +131,58 @@ class _IndependentBlock(_Block):
     ) -> None:
         super().__init__(kernel, form, rank)
         pts = points / lengthscale.unsqueeze(-2)  # points: (g, S, D) standardised
+        weight = 1.0 / (in_scale.unsqueeze(0) * lengthscale)  # (g, D)
+        amp = outputscale * out_scale  # (g,): kernel amplitude in target units
+        # features 0..D-1 of a D-column input need no gather
+        self.prefix = bool(torch.equal(features.cpu(), torch.arange(features.shape[0])))
+        self.num_selected = int(features.shape[0])
         self._buf("outputs", outputs)
         self._buf("features", features)
-        self._buf("in_shift", in_shift)
-        self._buf("scale", in_scale.unsqueeze(0) * lengthscale)  # (g, D)
+        self._buf("in_weight", weight.unsqueeze(-2))  # (g, 1, D)
+        self._buf("in_bias", (-in_shift * weight).unsqueeze(-2))
         self._buf("points", pts)
         self._buf("points_sq", pts.pow(2).sum(-1))
-        self._buf("alpha", alpha.unsqueeze(-1))  # (g, S, 1)
-        self._buf("const", const)
-        self._buf("outputscale", outputscale)
-        self._buf("prior_var", outputscale + extra_diag)
-        self._buf("noise", noise)
-        self._buf("out_shift", out_shift)
-        self._buf("out_scale", out_scale)
+        self._buf("alpha", (alpha * amp.unsqueeze(-1)).unsqueeze(-1))  # (g, S, 1)
+        self._buf("mean0", (out_shift + out_scale * const).unsqueeze(-1))  # (g, 1)
+        self._buf("var0", ((outputscale + extra_diag) * out_scale.pow(2)).unsqueeze(-1))
+        self._buf("noise", (noise * out_scale.pow(2)).unsqueeze(-1))
+        if form == "lowrank":
+            factor = factor * amp[:, None, None]
+        elif form == "sparse":
+            factor = factor * amp.pow(2)[:, None, None]
+        self._buf("qscale", amp.pow(2).unsqueeze(-1))  # exact form: |L^-1 c|^2 * amp^2
         self._buf("factor", factor)
 
-    def kernel_rows(self, z: Tensor) -> Tensor:
-        """``k(z, X)`` for every output, ``(N, F)`` -> ``(g, N, S)``."""
-        zs = (z[:, self.features] - self.in_shift).unsqueeze(0) / self.scale.unsqueeze(-2)
-        d2 = scaled_sq_dist(zs, self.points, self.points_sq)
-        return self.outputscale[:, None, None] * correlation(d2, self.kernel)
+    def correlation_rows(self, z: Tensor) -> Tensor:
+        """Unit-variance ``k(z, X)`` for every output, ``(N, F)`` -> ``(g, N, S)``."""
+        whole = self.prefix and z.shape[-1] == self.num_selected
+        zf = z if whole else z[:, self.features]
+        zs = torch.addcmul(self.in_bias, zf.unsqueeze(0), self.in_weight)  # (g, N, D)
+        return correlation(scaled_sq_dist(zs, self.points, self.points_sq), self.kernel)
 
     def forward(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
-        c = self.kernel_rows(z)  # (g, N, S)
-        mean = self.const.unsqueeze(-1) + (c @ self.alpha).squeeze(-1)  # (g, N)
-        var = (self.prior_var.unsqueeze(-1) + self._quad(c)).clamp_min(0.0)
-        var = var + self.noise.unsqueeze(-1)
-        s = self.out_scale.unsqueeze(-1)
-        return (mean * s + self.out_shift.unsqueeze(-1)).T, (var * s * s).T, None
+        c = self.correlation_rows(z)  # (g, N, S)
+        mean = torch.baddbmm(self.mean0.unsqueeze(-1), c, self.alpha).squeeze(-1)  # (g, N)
+        if self.form == "exact":
+            w = torch.linalg.solve_triangular(self.factor, c.mT, upper=False)
+            var = self.var0 - self.qscale * w.pow(2).sum(-2)
+        elif self.form == "lowrank":
+            var = self.var0 - (c @ self.factor).pow(2).sum(-1)
+        else:
+            var = self.var0 + ((c @ self.factor) * c).sum(-1)
+        var = var.clamp_min(0.0) + self.noise
+        return mean.T, var.T, None
 
 
 class _MultitaskBlock(_Block):
     """Correlated outputs (LMC): ``K = sum_q k_q (x) B_q`` in data-major order ``i * d + t``."""
 
     task_covar: Tensor
+    in_shift: Tensor
+    scale: Tensor
+    const: Tensor
+    out_shift: Tensor
+    out_scale: Tensor
 
     def __init__(
         self,
