@@ -148,7 +148,12 @@ def bench_size(S: int, args: argparse.Namespace, seq: Any) -> dict[str, Any]:
     full_iters = args.full_iters
     t0 = time.perf_counter()
     f_full = GPTransition.fit(
-        rec.states, increment=True, iterations=full_iters, progress=False, variance="exact"
+        rec.states,
+        increment=True,
+        iterations=full_iters,
+        subset=None,
+        progress=False,
+        variance="exact",
     )
     per_iter = (time.perf_counter() - t0) / max(full_iters, 1)
     del f_full

@@ -47,6 +47,8 @@ __all__ = ["STATE_FORMAT", "GPModel"]
 
 #: Tag of the plain-dict state written by :meth:`GPModel.to_state`.
 STATE_FORMAT = "torchfilt.gp/1"
+#: Hyperparameters of an exact model are trained on at most this many rows by default.
+DEFAULT_SUBSET = 1000
 #: The initial noise (standardised) is the neighbour estimate, capped at this value.
 INIT_NOISE_MAX = 0.1
 
@@ -272,7 +274,7 @@ class GPModel(ConditionalModel):
         lr: float = 0.05,
         *,
         natural_lr: float = 0.1,
-        subset: int | None = None,
+        subset: int | None = DEFAULT_SUBSET,
         batch_size: int = 1024,
         seed: int = 0,
         callback: Callback | None = None,
@@ -286,7 +288,9 @@ class GPModel(ConditionalModel):
             lr: Adam learning rate (hyperparameters, inducing inputs).
             natural_lr: natural-gradient step size for ``q(u)`` of a sparse model.
             subset: train an exact model's hyperparameters on a random subset of at most this
-                many rows per group (the model still conditions on every row afterwards).
+                many rows per group (default 1000; ``None``: all rows). The model still conditions
+                on every row afterwards. An exact marginal-likelihood step costs O(S^3): measured
+                here 0.07 s at S = 500, ~4 s at 2000 and ~30 s at 5000 per iteration (2 cores).
             batch_size: minibatch size of a sparse model.
             seed: seeds the subset and the minibatches (iteration ``k`` uses ``seed`` and ``k``,
                 so a resumed run draws what an uninterrupted one would).
@@ -655,6 +659,9 @@ class GPModel(ConditionalModel):
                     noise_fixed=config.noise_fixed,
                     num_latents=config.num_latents,
                     task_rank=config.task_rank,
+                    # random initial values are overwritten by the state dict; a private
+                    # generator keeps the user's global random stream untouched
+                    generator=torch.Generator().manual_seed(0),
                     num_inducing=int(
                         sd.get(
                             f"groups.{i}.gp.variational_strategy.inducing_points",

@@ -31,7 +31,13 @@ import torch
 from torch import Tensor, nn
 
 from torchfilt.models.gp.kernels import correlation, scaled_sq_dist
-from torchfilt.models.gp.root import lowrank_root
+from torchfilt.models.gp.root import (
+    ANCHOR_SHARE,
+    anchor_basis,
+    eigen_basis,
+    lowrank_root,
+    ritz_root,
+)
 
 __all__ = ["AUTO_RANKS", "AUTO_TOL", "CHUNK_SIZE", "FrozenGP", "FrozenOutput", "VarianceMode"]
 
@@ -284,6 +290,11 @@ class FrozenGP(nn.Module):
 
     def forward(self, z: Tensor) -> FrozenOutput:
         """Predictive moments at features ``z`` ``(..., F)``; returns ``(..., d)`` tensors."""
+        if z.device != self.fill_mean.device:
+            raise ValueError(
+                f"x is on {z.device} but the GP model is on {self.fill_mean.device}; move one "
+                "of them with .to()"
+            )
         lead = z.shape[:-1]
         flat = z.reshape(-1, z.shape[-1]).to(self.fill_mean.dtype)
         d = self.out_dim
@@ -345,6 +356,7 @@ def _choose_form(
     variance: VarianceMode,
     rank: int | None,
     tol: float,
+    K: Tensor,
     Khat: Tensor,
     L: Tensor,
     rows: Tensor,
@@ -354,7 +366,7 @@ def _choose_form(
 
     Args:
         variance, rank, tol: the user's options.
-        Khat: ``K + s^2 I`` ``(B, S, S)``; L: its Cholesky factor.
+        K: noise-free kernel matrix ``(B, S, S)``; Khat: ``K + s^2 I``; L: its Cholesky factor.
         rows: validation kernel rows ``(B, V, S)`` (``variance="auto"`` only).
         prior: prior variance + noise, ``(B,)`` or per validation row ``(B, V)`` (``"auto"``).
     """
@@ -363,20 +375,23 @@ def _choose_form(
         return "exact", None, L
     if variance == "lowrank":
         assert rank is not None
-        return "lowrank", min(rank, S), lowrank_root(Khat, rank)
-    ranks = [r for r in AUTO_RANKS if r <= S // 2]
+        return "lowrank", min(rank, S), lowrank_root(K, Khat, L, rank)
+    ranks = [r for r in AUTO_RANKS if r <= S // 4]  # beyond S/4 exact is as cheap
     if not ranks:
         return "exact", None, L
     p = prior.unsqueeze(-1) if prior.dim() == 1 else prior
     w = torch.linalg.solve_triangular(L, rows.mT, upper=False)
     exact = p - w.pow(2).sum(-2)  # (B, V)
-    root = lowrank_root(Khat, ranks[-1])
-    proj = (rows @ root).pow(2)  # (B, V, r_max)
+    top, share = ranks[-1], ANCHOR_SHARE
+    eig = eigen_basis(Khat, top - top // share)
+    anchors = anchor_basis(K, L, top // share)
     for r in ranks:
-        approx = p - proj[..., :r].sum(-1)
+        basis = torch.cat([eig[..., : r - r // share], anchors[..., : r // share]], -1)
+        root = ritz_root(Khat, basis)
+        approx = p - (rows @ root).pow(2).sum(-1)
         rel = (approx - exact).abs() / exact.clamp_min(torch.finfo(exact.dtype).tiny)
         if float(rel.max()) <= tol:
-            return "lowrank", r, root[..., :r].contiguous()
+            return "lowrank", r, root
     return "exact", None, L
 
 
@@ -441,7 +456,7 @@ def independent_block(
         v = _validation_points(train_x, ls) / ls.unsqueeze(-2)  # (g, V, D)
         rows = os_[:, None, None] * correlation(scaled_sq_dist(v, pts), kernel)
         prior = os_ + noise
-    form, r, factor = _choose_form(variance, rank, tol, Khat, L, rows, prior)
+    form, r, factor = _choose_form(variance, rank, tol, K, Khat, L, rows, prior)
     return _IndependentBlock(
         kernel=kernel,
         form=form,
@@ -563,7 +578,7 @@ def multitask_block(
         rows = torch.einsum("qns,qtu->ntsu", kv, B).reshape(V * d, S * d).unsqueeze(0)
         prior = (B.sum(0).diagonal() + noise).repeat(V).unsqueeze(0)  # (1, V d)
     form, r, factor = _choose_form(
-        variance, rank, tol, Khat.unsqueeze(0), L.unsqueeze(0), rows, prior
+        variance, rank, tol, K.unsqueeze(0), Khat.unsqueeze(0), L.unsqueeze(0), rows, prior
     )
     return _MultitaskBlock(
         kernel=kernel,

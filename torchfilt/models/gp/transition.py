@@ -67,7 +67,8 @@ class GPTransition(GPModel):
             num_inducing: inducing points per output (``structure="sparse"``, default 256).
             iterations: Adam iterations (default 200). lr: learning rate (default 0.05).
             natural_lr: natural-gradient step for a sparse model's ``q(u)`` (default 0.1).
-            subset: train hyperparameters of an exact model on at most this many random rows.
+            subset: train hyperparameters of an exact model on at most this many random rows
+                (default 1000; ``None`` for all), then condition on all rows.
             batch_size: minibatch of a sparse model (default 1024).
             variance: frozen variance form, ``"auto"`` (default), ``"exact"`` or ``"lowrank"``;
                 rank: the low-rank root's rank; tol: tolerance of ``"auto"`` (default 0.05);
