@@ -250,6 +250,11 @@ class GPModel(ConditionalModel):
         for spec in specs:
             outs = list(spec.outputs)
             rows = valid[:, outs].all(-1)
+            if int(rows.sum()) < MIN_POINTS:  # a multitask GP needs every output at a row
+                raise ValueError(
+                    f"{target_name}: only {int(rows.sum())} rows observe all of outputs {outs}; "
+                    f"a multitask GP needs at least {MIN_POINTS}"
+                )
             groups.append(
                 GPGroup(
                     structure,
