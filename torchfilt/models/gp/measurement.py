@@ -10,7 +10,6 @@ from torch import Tensor
 
 from torchfilt.models.gp.data import measurement_pairs
 from torchfilt.models.gp.model import _ROLES, GPModel
-from torchfilt.models.gp.transition import _fit
 
 __all__ = ["GPMeasurement"]
 
@@ -59,7 +58,7 @@ class GPMeasurement(GPModel):
         """
         dtype = options.pop("dtype", torch.float64)
         pairs = measurement_pairs(x, y, u, dtype=dtype)
-        return _fit(cls, pairs, options)  # type: ignore[return-value]
+        return cls._fit(pairs, options)  # type: ignore[return-value]
 
 
 _ROLES["measurement"] = GPMeasurement

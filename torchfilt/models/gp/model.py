@@ -272,6 +272,20 @@ class GPModel(ConditionalModel):
             )
         return cls(config, groups, input_std, target_std, prior_mean)
 
+    @classmethod
+    def _fit(cls, pairs: PairData, options: dict[str, Any]) -> GPModel:
+        """Shared body of the ``fit`` class methods: build, train, freeze."""
+        train_keys: tuple[str, ...] = ("iterations", "lr", "natural_lr", "subset", "batch_size")
+        train_keys += ("callback", "progress", "resume")
+        freeze_keys = ("variance", "rank", "tol", "chunk_size")
+        train = {k: options.pop(k) for k in train_keys if k in options}
+        freeze = {k: options.pop(k) for k in freeze_keys if k in options}
+        seed = options.get("seed", 0)
+        model = cls._from_pairs(pairs, **options)
+        model.optimize(seed=seed, **train)
+        model.freeze(**freeze)
+        return model
+
     # ------------------------------------------------------------------ training
     def optimize(
         self,

@@ -84,29 +84,7 @@ class GPTransition(GPModel):
         """
         dtype = options.pop("dtype", torch.float64)
         pairs = transition_pairs(x, u, x_next, dtype=dtype)
-        return _fit(cls, pairs, options)  # type: ignore[return-value]
-
-
-def _fit(cls: type[GPModel], pairs: Any, options: dict[str, Any]) -> GPModel:
-    """Shared body of the ``fit`` class methods: build, train, freeze."""
-    train_keys = (
-        "iterations",
-        "lr",
-        "natural_lr",
-        "subset",
-        "batch_size",
-        "callback",
-        "progress",
-        "resume",
-    )
-    freeze_keys = ("variance", "rank", "tol", "chunk_size")
-    train = {k: options.pop(k) for k in train_keys if k in options}
-    freeze = {k: options.pop(k) for k in freeze_keys if k in options}
-    seed = options.get("seed", 0)
-    model = cls._from_pairs(pairs, **options)
-    model.optimize(seed=seed, **train)
-    model.freeze(**freeze)
-    return model
+        return cls._fit(pairs, options)  # type: ignore[return-value]
 
 
 _ROLES["transition"] = GPTransition
