@@ -13,6 +13,7 @@ Radar range ``z = sqrt(M^2 + (x1 - H)^2) + v``, ``var(v) = 1e4``, ``M = H = 1e5`
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -32,10 +33,12 @@ __all__ = [
     "STEPS",
     "SUBSTEPS",
     "X0_TRUE",
+    "TrainingRecord",
     "drift",
     "measurement",
     "model",
     "prior_cov",
+    "record_training_data",
     "simulate_truth",
     "transition",
 ]
@@ -129,3 +132,137 @@ def simulate_truth(
         batch_shape=(runs,),
         generator=gen,
     )
+
+
+#: Largest velocity (ft/s) a recorded state may have: 2.5x the entry speed. Beyond it the state is
+#: in the runaway of a negative ballistic coefficient (the dynamics blow up in finite time).
+MAX_VELOCITY = 5e4
+#: Sub-steps of the reference integration that checks each recorded step.
+CHECK_SUBSTEPS = 40
+#: A step is rejected when the 10- and 40-sub-step RK4 results differ by more than this fraction of
+#: the step's increment (altitude and velocity): the 1 s step is not resolved there (stiff drag).
+CHECK_RTOL = 1e-2
+
+
+class TrainingRecord(NamedTuple):
+    """Logged re-entry data for learning ``f`` and ``h``.
+
+    Attributes:
+        states: recordings ``x_0..x_{T_i}``, a list of ``(T_i + 1, 3)`` tensors (true states).
+        measurements: noisy radar range at each recorded state, a list of ``(T_i + 1, 1)``.
+        initial: the initial states drawn, ``(R, 3)`` (including recordings that produced no
+            transition).
+        rejected: number of recordings cut short, by reason: ``"non-finite"``, ``"ground"``
+            (altitude below 0), ``"velocity"`` (negative, or above :data:`MAX_VELOCITY`),
+            ``"integrator"`` (see :data:`CHECK_RTOL`).
+    """
+
+    states: list[Tensor]
+    measurements: list[Tensor]
+    initial: Tensor
+    rejected: dict[str, int]
+
+    @property
+    def pairs(self) -> int:
+        """Number of transition pairs ``(x_k, x_{k+1})``."""
+        return sum(int(s.shape[0]) - 1 for s in self.states)
+
+
+def record_training_data(
+    samples: int = 5000,
+    seed: int = 0,
+    *,
+    horizon: int = STEPS,
+    batch: int = 64,
+    x0_mean: Tensor | None = None,
+    x0_cov: Tensor | None = None,
+    M: float = RADAR_M,
+    dtype: torch.dtype = torch.float64,
+) -> TrainingRecord:
+    """Record physically plausible re-entry trajectories that cover where the filter looks.
+
+    Sampling: initial states are drawn from the filter's prior ``N(PRIOR_MEAN, diag(1e6, 4e6,
+    1e-4))`` (so the ballistic coefficient spreads with sd 0.01 around 3e-5, about half of the draws
+    negative), and each is propagated with the true dynamics (:func:`transition`) for up to
+    ``horizon`` steps. The trajectories therefore fan out over the region the filter's cubature
+    points visit, rather than filling a box (a box puts stiff, unphysical combinations of low
+    altitude, high speed and large drag into the data, where the integrator returns garbage).
+
+    Every step is checked before it is recorded; the recording stops at the first step that fails
+    (the rest of that trajectory is discarded and counted in ``rejected``):
+
+    * the next state is finite;
+    * altitude stays >= 0 (the vehicle reached the ground);
+    * velocity stays in ``[0, MAX_VELOCITY]`` (a negative ballistic coefficient accelerates the
+      vehicle until the dynamics blow up: those targets are absurd);
+    * the 1 s step is resolved: RK4 with 10 and with 40 sub-steps agree to ``CHECK_RTOL`` of the
+      step's increment.
+
+    Recordings are drawn in batches until ``samples`` transition pairs are collected; the last
+    recording is shortened so that the total is exactly ``samples``. Each recorded state gets a
+    radar range ``sqrt(M^2 + (x1 - H)^2) + v``, ``v ~ N(0, R_VAR)``.
+
+    Args:
+        samples: number of transition pairs to record.
+        seed: seeds the initial states and the measurement noise.
+        horizon: longest recording, in steps.
+        batch: trajectories simulated together.
+        x0_mean: mean of the initial states (default :data:`PRIOR_MEAN`).
+        x0_cov: covariance of the initial states (default :func:`prior_cov`).
+        M: radar horizontal offset of the recorded measurements.
+        dtype: floating dtype.
+
+    Returns:
+        A :class:`TrainingRecord` with ``samples`` pairs.
+    """
+    if samples < 1 or horizon < 1 or batch < 1:
+        raise ValueError("samples, horizon and batch must be positive")
+    gen = torch.Generator().manual_seed(seed)
+    mean = torch.tensor(PRIOR_MEAN, dtype=dtype) if x0_mean is None else x0_mean.to(dtype)
+    cov = prior_cov(dtype) if x0_cov is None else x0_cov.to(dtype)
+    L = torch.linalg.cholesky(cov)
+    states: list[Tensor] = []
+    meas: list[Tensor] = []
+    initial: list[Tensor] = []
+    rejected = {"non-finite": 0, "ground": 0, "velocity": 0, "integrator": 0}
+    total = 0
+    while total < samples:
+        x = mean + torch.randn(batch, 3, generator=gen, dtype=dtype) @ L.T
+        initial.append(x)
+        traj = [x]
+        alive = torch.ones(batch, dtype=torch.bool)
+        length = torch.zeros(batch, dtype=torch.long)
+        for _ in range(horizon):
+            with torch.no_grad():
+                nxt = transition(x)
+                ref = transition(x, substeps=CHECK_SUBSTEPS)
+            finite = torch.isfinite(nxt).all(-1) & torch.isfinite(ref).all(-1)
+            ground = nxt[:, 0] < 0
+            speed = (nxt[:, 1] < 0) | (nxt[:, 1] > MAX_VELOCITY)
+            err = ((nxt - ref).abs() / ((ref - x).abs() + 1e-12))[:, :2].amax(-1)
+            integ = ~(err <= CHECK_RTOL)
+            for name, flag in (
+                ("non-finite", ~finite),
+                ("ground", finite & ground),
+                ("velocity", finite & ~ground & speed),
+                ("integrator", finite & ~ground & ~speed & integ),
+            ):
+                rejected[name] += int((alive & flag).sum())
+            alive = alive & finite & ~ground & ~speed & ~integ
+            length = length + alive.long()
+            x = torch.where(alive.unsqueeze(-1), nxt, x)
+            traj.append(x)
+            if not bool(alive.any()):
+                break
+        stacked = torch.stack(traj, 1)  # (batch, steps + 1, 3)
+        for i in range(batch):
+            steps = int(length[i])
+            if steps < 1 or total >= samples:
+                continue
+            steps = min(steps, samples - total)
+            rec = stacked[i, : steps + 1]
+            noise = torch.randn(steps + 1, 1, generator=gen, dtype=dtype) * R_VAR**0.5
+            states.append(rec)
+            meas.append(measurement(rec, M=M) + noise)
+            total += steps
+    return TrainingRecord(states, meas, torch.cat(initial), rejected)

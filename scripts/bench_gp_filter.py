@@ -1,0 +1,480 @@
+"""GP-model CKF on the re-entry problem: frozen predictor vs GPyTorch, variance forms, training time.
+
+For each training-set size S (default 500, 2000, 5000) the script records S transition pairs with
+:func:`torchfilt.systems.reentry.record_training_data` (trajectories from the filter's prior), fits
+an exact GP transition (increment form, all three states) and an exact GP measurement (altitude
+only), and filters one measurement sequence (T = 60) with the CKF (float64, law of total variance).
+All of it in one run:
+
+* **GPyTorch eval** — the same models called through GPyTorch in eval mode at every step, with
+  the exact settings the product trains with (``exact``) and with GPyTorch's defaults plus LOVE
+  (``fast_pred_var``, its fastest path; its means and variances are checked against exact ones).
+* **frozen** — the plain-torch frozen predictor with each variance form: ``exact`` (cached
+  Cholesky), ``lowrank`` (rank 32/128/512), ``auto`` (per model the smallest rank within 5 % of
+  the exact variance on validation points, else exact), and ``sparse`` (an SVGP's own
+  inducing-point variance, 256 inducing points, as an approximation of the exact GP).
+* The variance error of each form is measured at the cubature points the filter actually visits
+  (relative to the exact predictive variance, latent + noise); the fastest form whose maximum
+  error stays below 5 % is the "chosen" one, and the headline speed-up is against GPyTorch with it.
+* Training: the product recipe (hyperparameters on a random 1000-row subset, 150 Adam iterations,
+  then conditioning on all S rows) and the per-iteration time of the exact marginal likelihood on
+  all S rows.
+
+GPU rows are reported as not measured when no CUDA device is present.
+
+    PYTHONPATH=. python scripts/bench_gp_filter.py --out out/bench_gp
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torchfilt import CKF, ConditionalModel, Prediction, StateSpaceModel
+from torchfilt.models.gp import GPMeasurement, GPModel, GPTransition
+from torchfilt.systems import reentry
+
+DT = torch.float64
+T = reentry.STEPS
+#: Variance error below which a form counts as accurate (relative to the predictive variance).
+VAR_TOL = 0.05
+#: The product's training recipe.
+RECIPE = {"iterations": 150, "lr": 0.05, "subset": 1000}
+LOWRANKS = (32, 128, 512)
+
+
+# --------------------------------------------------------------------------- helpers
+def environment() -> dict[str, Any]:
+    return {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "cpu": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(),
+        "load_average": os.getloadavg(),
+        "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
+    }
+
+
+def table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    def cell(v: Any) -> str:
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        return "-" if v is None else str(v)
+
+    body = [[cell(v) for v in r] for r in rows]
+    widths = [max(len(h), *(len(r[i]) for r in body)) for i, h in enumerate(headers)]
+    out = ["  ".join(h.ljust(w) for h, w in zip(headers, widths, strict=True))]
+    out.append("  ".join("-" * w for w in widths))
+    out += ["  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)) for r in body]
+    return "\n".join(out)
+
+
+def timeit(fn: Callable[[], Any], repeats: int, warmup: int = 1) -> float:
+    """Median wall time of ``fn`` after ``warmup`` untimed runs."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+class GPyTorchEval(ConditionalModel):
+    """A GP model called through GPyTorch in eval mode at every step (the baseline)."""
+
+    def __init__(self, model: GPModel, fast_pred_var: bool) -> None:
+        super().__init__()
+        self.model = model
+        self.fast = fast_pred_var
+        self.out_dim, self.in_dim = model.out_dim, model.in_dim
+
+    def predict(self, x: Tensor, u: Tensor | None = None) -> Prediction:
+        return self.model.predict_gpytorch(x, u, fast_pred_var=self.fast)
+
+
+class Recorder(ConditionalModel):
+    """Passes through and keeps the points the filter evaluates."""
+
+    def __init__(self, model: ConditionalModel) -> None:
+        super().__init__()
+        self.model = model
+        self.out_dim, self.in_dim = model.out_dim, model.in_dim
+        self.points: list[Tensor] = []
+
+    def predict(self, x: Tensor, u: Tensor | None = None) -> Prediction:
+        self.points.append(x.detach().reshape(-1, x.shape[-1]).clone())
+        return self.model.predict(x, u)
+
+
+def rel_err(a: Tensor, ref: Tensor) -> tuple[float, float]:
+    """Max and 99th-percentile relative error over entries with a positive reference."""
+    mask = ref > 0
+    r = ((a - ref).abs() / ref)[mask]
+    return float(r.max()), float(torch.quantile(r, 0.99))
+
+
+# --------------------------------------------------------------------------- one size
+def bench_size(S: int, args: argparse.Namespace, seq: Any) -> dict[str, Any]:
+    out: dict[str, Any] = {"S": S}
+    rec = reentry.record_training_data(S, seed=args.seed)
+    out["recording"] = {"recordings": len(rec.states), "rejected": rec.rejected}
+    x0 = torch.tensor(reentry.PRIOR_MEAN, dtype=DT)
+    P0 = reentry.prior_cov()
+    y = seq.measurements[0]
+
+    # ---- training (product recipe), and per-iteration time of the full exact MLL
+    t0 = time.perf_counter()
+    f = GPTransition.fit(rec.states, increment=True, progress=False, variance="exact", **RECIPE)
+    t_f = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    h = GPMeasurement.fit(
+        rec.states, rec.measurements, inputs=[0], progress=False, variance="exact", **RECIPE
+    )
+    t_h = time.perf_counter() - t0
+    full_iters = args.full_iters
+    t0 = time.perf_counter()
+    f_full = GPTransition.fit(
+        rec.states,
+        increment=True,
+        iterations=full_iters,
+        subset=None,
+        progress=False,
+        variance="exact",
+    )
+    per_iter = (time.perf_counter() - t0) / max(full_iters, 1)
+    del f_full
+    out["training"] = {
+        "recipe": RECIPE,
+        "recipe_seconds_f": t_f,
+        "recipe_seconds_h": t_h,
+        "full_exact_mll_seconds_per_iteration_f": per_iter,
+        "full_iterations_timed": full_iters,
+        "noise_sd_h_ft": float(h.noise_variance.sqrt()),
+        "noise_sd_f": f.noise_variance.sqrt().tolist(),
+    }
+
+    # ---- the cubature points the filter visits (frozen exact), and its accuracy
+    rf, rh = Recorder(f), Recorder(h)
+    res = CKF(StateSpaceModel(rf, rh)).filter(y, x0=x0, P0=P0)
+    err = (res.mean - seq.states[0]).pow(2).mean(0).sqrt()
+    out["filter_rmse_exact"] = err.tolist()
+    Xf, Xh = torch.cat(rf.points), torch.cat(rh.points)
+    with torch.no_grad():
+        exact_f, exact_h = f.predict(Xf), h.predict(Xh)
+
+    # ---- variance forms: accuracy at the visited points, per-call and per-step time
+    six = Xf[:6].clone()
+    forms: list[dict[str, Any]] = []
+
+    def add_form(name: str, fm: ConditionalModel, hm: ConditionalModel, build_s: float) -> None:
+        with torch.no_grad():
+            pf, ph = fm.predict(Xf), hm.predict(Xh)
+            call_f = timeit(lambda: fm.predict(six), args.repeats * 20)
+            call_h = timeit(lambda: hm.predict(six), args.repeats * 20)
+            ckf = CKF(StateSpaceModel(fm, hm))
+            step = timeit(lambda: ckf.filter(y, x0=x0, P0=P0), args.repeats) / T
+        vf = rel_err(pf.var, exact_f.var)
+        vh = rel_err(ph.var, exact_h.var)
+        mean_err_f = float(
+            ((pf.mean - exact_f.mean).abs() / exact_f.var.sqrt().clamp_min(1e-300))[
+                exact_f.var > 0
+            ].max()
+        )
+        forms.append(
+            {
+                "form": name,
+                "forms_f": getattr(fm, "variance_forms", None),
+                "forms_h": getattr(hm, "variance_forms", None),
+                "var_err_max_f": vf[0],
+                "var_err_p99_f": vf[1],
+                "var_err_max_h": vh[0],
+                "var_err_p99_h": vh[1],
+                "mean_err_f_in_sd": mean_err_f,
+                "call_ms_f": call_f * 1e3,
+                "call_ms_h": call_h * 1e3,
+                "step_ms": step * 1e3,
+                "steps_per_s": 1.0 / step,
+                "build_s": build_s,
+            }
+        )
+        print(
+            f"  S={S} {name}: {step * 1e3:.3f} ms/step, var err f {vf[0]:.3g} h {vh[0]:.3g}",
+            flush=True,
+        )
+
+    add_form("frozen exact", f, h, 0.0)
+    for r in LOWRANKS:
+        if r >= S:
+            continue
+        t0 = time.perf_counter()
+        f.freeze("lowrank", rank=r)
+        h.freeze("lowrank", rank=r)
+        add_form(f"frozen lowrank {r}", f, h, time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    f.freeze("auto")
+    h.freeze("auto")
+    add_form("frozen auto", f, h, time.perf_counter() - t0)
+    if args.sparse:
+        t0 = time.perf_counter()
+        fs = GPTransition.fit(
+            rec.states,
+            increment=True,
+            structure="sparse",
+            num_inducing=256,
+            iterations=args.sparse_iters,
+            progress=False,
+        )
+        hs = GPMeasurement.fit(
+            rec.states,
+            rec.measurements,
+            inputs=[0],
+            structure="sparse",
+            num_inducing=256,
+            iterations=args.sparse_iters,
+            progress=False,
+        )
+        add_form("frozen sparse (SVGP 256)", fs, hs, time.perf_counter() - t0)
+
+    # ---- GPyTorch every step (exact settings; and defaults + LOVE)
+    f.freeze("exact")
+    h.freeze("exact")
+    gpy: list[dict[str, Any]] = []
+    for fast in (True, False):
+        name = "gpytorch fast_pred_var" if fast else "gpytorch exact"
+        ef, eh = GPyTorchEval(f, fast), GPyTorchEval(h, fast)
+        steps = T if (fast or S <= args.gpytorch_exact_max_full) else args.gpytorch_exact_steps
+        with warnings.catch_warnings(), torch.no_grad():
+            warnings.simplefilter("ignore")  # GPyTorch's CG warnings under its defaults
+            ckf = CKF(StateSpaceModel(ef, eh))
+            step = (
+                timeit(
+                    lambda ckf=ckf, steps=steps: ckf.filter(y[:steps], x0=x0, P0=P0),
+                    1 if not fast else args.repeats,
+                    warmup=1 if fast else 0,
+                )
+                / steps
+            )
+            call_f = timeit(lambda ef=ef: ef.predict(six), 3 if not fast else args.repeats * 10)
+            pf = ef.predict(Xf[: args.accuracy_points])
+            ph = eh.predict(Xh[: args.accuracy_points])
+        n = pf.mean.shape[0]
+        vf = rel_err(pf.var, exact_f.var[:n])
+        vh = rel_err(ph.var, exact_h.var[:n])
+        mean_err = float(
+            ((pf.mean - exact_f.mean[:n]).abs() / exact_f.var[:n].sqrt().clamp_min(1e-300))[
+                exact_f.var[:n] > 0
+            ].max()
+        )
+        gpy.append(
+            {
+                "form": name,
+                "steps_timed": steps,
+                "step_ms": step * 1e3,
+                "call_ms_f": call_f * 1e3,
+                "var_err_max_f": vf[0],
+                "var_err_max_h": vh[0],
+                "mean_err_f_in_sd": mean_err,
+            }
+        )
+        print(f"  S={S} {name}: {step * 1e3:.3f} ms/step", flush=True)
+
+    # ---- the chosen form and the speed-up
+    ok = [r for r in forms if r["var_err_max_f"] < VAR_TOL and r["var_err_max_h"] < VAR_TOL]
+    chosen = min(ok, key=lambda r: r["step_ms"]) if ok else None
+    out["forms"] = forms
+    out["gpytorch"] = gpy
+    if chosen is not None:
+        out["chosen"] = chosen["form"]
+        for g in gpy:
+            g["speedup_of_chosen"] = g["step_ms"] / chosen["step_ms"]
+    fastest = min(forms, key=lambda r: r["step_ms"])
+    out["fastest_any"] = fastest["form"]
+    for g in gpy:
+        g["speedup_of_fastest_any"] = g["step_ms"] / fastest["step_ms"]
+
+    # ---- one sequence with torch.compile of the step (chosen form)
+    if args.compile and chosen is not None:
+        try:
+            name = chosen["form"]
+            if "lowrank" in name:
+                r = int(name.split()[-1])
+                f.freeze("lowrank", rank=r)
+                h.freeze("lowrank", rank=r)
+            elif "auto" in name:
+                f.freeze("auto")
+                h.freeze("auto")
+            ckf = CKF(StateSpaceModel(f, h), compile=True)
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                ckf.filter(y, x0=x0, P0=P0)
+            compile_s = time.perf_counter() - t0
+            with torch.no_grad():
+                step = timeit(lambda: ckf.filter(y, x0=x0, P0=P0), args.repeats, warmup=0) / T
+            out["compiled"] = {
+                "form": name,
+                "step_ms": step * 1e3,
+                "steps_per_s": 1 / step,
+                "compile_s": compile_s,
+            }
+        except Exception as exc:  # report, don't abort the benchmark
+            out["compiled"] = {"error": f"{type(exc).__name__}: {str(exc)[:200]}"}
+    return out
+
+
+# --------------------------------------------------------------------------- main
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sizes", type=int, nargs="+", default=[500, 2000, 5000])
+    p.add_argument("--threads", type=int, default=2, help="torch.set_num_threads (default 2)")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--full-iters",
+        type=int,
+        default=3,
+        help="iterations timed for the full-data exact marginal likelihood",
+    )
+    p.add_argument(
+        "--gpytorch-exact-max-full",
+        type=int,
+        default=2000,
+        help="largest S at which GPyTorch-exact runs all T steps (else a few)",
+    )
+    p.add_argument("--gpytorch-exact-steps", type=int, default=3)
+    p.add_argument(
+        "--accuracy-points",
+        type=int,
+        default=120,
+        help="visited points at which GPyTorch's own variances are checked",
+    )
+    p.add_argument("--no-sparse", dest="sparse", action="store_false")
+    p.add_argument("--sparse-iters", type=int, default=300)
+    p.add_argument("--no-compile", dest="compile", action="store_false")
+    p.add_argument("--out", type=Path, default=Path("out/bench_gp"))
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    seq = reentry.simulate_truth(1, seed=1)
+    results: dict[str, Any] = {"environment": environment(), "sizes": []}
+    for S in args.sizes:
+        print(f"S = {S} ...", flush=True)
+        results["sizes"].append(bench_size(S, args, seq))
+    results["gpu"] = "not measured (no GPU lent)" if not torch.cuda.is_available() else "see README"
+    print_report(results)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "results.json").write_text(json.dumps(results, indent=2, default=float))
+    print(f"\nwrote {args.out / 'results.json'}")
+    return results
+
+
+def print_report(results: dict[str, Any]) -> None:
+    env = results["environment"]
+    print(
+        f"\nre-entry, T = {T}, float64, CPU, {env['threads']} torch threads, "
+        f"load average {env['load_average'][0]:.1f}"
+    )
+    rows = []
+    for r in results["sizes"]:
+        for fm in r["forms"]:
+            rows.append(
+                [
+                    r["S"],
+                    fm["form"],
+                    fm["step_ms"],
+                    fm["steps_per_s"],
+                    fm["call_ms_f"],
+                    fm["call_ms_h"],
+                    fm["var_err_max_f"],
+                    fm["var_err_p99_f"],
+                    fm["var_err_max_h"],
+                    str(fm["forms_f"]),
+                ]
+            )
+        for g in r["gpytorch"]:
+            rows.append(
+                [
+                    r["S"],
+                    g["form"] + f" ({g['steps_timed']} steps)",
+                    g["step_ms"],
+                    1e3 / g["step_ms"],
+                    g["call_ms_f"],
+                    None,
+                    g["var_err_max_f"],
+                    None,
+                    g["var_err_max_h"],
+                    f"mean err {g['mean_err_f_in_sd']:.2g} sd",
+                ]
+            )
+    print(
+        table(
+            [
+                "S",
+                "predictor",
+                "ms/step",
+                "steps/s",
+                "f ms/call",
+                "h ms/call",
+                "var err f max",
+                "f p99",
+                "var err h max",
+                "forms / note",
+            ],
+            rows,
+        )
+    )
+    print()
+    rows = []
+    for r in results["sizes"]:
+        g = {x["form"]: x for x in r["gpytorch"]}
+        rows.append(
+            [
+                r["S"],
+                r.get("chosen"),
+                g["gpytorch fast_pred_var"].get("speedup_of_chosen"),
+                g["gpytorch exact"].get("speedup_of_chosen"),
+                r["fastest_any"],
+                g["gpytorch fast_pred_var"]["speedup_of_fastest_any"],
+                r.get("compiled", {}).get("steps_per_s"),
+                r["training"]["recipe_seconds_f"],
+                r["training"]["full_exact_mll_seconds_per_iteration_f"],
+                str([round(v, 2) for v in r["filter_rmse_exact"]]),
+            ]
+        )
+    print(
+        table(
+            [
+                "S",
+                "chosen (var err < 5%)",
+                "x vs LOVE",
+                "x vs GPyTorch exact",
+                "fastest any",
+                "x vs LOVE",
+                "compiled steps/s",
+                "train f recipe s",
+                "exact MLL s/iter (f)",
+                "RMSE (exact)",
+            ],
+            rows,
+        )
+    )
+    print(
+        f"\nGPU (batch of 1e4 sequences, S = 2000, float32; SVGP on 1e6 transitions): "
+        f"{results['gpu']}"
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,47 @@
+"""The GP benchmark script runs end to end on a small size and writes its JSON (slow)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "bench_gp_filter.py"
+
+
+@pytest.mark.slow
+def test_bench_gp_filter_small(tmp_path):
+    spec = importlib.util.spec_from_file_location("bench_gp_filter", SCRIPT)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    threads = torch.get_num_threads()
+    try:
+        mod.main(
+            [
+                "--sizes",
+                "200",
+                "--threads",
+                "1",
+                "--repeats",
+                "1",
+                "--full-iters",
+                "1",
+                "--no-sparse",
+                "--no-compile",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+    finally:
+        torch.set_num_threads(threads)
+    res = json.loads((tmp_path / "results.json").read_text())
+    (size,) = res["sizes"]
+    assert size["S"] == 200 and size["chosen"] is not None
+    forms = {f["form"]: f for f in size["forms"]}
+    assert forms["frozen exact"]["var_err_max_f"] == 0.0
+    assert all(g["step_ms"] > 0 for g in size["gpytorch"])
+    assert res["gpu"].startswith("not measured") or torch.cuda.is_available()

@@ -1,0 +1,600 @@
+"""The frozen predictor: a GP's posterior with every training-set solve cached, in plain torch.
+
+After training, ``alpha = (K + s^2 I)^{-1} (y - c)`` and a factor for the variance do not change. A
+prediction at ``N`` points then costs kernel evaluations against the ``S`` training (or ``M``
+inducing) inputs, one matrix product for the mean and one for the variance:
+
+    mean = c + k*^T alpha
+    var  = s_f^2 - q(k*) + s^2,  q(k*) = k*^T (K + s^2 I)^{-1} k*
+
+with three forms of ``q``:
+
+* ``"exact"``: ``q = |L^{-1} k*|^2`` with the cached Cholesky factor ``L`` (``O(S^2)`` per point);
+* ``"lowrank"``: ``q = |R^T k*|^2`` with a rank-``r`` root ``R`` (:mod:`~torchfilt.models.gp.root`;
+  ``O(S r)`` per point; the variance is never below the exact one);
+* ``"sparse"`` (SVGP): ``var = s_f^2 + j + k*^T W k* + s^2`` with ``W = L^{-T} (S_u - I) L^{-1}``,
+  ``L L^T = K_uu + j I`` (``j`` GPyTorch's variational jitter), the SVGP's own predictive variance.
+
+``variance="auto"`` picks, per output group, the smallest rank whose variance stays within ``tol``
+(relative, latent + noise) of the exact one on validation points (training inputs and jittered
+copies), and the exact form if no rank does. No GPyTorch call, no solve of the training system per
+step, differentiable in the points (autograd). Large batches are processed in chunks of
+``chunk_size`` points. Inputs are standardised and outputs de-standardised inside.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Literal, NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from torchfilt.models.gp.kernels import correlation, scaled_sq_dist
+from torchfilt.models.gp.root import (
+    ANCHOR_SHARE,
+    anchor_basis,
+    eigen_basis,
+    lowrank_root,
+    ritz_root,
+)
+
+__all__ = ["AUTO_RANKS", "AUTO_TOL", "CHUNK_SIZE", "FrozenGP", "FrozenOutput", "VarianceMode"]
+
+VarianceMode = Literal["exact", "lowrank", "auto"]
+
+#: Default number of points per kernel chunk.
+CHUNK_SIZE = 128
+#: Ranks tried by ``variance="auto"``, smallest first.
+AUTO_RANKS = (16, 32, 64, 128, 256, 512)
+#: Default tolerance of ``variance="auto"``: relative error of the predictive variance.
+AUTO_TOL = 0.05
+#: Training points (at most) used to validate a low-rank root, and jitters (in lengthscales).
+AUTO_POINTS = 256
+AUTO_JITTERS = (0.1, 0.5)
+
+
+class FrozenOutput(NamedTuple):
+    """Predictive moments in target units (before adding any prior mean).
+
+    Attributes:
+        mean: ``(N, d)``.
+        var: latent variance + noise, ``(N, d)``.
+        cov: ``(N, d, d)`` for correlated outputs, else ``None``.
+    """
+
+    mean: Tensor
+    var: Tensor
+    cov: Tensor | None
+
+
+class _Block(nn.Module):
+    """Frozen state of one output group (non-persistent buffers: recomputed, never saved).
+
+    Attributes:
+        form: ``"exact"``, ``"lowrank"`` or ``"sparse"``.
+        rank: rank of a low-rank form.
+    """
+
+    outputs: Tensor
+    features: Tensor
+    points: Tensor
+    points_sq: Tensor
+    alpha: Tensor
+    noise: Tensor
+    factor: Tensor
+
+    def __init__(self, kernel: str, form: str, rank: int | None) -> None:
+        super().__init__()
+        self.kernel = kernel
+        self.form = form
+        self.rank = rank
+
+    def _buf(self, name: str, value: Tensor | None) -> None:
+        self.register_buffer(
+            name, None if value is None else value.detach().clone(), persistent=False
+        )
+
+    def forward(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:  # pragma: no cover
+        raise NotImplementedError
+
+
+class _IndependentBlock(_Block):
+    """``g`` independent outputs sharing inputs (exact GP or SVGP).
+
+    Everything affine is folded into cached tensors: the points are mapped to
+    ``(z - shift) / (scale * lengthscale)`` by one ``addcmul``, the outputscale and the output
+    de-standardisation are folded into ``alpha``, the variance factor and the noise, so a call is
+    about a dozen tensor operations.
+    """
+
+    in_weight: Tensor
+    in_bias: Tensor
+    mean0: Tensor
+    var0: Tensor
+    qscale: Tensor
+
+    def __init__(
+        self,
+        *,
+        kernel: str,
+        form: str,
+        rank: int | None,
+        outputs: Tensor,
+        features: Tensor,
+        in_shift: Tensor,
+        in_scale: Tensor,
+        lengthscale: Tensor,
+        points: Tensor,
+        alpha: Tensor,
+        const: Tensor,
+        outputscale: Tensor,
+        noise: Tensor,
+        extra_diag: Tensor,
+        out_shift: Tensor,
+        out_scale: Tensor,
+        factor: Tensor,
+    ) -> None:
+        super().__init__(kernel, form, rank)
+        pts = points / lengthscale.unsqueeze(-2)  # points: (g, S, D) standardised
+        weight = 1.0 / (in_scale.unsqueeze(0) * lengthscale)  # (g, D)
+        amp = outputscale * out_scale  # (g,): kernel amplitude in target units
+        # features 0..D-1 of a D-column input need no gather
+        self.prefix = bool(torch.equal(features.cpu(), torch.arange(features.shape[0])))
+        self.num_selected = int(features.shape[0])
+        self._buf("outputs", outputs)
+        self._buf("features", features)
+        self._buf("in_weight", weight.unsqueeze(-2))  # (g, 1, D)
+        self._buf("in_bias", (-in_shift * weight).unsqueeze(-2))
+        self._buf("points", pts)
+        self._buf("points_sq", pts.pow(2).sum(-1))
+        self._buf("alpha", (alpha * amp.unsqueeze(-1)).unsqueeze(-1))  # (g, S, 1)
+        self._buf("mean0", (out_shift + out_scale * const).unsqueeze(-1))  # (g, 1)
+        self._buf("var0", ((outputscale + extra_diag) * out_scale.pow(2)).unsqueeze(-1))
+        self._buf("noise", (noise * out_scale.pow(2)).unsqueeze(-1))
+        if form == "lowrank":
+            factor = factor * amp[:, None, None]
+        elif form == "sparse":
+            factor = factor * amp.pow(2)[:, None, None]
+        self._buf("qscale", amp.pow(2).unsqueeze(-1))  # exact form: |L^-1 c|^2 * amp^2
+        self._buf("factor", factor)
+
+    def correlation_rows(self, z: Tensor) -> Tensor:
+        """Unit-variance ``k(z, X)`` for every output, ``(N, F)`` -> ``(g, N, S)``."""
+        whole = self.prefix and z.shape[-1] == self.num_selected
+        zf = z if whole else z[:, self.features]
+        zs = torch.addcmul(self.in_bias, zf.unsqueeze(0), self.in_weight)  # (g, N, D)
+        return correlation(scaled_sq_dist(zs, self.points, self.points_sq), self.kernel)
+
+    def forward(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        c = self.correlation_rows(z)  # (g, N, S)
+        mean = torch.baddbmm(self.mean0.unsqueeze(-1), c, self.alpha).squeeze(-1)  # (g, N)
+        if self.form == "exact":
+            w = torch.linalg.solve_triangular(self.factor, c.mT, upper=False)
+            var = self.var0 - self.qscale * w.pow(2).sum(-2)
+        elif self.form == "lowrank":
+            var = self.var0 - (c @ self.factor).pow(2).sum(-1)
+        else:
+            var = self.var0 + ((c @ self.factor) * c).sum(-1)
+        var = var.clamp_min(0.0) + self.noise
+        return mean.T, var.T, None
+
+
+class _MultitaskBlock(_Block):
+    """Correlated outputs (LMC): ``K = sum_q k_q (x) B_q`` in data-major order ``i * d + t``."""
+
+    task_covar: Tensor
+    in_shift: Tensor
+    scale: Tensor
+    const: Tensor
+    out_shift: Tensor
+    out_scale: Tensor
+
+    def __init__(
+        self,
+        *,
+        kernel: str,
+        form: str,
+        rank: int | None,
+        outputs: Tensor,
+        features: Tensor,
+        in_shift: Tensor,
+        in_scale: Tensor,
+        lengthscale: Tensor,
+        points: Tensor,
+        task_covar: Tensor,
+        alpha: Tensor,
+        const: Tensor,
+        noise: Tensor,
+        out_shift: Tensor,
+        out_scale: Tensor,
+        factor: Tensor,
+    ) -> None:
+        super().__init__(kernel, form, rank)
+        pts = points.unsqueeze(0) / lengthscale.unsqueeze(-2)  # (Q, S, D)
+        self._buf("outputs", outputs)
+        self._buf("features", features)
+        self._buf("in_shift", in_shift)
+        self._buf("scale", in_scale.unsqueeze(0) * lengthscale)  # (Q, D)
+        self._buf("points", pts)
+        self._buf("points_sq", pts.pow(2).sum(-1))
+        self._buf("task_covar", task_covar)  # (Q, d, d)
+        self._buf("alpha", alpha.reshape(-1, 1))  # (S d, 1)
+        self._buf("const", const)
+        self._buf("noise", noise)
+        self._buf("out_shift", out_shift)
+        self._buf("out_scale", out_scale)
+        self._buf("factor", factor)
+
+    def kernel_rows(self, z: Tensor) -> Tensor:
+        """Cross-covariances of the ``d`` outputs at ``z`` with the training system,
+        ``(N, F)`` -> ``(N, d, S d)``."""
+        zs = (z[:, self.features] - self.in_shift).unsqueeze(0) / self.scale.unsqueeze(-2)
+        k = correlation(scaled_sq_dist(zs, self.points, self.points_sq), self.kernel)
+        N, S, d = k.shape[1], k.shape[2], self.task_covar.shape[-1]
+        return torch.einsum("qns,qtu->ntsu", k, self.task_covar).reshape(N, d, S * d)
+
+    def forward(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        c = self.kernel_rows(z)  # (N, d, S d)
+        mean = self.const + (c @ self.alpha).squeeze(-1)  # (N, d)
+        if self.form == "exact":
+            A = torch.linalg.solve_triangular(self.factor, c.mT, upper=False).mT
+        else:
+            A = c @ self.factor  # (N, d, r)
+        cov = self.task_covar.sum(0) - A @ A.mT + torch.diag_embed(self.noise)
+        cov = 0.5 * (cov + cov.mT)
+        s = self.out_scale
+        cov = cov * (s.unsqueeze(-1) * s.unsqueeze(-2))
+        return mean * s + self.out_shift, cov.diagonal(dim1=-2, dim2=-1), cov
+
+
+class FrozenGP(nn.Module):
+    """A trained GP model's posterior with all training-set solves cached.
+
+    Build it with :meth:`GPModel.freeze() <torchfilt.models.gp.GPModel.freeze>`; call it on raw
+    (unstandardised) features ``[x, u]``.
+
+    Args:
+        blocks: one frozen block per output group.
+        fill_mean: mean of the outputs no block covers (constant outputs), shape ``(d,)``;
+            their variance is 0.
+        out_dim: number of outputs ``d``.
+        chunk_size: points per kernel chunk.
+    """
+
+    fill_mean: Tensor
+
+    def __init__(
+        self,
+        blocks: Sequence[nn.Module],
+        fill_mean: Tensor,
+        out_dim: int,
+        chunk_size: int = CHUNK_SIZE,
+    ) -> None:
+        super().__init__()
+        self.blocks = nn.ModuleList(blocks)
+        self.register_buffer("fill_mean", fill_mean.detach().clone(), persistent=False)
+        self.out_dim = int(out_dim)
+        self.chunk_size = int(chunk_size)
+        self.correlated = any(isinstance(b, _MultitaskBlock) for b in blocks)
+        d = self.out_dim
+        first = blocks[0] if len(blocks) == 1 else None
+        self._whole = isinstance(first, _Block) and bool(
+            torch.equal(first.outputs.cpu(), torch.arange(d))
+        )
+
+    @property
+    def forms(self) -> list[tuple[str, int | None]]:
+        """``(form, rank)`` of each block (output group)."""
+        return [(b.form, b.rank) for b in self.blocks]  # type: ignore[misc]
+
+    def forward(self, z: Tensor) -> FrozenOutput:
+        """Predictive moments at features ``z`` ``(..., F)``; returns ``(..., d)`` tensors."""
+        if z.device != self.fill_mean.device:
+            raise ValueError(
+                f"x is on {z.device} but the GP model is on {self.fill_mean.device}; move one "
+                "of them with .to()"
+            )
+        lead = z.shape[:-1]
+        flat = z.reshape(-1, z.shape[-1]).to(self.fill_mean.dtype)
+        d = self.out_dim
+        if flat.shape[0] <= self.chunk_size:
+            m, v, c = self._chunk(flat)
+        else:
+            parts = [
+                self._chunk(flat[i : i + self.chunk_size])
+                for i in range(0, flat.shape[0], self.chunk_size)
+            ]
+            m = torch.cat([p[0] for p in parts])
+            v = torch.cat([p[1] for p in parts])
+            c = None if parts[0][2] is None else torch.cat([p[2] for p in parts])  # type: ignore[misc]
+        return FrozenOutput(
+            m.reshape(*lead, d).to(z.dtype),
+            v.reshape(*lead, d).to(z.dtype),
+            None if c is None else c.reshape(*lead, d, d).to(z.dtype),
+        )
+
+    def _chunk(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        if self._whole:
+            out: tuple[Tensor, Tensor, Tensor | None] = self.blocks[0](z)
+            return out
+        N, d = z.shape[0], self.out_dim
+        mean = self.fill_mean.expand(N, d)
+        var = z.new_zeros(N, d)
+        cov = z.new_zeros(N, d, d) if self.correlated else None
+        for blk in self.blocks:
+            assert isinstance(blk, _Block)
+            m, v, c = blk(z)
+            idx = blk.outputs
+            mean = mean.index_copy(1, idx, m)
+            var = var.index_copy(1, idx, v)
+            if cov is not None:
+                block = c if c is not None else torch.diag_embed(v)
+                rows = cov.index_select(1, idx).index_copy(2, idx, block)
+                cov = cov.index_copy(1, idx, rows)
+        return mean, var, cov
+
+
+# ---------------------------------------------------------------------- building blocks
+
+
+def _validation_points(train_x: Tensor, lengthscale: Tensor) -> Tensor:
+    """Training inputs and jittered copies (standardised) on which a low-rank root is checked."""
+    gen = torch.Generator(device="cpu").manual_seed(0)
+    S = train_x.shape[0]
+    idx = torch.randperm(S, generator=gen)[: min(S, AUTO_POINTS)].to(train_x.device)
+    base = train_x[idx]
+    ls = lengthscale.reshape(-1, train_x.shape[-1]).amin(0)
+    out = [base]
+    for j in AUTO_JITTERS:
+        noise = torch.randn(base.shape, generator=gen, dtype=base.dtype).to(base.device)
+        out.append(base + j * ls * noise)
+    return torch.cat(out)
+
+
+def _choose_form(
+    variance: VarianceMode,
+    rank: int | None,
+    tol: float,
+    K: Tensor,
+    Khat: Tensor,
+    L: Tensor,
+    rows: Tensor,
+    prior: Tensor,
+) -> tuple[str, int | None, Tensor]:
+    """Pick the variance form: exact (factor ``L``) or low rank (a root).
+
+    Args:
+        variance, rank, tol: the user's options.
+        K: noise-free kernel matrix ``(B, S, S)``; Khat: ``K + s^2 I``; L: its Cholesky factor.
+        rows: validation kernel rows ``(B, V, S)`` (``variance="auto"`` only).
+        prior: prior variance + noise, ``(B,)`` or per validation row ``(B, V)`` (``"auto"``).
+    """
+    S = Khat.shape[-1]
+    if variance == "exact":
+        return "exact", None, L
+    if variance == "lowrank":
+        assert rank is not None
+        return "lowrank", min(rank, S), lowrank_root(K, Khat, L, rank)
+    ranks = [r for r in AUTO_RANKS if r <= S // 4]  # beyond S/4 exact is as cheap
+    if not ranks:
+        return "exact", None, L
+    p = prior.unsqueeze(-1) if prior.dim() == 1 else prior
+    w = torch.linalg.solve_triangular(L, rows.mT, upper=False)
+    exact = p - w.pow(2).sum(-2)  # (B, V)
+    top, share = ranks[-1], ANCHOR_SHARE
+    eig = eigen_basis(Khat, top - top // share)
+    anchors = anchor_basis(K, L, top // share)
+    for r in ranks:
+        basis = torch.cat([eig[..., : r - r // share], anchors[..., : r // share]], -1)
+        root = ritz_root(Khat, basis)
+        approx = p - (rows @ root).pow(2).sum(-1)
+        rel = (approx - exact).abs() / exact.clamp_min(torch.finfo(exact.dtype).tiny)
+        if float(rel.max()) <= tol:
+            return "lowrank", r, root
+    return "exact", None, L
+
+
+def _cholesky(Khat: Tensor) -> Tensor:
+    L, info = torch.linalg.cholesky_ex(Khat)
+    if bool((info > 0).any()):
+        raise torch.linalg.LinAlgError(
+            "K + noise I is not positive definite in the frozen predictor; the noise floor is "
+            "too low for this dtype (train in float64 or raise noise_floor)"
+        )
+    return L
+
+
+def independent_block(
+    *,
+    kernel: str,
+    outputs: Tensor,
+    features: Tensor,
+    in_shift: Tensor,
+    in_scale: Tensor,
+    train_x: Tensor,
+    train_y: Tensor,
+    hyper: dict[str, Tensor],
+    out_shift: Tensor,
+    out_scale: Tensor,
+    variance: VarianceMode,
+    rank: int | None,
+    tol: float = AUTO_TOL,
+) -> _IndependentBlock:
+    """Freeze an exact independent group: Cholesky of ``K + s^2 I``, ``alpha`` and the factor.
+
+    Args:
+        kernel: kernel name.
+        outputs: output indices ``(g,)``.
+        features: feature indices ``(D,)``.
+        in_shift: input standardisation shift of the selected features ``(D,)``.
+        in_scale: input standardisation scale ``(D,)``.
+        train_x: standardised training inputs ``(S, D)``.
+        train_y: standardised targets ``(g, S)``.
+        hyper: the group's hyperparameters (``lengthscale (g, D)``, ``outputscale``, ``noise``,
+            ``constant``, all ``(g,)``).
+        out_shift: target shift of the outputs ``(g,)``.
+        out_scale: target scale ``(g,)``.
+        variance: ``"exact"``, ``"lowrank"`` or ``"auto"``.
+        rank: rank of the low-rank root.
+        tol: tolerance of ``"auto"``.
+    """
+    ls, os_, noise, c = (
+        hyper["lengthscale"],
+        hyper["outputscale"],
+        hyper["noise"],
+        hyper["constant"],
+    )
+    pts = train_x.unsqueeze(0) / ls.unsqueeze(-2)  # (g, S, D)
+    K = os_[:, None, None] * correlation(scaled_sq_dist(pts, pts), kernel)
+    S = train_x.shape[0]
+    Khat = K + noise[:, None, None] * torch.eye(S, dtype=K.dtype, device=K.device)
+    L = _cholesky(Khat)
+    alpha = torch.cholesky_solve((train_y - c.unsqueeze(-1)).unsqueeze(-1), L).squeeze(-1)
+    rows = prior = K.new_zeros(0)
+    if variance == "auto":
+        v = _validation_points(train_x, ls) / ls.unsqueeze(-2)  # (g, V, D)
+        rows = os_[:, None, None] * correlation(scaled_sq_dist(v, pts), kernel)
+        prior = os_ + noise
+    form, r, factor = _choose_form(variance, rank, tol, K, Khat, L, rows, prior)
+    return _IndependentBlock(
+        kernel=kernel,
+        form=form,
+        rank=r,
+        outputs=outputs,
+        features=features,
+        in_shift=in_shift,
+        in_scale=in_scale,
+        lengthscale=ls,
+        points=train_x.unsqueeze(0).expand(ls.shape[0], -1, -1),
+        alpha=alpha,
+        const=c,
+        outputscale=os_,
+        noise=noise,
+        extra_diag=torch.zeros_like(os_),
+        out_shift=out_shift,
+        out_scale=out_scale,
+        factor=factor,
+    )
+
+
+def sparse_block(
+    *,
+    kernel: str,
+    outputs: Tensor,
+    features: Tensor,
+    in_shift: Tensor,
+    in_scale: Tensor,
+    inducing: Tensor,
+    var_mean: Tensor,
+    var_chol: Tensor,
+    jitter: float,
+    hyper: dict[str, Tensor],
+    out_shift: Tensor,
+    out_scale: Tensor,
+) -> _IndependentBlock:
+    """Freeze an SVGP group (whitened): ``alpha = L^{-T} m``, ``W = L^{-T} (C C^T - I) L^{-1}``.
+
+    Args:
+        inducing: inducing inputs (standardised) ``(g, M, D)``.
+        var_mean: whitened variational mean ``m`` ``(g, M)``.
+        var_chol: lower Cholesky factor ``C`` of the whitened variational covariance ``(g, M, M)``.
+        jitter: the diagonal jitter GPyTorch adds to ``K_uu`` and to the predictive covariance.
+        Other arguments as in :func:`independent_block`.
+    """
+    ls, os_, noise, c = (
+        hyper["lengthscale"],
+        hyper["outputscale"],
+        hyper["noise"],
+        hyper["constant"],
+    )
+    pts = inducing / ls.unsqueeze(-2)
+    M = inducing.shape[-2]
+    eye = torch.eye(M, dtype=inducing.dtype, device=inducing.device)
+    Kuu = os_[:, None, None] * correlation(scaled_sq_dist(pts, pts), kernel) + jitter * eye
+    L = _cholesky(Kuu)
+    Linv = torch.linalg.solve_triangular(L, eye.expand_as(L), upper=False)
+    C = var_chol.tril()
+    middle = Linv.mT @ (C @ C.mT - eye) @ Linv
+    alpha = (Linv.mT @ var_mean.unsqueeze(-1)).squeeze(-1)
+    return _IndependentBlock(
+        kernel=kernel,
+        form="sparse",
+        rank=None,
+        outputs=outputs,
+        features=features,
+        in_shift=in_shift,
+        in_scale=in_scale,
+        lengthscale=ls,
+        points=inducing,
+        alpha=alpha,
+        const=c,
+        outputscale=os_,
+        noise=noise,
+        extra_diag=torch.full_like(os_, jitter),
+        out_shift=out_shift,
+        out_scale=out_scale,
+        factor=0.5 * (middle + middle.mT),
+    )
+
+
+def multitask_block(
+    *,
+    kernel: str,
+    outputs: Tensor,
+    features: Tensor,
+    in_shift: Tensor,
+    in_scale: Tensor,
+    train_x: Tensor,
+    train_y: Tensor,
+    hyper: dict[str, Tensor],
+    out_shift: Tensor,
+    out_scale: Tensor,
+    variance: VarianceMode,
+    rank: int | None,
+    tol: float = AUTO_TOL,
+) -> _MultitaskBlock:
+    """Freeze an LMC group: the ``(S d) x (S d)`` system in data-major order.
+
+    Args:
+        train_y: standardised targets ``(d, S)``.
+        hyper: ``lengthscale (Q, D)``, ``task_covar (Q, d, d)``, ``constant (d,)``, ``noise (d,)``.
+        Other arguments as in :func:`independent_block`.
+    """
+    ls, B, c, noise = hyper["lengthscale"], hyper["task_covar"], hyper["constant"], hyper["noise"]
+    S, d = train_x.shape[0], B.shape[-1]
+    pts = train_x.unsqueeze(0) / ls.unsqueeze(-2)
+    k = correlation(scaled_sq_dist(pts, pts), kernel)  # (Q, S, S)
+    K = torch.einsum("qij,qtu->itju", k, B).reshape(S * d, S * d)
+    Khat = K + torch.diag(noise.repeat(S))
+    L = _cholesky(Khat)
+    resid = (train_y.T - c).reshape(-1, 1)  # data-major: row i * d + t
+    alpha = torch.cholesky_solve(resid, L).squeeze(-1)
+    rows = prior = K.new_zeros(0)
+    if variance == "auto":
+        v = _validation_points(train_x, ls).unsqueeze(0) / ls.unsqueeze(-2)  # (Q, V, D)
+        kv = correlation(scaled_sq_dist(v, pts), kernel)  # (Q, V, S)
+        V = kv.shape[1]
+        rows = torch.einsum("qns,qtu->ntsu", kv, B).reshape(V * d, S * d).unsqueeze(0)
+        prior = (B.sum(0).diagonal() + noise).repeat(V).unsqueeze(0)  # (1, V d)
+    form, r, factor = _choose_form(
+        variance, rank, tol, K.unsqueeze(0), Khat.unsqueeze(0), L.unsqueeze(0), rows, prior
+    )
+    return _MultitaskBlock(
+        kernel=kernel,
+        form=form,
+        rank=r,
+        outputs=outputs,
+        features=features,
+        in_shift=in_shift,
+        in_scale=in_scale,
+        lengthscale=ls,
+        points=train_x,
+        task_covar=B,
+        alpha=alpha,
+        const=c,
+        noise=noise,
+        out_shift=out_shift,
+        out_scale=out_scale,
+        factor=factor.squeeze(0),
+    )
