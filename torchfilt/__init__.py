@@ -1,8 +1,8 @@
 """torchfilt: batched, differentiable cubature Kalman filtering with learned models, in PyTorch.
 
 Layers (each imports only from those before it):
-``numerics`` -> ``cubature`` -> ``models`` -> ``filters`` -> ``systems`` / ``training``, ``io``,
-``cli``, ``plots``.
+``numerics`` -> ``cubature`` -> ``models`` -> ``filters`` -> ``systems``/``dmc`` -> ``io`` ->
+``training``/``plots`` -> ``pipeline`` -> ``cli``.
 """
 
 from torchfilt import cubature, dmc, exceptions, filters, models, numerics, systems
@@ -37,6 +37,8 @@ from torchfilt.filters import (
     rmse,
     rts_smooth,
 )
+from torchfilt.io import Recording, load_dataset, read_recording, write_recording
+from torchfilt.io.synth import simulate_dataset
 from torchfilt.models import (
     ConditionalModel,
     LinearGaussianModel,
@@ -44,6 +46,7 @@ from torchfilt.models import (
     StateSpaceModel,
     TimeVarying,
 )
+from torchfilt.models.gp import FitState, GPMeasurement, GPModel, GPTransition
 from torchfilt.numerics import (
     Box,
     LeastSquaresResult,
@@ -52,7 +55,9 @@ from torchfilt.numerics import (
     solve_dare,
     steady_state_kalman,
 )
+from torchfilt.pipeline import evaluate_outputs, filter_recordings
 from torchfilt.systems import simulate
+from torchfilt.training import load_bundle, load_model, train_recipe
 
 __all__ = [
     "CKF",
@@ -67,6 +72,10 @@ __all__ = [
     "DMCController",
     "DivergenceWarning",
     "FilterResult",
+    "FitState",
+    "GPMeasurement",
+    "GPModel",
+    "GPTransition",
     "GaussHermiteRule",
     "GaussianFilter",
     "LMGPredictor",
@@ -76,6 +85,7 @@ __all__ = [
     "NumericsWarning",
     "OpenLoopPredictor",
     "Prediction",
+    "Recording",
     "ShapeError",
     "SmootherResult",
     "SolverStatus",
@@ -89,16 +99,25 @@ __all__ = [
     "coverage",
     "cubature",
     "dmc",
+    "evaluate_outputs",
     "exceptions",
+    "filter_recordings",
     "filters",
+    "load_bundle",
+    "load_dataset",
+    "load_model",
     "models",
     "nees",
     "nis",
     "numerics",
+    "read_recording",
     "rmse",
     "rts_smooth",
     "simulate",
+    "simulate_dataset",
     "solve_dare",
     "steady_state_kalman",
     "systems",
+    "train_recipe",
+    "write_recording",
 ]

@@ -136,9 +136,10 @@ def load_bundle(path: str | Path) -> dict[str, Any]:
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as e:
+        detail = next((ln.strip() for ln in str(e).splitlines() if "Unsupported global" in ln), "")
         raise BundleError(
             f"{path}: refused: the file contains Python objects that are not plain data, so it is "
-            f"not a torchfilt bundle (tampered or foreign file; loading it could run code): {e}"
+            f"not a torchfilt bundle (tampered or foreign file; loading it could run code). {detail}"
         ) from None
     except Exception as e:  # corrupt zip, truncated file, not a torch file at all
         raise BundleError(

@@ -172,7 +172,7 @@ def train_recipe(
             "created": _now(),
             "versions": {
                 "torchfilt": __version__,
-                "torch": torch.__version__,
+                "torch": str(torch.__version__),
                 "python": platform.python_version(),
             },
         }
@@ -261,7 +261,7 @@ def _run(r: Recipe, out: Path, resume: bool, progress: bool, stream: TextIO, log
         "recipe": r.resolved(),
         "validation": validation,
         "created": _now(),
-        "versions": {"torchfilt": __version__, "torch": torch.__version__},
+        "versions": {"torchfilt": __version__, "torch": str(torch.__version__)},
     }
     path = save_bundle(out / "model.pt", bundle)
     if ckpt_path.exists():
