@@ -1,0 +1,218 @@
+"""The training pipeline: recipes, run directories, resume after a kill, bundles, end to end."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+import torchfilt
+from torchfilt.cli import main as cli_main
+from torchfilt.io.synth import simulate_dataset
+from torchfilt.training import (
+    BUNDLE_SCHEMA,
+    BundleError,
+    RecipeError,
+    RunError,
+    load_bundle,
+    load_model,
+    load_recipe,
+    train_recipe,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+#: resumed and uninterrupted runs execute the same float64 arithmetic: they agree to round-off
+RESUME_RTOL = 1e-10
+
+RECIPE = """
+name = "tiny"
+seed = 3
+[dataset]
+path = "{data}"
+[transition]
+increment = true
+iterations = {iters}
+lr = 0.05
+[measurement]
+iterations = {iters}
+lr = 0.05
+[train]
+checkpoint_every = {every}
+"""
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory):
+    root = tmp_path_factory.mktemp("data")
+    simulate_dataset("reaction", root, recordings=6, steps=30, seed=0)
+    return root
+
+
+def write_recipe(path: Path, data: Path, iters: int = 20, every: int = 5) -> Path:
+    path.write_text(RECIPE.format(data=data.as_posix(), iters=iters, every=every))
+    return path
+
+
+def gp_tensors(bundle: dict) -> dict[str, torch.Tensor]:
+    out = {}
+    for side in ("transition", "measurement"):
+        for k, v in bundle[side]["state"]["state_dict"].items():
+            out[f"{side}.{k}"] = v
+    return out
+
+
+def test_end_to_end_train_filter_evaluate(tmp_path, tiny_data):
+    recipe = write_recipe(tmp_path / "tiny.toml", tiny_data)
+    run = tmp_path / "run"
+    assert cli_main(["train", str(recipe), "--out", str(run), "--quiet"]) == 0
+    for f in (
+        "config.json",
+        "dataset.json",
+        "metrics.jsonl",
+        "validation.json",
+        "model.pt",
+        "train.log",
+    ):
+        assert (run / f).is_file(), f
+    assert not (run / "checkpoint.pt").exists()
+    lines = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [(r["stage"], r["iteration"]) for r in lines] == [
+        (s, i) for s in ("transition", "measurement") for i in range(1, 21)
+    ]
+    assert "lengthscale" in " ".join(lines[0]["hyperparameters"])
+    dlog = json.loads((run / "dataset.json").read_text())
+    assert len(dlog["fingerprint"]["files"]) == 6 and dlog["split"]["test"] == ["rec_005"]
+    val = json.loads((run / "validation.json").read_text())
+    assert set(val) >= {"transition", "measurement"} and len(val["transition"]["rmse"]) == 2
+    bundle = load_bundle(run / "model.pt")
+    assert bundle["dataset"] == dlog["fingerprint"] and bundle["schema"] == BUNDLE_SCHEMA
+    # the learned model filters the held-out recording about as well as the true model
+    test = sorted(str(p) for p in tiny_data.glob("rec_005.csv"))
+    learned = torchfilt.filter_recordings(run / "model.pt", test, tmp_path / "est_gp")
+    true = torchfilt.filter_recordings("system:reaction", test, tmp_path / "est_true")
+    r_gp = learned["recordings"][0]["filtered_metrics"]["rmse"]
+    r_true = true["recordings"][0]["filtered_metrics"]["rmse"]
+    assert all(a < 3.0 * b + 0.05 for a, b in zip(r_gp, r_true, strict=True)), (r_gp, r_true)
+    model = load_model(run / "model.pt")
+    assert isinstance(model.transition, torchfilt.GPTransition)
+
+
+def _wait_for(path: Path, proc: subprocess.Popen, log: Path, timeout: float = 120.0) -> None:
+    t0 = time.time()
+    while not path.exists():
+        if proc.poll() is not None:
+            raise AssertionError(f"training exited early: {log.read_text()}")
+        if time.time() - t0 > timeout:
+            proc.kill()
+            raise AssertionError("no checkpoint appeared")
+        time.sleep(0.01)
+
+
+def test_resume_after_kill_reaches_the_same_model(tmp_path, tiny_data):
+    recipe = write_recipe(tmp_path / "tiny.toml", tiny_data, iters=150, every=5)
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    killed = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "torchfilt", "train", str(recipe), "--out", str(killed), "--quiet"]
+    log = tmp_path / "stderr.txt"
+    with open(log, "w") as err:
+        proc = subprocess.Popen(cmd, env=env, stderr=err, stdout=subprocess.DEVNULL)
+        _wait_for(killed / "checkpoint.pt", proc, log)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert not (killed / "model.pt").exists(), "the run finished before it could be killed"
+    with pytest.raises(RunError, match="already holds a run"):
+        train_recipe(recipe, killed, progress=False)
+    torch.set_num_threads(1)
+    train_recipe(recipe, killed, resume=True, progress=False)
+    fresh = tmp_path / "fresh"
+    train_recipe(recipe, fresh, progress=False)
+    a, b = gp_tensors(load_bundle(killed / "model.pt")), gp_tensors(load_bundle(fresh / "model.pt"))
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.allclose(a[k], b[k], rtol=RESUME_RTOL, atol=0), k
+    lines = [json.loads(x) for x in (killed / "metrics.jsonl").read_text().splitlines()]
+    keys = [(r["stage"], r["iteration"]) for r in lines]
+    assert keys == [(s, i) for s in ("transition", "measurement") for i in range(1, 151)]
+
+
+def test_resume_refuses_changes(tmp_path, tiny_data):
+    recipe = write_recipe(tmp_path / "tiny.toml", tiny_data, iters=3, every=1)
+    run = tmp_path / "run"
+    with pytest.raises(RunError, match="no run to resume"):
+        train_recipe(recipe, run, resume=True, progress=False)
+    train_recipe(recipe, run, progress=False)
+    write_recipe(recipe, tiny_data, iters=4, every=1)
+    with pytest.raises(RunError, match="recipe changed"):
+        train_recipe(recipe, run, resume=True, progress=False)
+
+
+class Evil:
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.path}",))
+
+
+def test_tampered_foreign_and_corrupted_bundles_are_refused(tmp_path):
+    marker = tmp_path / "pwned"
+    evil = {"schema": BUNDLE_SCHEMA, "transition": Evil(str(marker))}
+    torch.save(evil, tmp_path / "evil.pt")
+    with pytest.raises(BundleError, match="refused: the file contains Python objects"):
+        load_bundle(tmp_path / "evil.pt")
+    assert not marker.exists()
+    torch.save({"weights": torch.zeros(3)}, tmp_path / "foreign.pt")
+    with pytest.raises(BundleError, match="not a torchfilt model bundle"):
+        load_bundle(tmp_path / "foreign.pt")
+    raw = (tmp_path / "foreign.pt").read_bytes()
+    (tmp_path / "trunc.pt").write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(BundleError, match="not a readable torchfilt model bundle"):
+        load_bundle(tmp_path / "trunc.pt")
+    (tmp_path / "text.pt").write_text("hello")
+    with pytest.raises(BundleError, match="not a readable"):
+        load_bundle(tmp_path / "text.pt")
+    with pytest.raises(FileNotFoundError):
+        load_bundle(tmp_path / "missing.pt")
+    assert cli_main(["info", str(tmp_path / "evil.pt")]) == 2
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (
+            "[dataset]\npath='x'\n[transition]\nitertions=3\n[measurement]\n",
+            r"unknown key\(s\) \['itertions'\] in \[transition\]",
+        ),
+        ("[transition]\n[measurement]\n", r"\[dataset\] needs 'path'"),
+        ("[dataset]\npath='x'\n[measurement]\n", r"missing \[transition\] table"),
+        ("[dataset]\npath='x'\n[transition]\nmodel='reentry'\n[measurement]\n", "model must be"),
+        (
+            "[dataset]\npath='x'\n[transition]\n[measurement]\n[train]\ndtype='float16'\n",
+            "dtype must be",
+        ),
+        (
+            "[dataset]\npath='x'\n[transition]\nprior_mean='reentry'\n[measurement]\n",
+            "prior_mean must be a table",
+        ),
+        ("colour = 1\n", r"unknown key\(s\) \['colour'\] in \[top level\]"),
+        ("[dataset\n", "not valid TOML"),
+    ],
+)
+def test_recipe_errors_name_the_key(tmp_path, text, message):
+    p = tmp_path / "bad.toml"
+    p.write_text(text)
+    with pytest.raises(RecipeError, match=message):
+        load_recipe(p)
+
+
+def test_shipped_recipe_is_valid():
+    r = load_recipe(ROOT / "trainers" / "reentry.toml")
+    assert r.dataset == (ROOT / "data" / "reentry").resolve()
+    assert r.measurement["inputs"] == ["altitude"]
+    ds = torchfilt.load_dataset(r.dataset)
+    assert ds.state_dim == 3 and ds.obs_dim == 1
