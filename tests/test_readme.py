@@ -1,4 +1,8 @@
-"""The README's Python examples run as written."""
+"""The README's Python examples run as written.
+
+A block preceded by the HTML comment ``<!-- test: slow -->`` (e.g. one that trains GPs on a realistic
+log) runs with the slow tests only (``make test-slow``).
+"""
 
 import re
 from pathlib import Path
@@ -9,14 +13,20 @@ import pytest
 matplotlib.use("Agg")
 
 README = Path(__file__).resolve().parents[1] / "README.md"
-BLOCKS = re.findall(r"```python\n(.*?)```", README.read_text(), re.S)
+BLOCKS = [
+    (bool(slow), code)
+    for slow, code in re.findall(r"(<!-- test: slow -->\s*)?```python\n(.*?)```", README.read_text(), re.S)
+]
 
 
 def test_readme_has_examples():
     assert BLOCKS
 
 
-@pytest.mark.parametrize("i", range(len(BLOCKS)))
+@pytest.mark.parametrize(
+    "i",
+    [pytest.param(i, marks=pytest.mark.slow) if slow else i for i, (slow, _) in enumerate(BLOCKS)],
+)
 def test_readme_example_runs(i, tmp_path, monkeypatch):
-    monkeypatch.chdir(tmp_path)
-    exec(compile(BLOCKS[i], f"README.md block {i}", "exec"), {})
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])
+    exec(compile(BLOCKS[i][1], f"README.md block {i}", "exec"), {"__name__": "__readme__"})
