@@ -176,3 +176,16 @@ def test_diverging_sequence_is_isolated(kw):
             res = CKF(m).filter(y, x0=x0, P0=torch.eye(2, dtype=D))
     assert torch.isfinite(res.mean[0]).all()
     assert torch.isnan(res.mean[1]).all()
+
+
+def test_non_psd_noise_is_rejected():
+    Q = torch.tensor([[1.0, 2.0], [2.0, 1.0]], dtype=D)  # eigenvalues 3 and -1
+    with pytest.raises(ValueError, match="Q is not positive semi-definite"):
+        StateSpaceModel(lambda x: x, lambda x: x[..., :1], Q=Q, R=torch.eye(1, dtype=D))
+    with pytest.raises(ValueError, match="R is not positive semi-definite"):
+        LinearGaussianModel(torch.eye(2), torch.ones(1, 2), torch.eye(2), -torch.eye(1))
+    bad = torchfilt.TimeVarying(torch.stack([torch.eye(2, dtype=D), Q]))
+    with pytest.raises(ValueError, match="Q is not positive semi-definite"):
+        LinearGaussianModel(
+            torch.eye(2, dtype=D), torch.ones(1, 2, dtype=D), bad, torch.eye(1, dtype=D)
+        )

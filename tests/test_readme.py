@@ -15,7 +15,9 @@ matplotlib.use("Agg")
 README = Path(__file__).resolve().parents[1] / "README.md"
 BLOCKS = [
     (bool(slow), code)
-    for slow, code in re.findall(r"(<!-- test: slow -->\s*)?```python\n(.*?)```", README.read_text(), re.S)
+    for slow, code in re.findall(
+        r"(<!-- test: slow -->\s*)?```python\n(.*?)```", README.read_text(), re.S
+    )
 ]
 
 

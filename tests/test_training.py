@@ -216,3 +216,14 @@ def test_shipped_recipe_is_valid():
     assert r.measurement["inputs"] == ["altitude"]
     ds = torchfilt.load_dataset(r.dataset)
     assert ds.state_dim == 3 and ds.obs_dim == 1
+
+
+def test_corrupted_checkpoint_on_resume_is_a_clear_error(tmp_path, tiny_data):
+    recipe = write_recipe(tmp_path / "tiny.toml", tiny_data, iters=3, every=1)
+    run = tmp_path / "run"
+    train_recipe(recipe, run, progress=False)
+    (run / "model.pt").unlink()
+    (run / "measurement.pt").unlink()
+    (run / "checkpoint.pt").write_bytes(b"garbage")
+    with pytest.raises(RunError, match="unreadable checkpoint"):
+        train_recipe(recipe, run, resume=True, progress=False)

@@ -99,7 +99,10 @@ class ConditionalModel(nn.Module):
 
 def check_noise(value: Tensor | TimeVarying | None, name: str) -> Tensor | TimeVarying | None:
     """Validate a noise covariance argument: ``(..., d, d)`` symmetric, or a :class:`TimeVarying`."""
-    if value is None or isinstance(value, TimeVarying):
+    if value is None:
+        return value
+    if isinstance(value, TimeVarying):
+        check_noise(value.values.flatten(0, -3), name)
         return value
     if not isinstance(value, Tensor):
         value = torch.as_tensor(value, dtype=torch.get_default_dtype())
@@ -113,4 +116,10 @@ def check_noise(value: Tensor | TimeVarying | None, name: str) -> Tensor | TimeV
         raise ValueError(f"{name} contains non-finite entries")
     if not torch.allclose(value, value.mT, rtol=1e-6, atol=0.0):
         raise ValueError(f"{name} is not symmetric")
+    evals = torch.linalg.eigvalsh(value.to(torch.float64))
+    tol = evals.abs().amax(-1) * 1e-8
+    if bool((evals[..., 0] < -tol).any()):
+        raise ValueError(
+            f"{name} is not positive semi-definite: smallest eigenvalue {float(evals[..., 0].min()):.3e}"
+        )
     return value

@@ -209,7 +209,7 @@ def _run(r: Recipe, out: Path, resume: bool, progress: bool, stream: TextIO, log
     )
 
     ckpt_path = out / "checkpoint.pt"
-    ckpt = torch.load(ckpt_path, weights_only=True) if resume and ckpt_path.is_file() else None
+    ckpt = _load_checkpoint(ckpt_path) if resume and ckpt_path.is_file() else None
     metrics_path = out / "metrics.jsonl"
     _trim_metrics(metrics_path, ckpt if resume else None, fresh=not resume)
 
@@ -268,6 +268,22 @@ def _run(r: Recipe, out: Path, resume: bool, progress: bool, stream: TextIO, log
         ckpt_path.unlink()
     log(f"wrote {path} ({BUNDLE_SCHEMA})")
     return path
+
+
+def _load_checkpoint(path: Path) -> dict[str, Any]:
+    """Read a checkpoint written by this module (plain data only), with a clear error if unusable."""
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise RunError(
+            f"{path}: unreadable checkpoint ({type(e).__name__}); delete it to restart the stage "
+            "it belongs to"
+        ) from None
+    if not isinstance(ckpt, dict) or ckpt.get("stage") not in STAGES or "fit" not in ckpt:
+        raise RunError(
+            f"{path}: not a torchfilt training checkpoint; delete it to restart the stage"
+        )
+    return ckpt
 
 
 def _save(path: Path, obj: dict[str, Any]) -> None:
