@@ -51,6 +51,7 @@ from torchfilt.dmc import (
     run_closed_loop,
     shell_fractionator,
 )
+from torchfilt.plots import style
 
 D = torch.float64
 DPI = 150
@@ -395,7 +396,10 @@ def main(argv: list[str] | None = None) -> dict:
     t_all = time.perf_counter()
     r32 = section_32(args.steps_32, args.seed)
     r31 = section_31(args.steps_31)
-    files = [] if args.no_plots else plot_32(r32, outdir) + plot_31(r31, outdir)
+    files: list[str] = []
+    if not args.no_plots:
+        with style():  # the torchfilt house style (palette, grid, spines)
+            files = plot_32(r32, outdir) + plot_31(r31, outdir)
     total = time.perf_counter() - t_all
 
     clean = {
