@@ -6,6 +6,15 @@ as ``gtsam/Data/Plaza{1,2}_.mat`` with arrays ``GT`` (time, x, y, heading), ``DR
 and heading increments of the odometry), ``TD`` (time, sensor, beacon id, range) and ``TL``
 (beacon id, x, y).
 
+Facts of the data a model has to respect (checked in ``tests/test_plaza.py``):
+
+- the robot travels along ``heading + pi``: the ground-truth heading points backwards;
+- the odometry distance is unsigned: where the robot backs up (twice in the last 8 s of Plaza2) it
+  still reads positive;
+- against the ground truth the odometry is biased: the true heading change is ~1.015 times the
+  odometry's plus ~7e-4 rad per 0.1 s step (dead reckoning drifts by ~0.4 rad a minute), and
+  the ranges read ~7 % long (``r ~ 1.07 d``, residual sd ~0.57 m, white).
+
 This loader is optional: it needs ``gtsam`` (for the files) and ``scipy`` (``loadmat``), installed
 by the ``plaza`` or ``dev`` extras.
 """
