@@ -12,7 +12,7 @@ TORCH_SPEC ?= torch==2.13.0
 PIP_TORCH_ARGS ?=
 OUT ?= out
 
-.PHONY: setup demo test test-slow test-all lint bench reproduce clean
+.PHONY: setup demo test test-slow test-all lint bench reproduce plaza clean
 
 setup: $(STAMP)
 
@@ -46,6 +46,9 @@ reproduce: $(STAMP)
 	$(BIN)/python scripts/reproduce_reentry.py --out $(OUT)/reentry
 	$(BIN)/python scripts/reproduce_cckf.py --out $(OUT)/cckf
 	$(BIN)/python scripts/reproduce_dmc.py --out $(OUT)/dmc
+
+plaza: $(STAMP)
+	$(BIN)/python scripts/plaza_example.py --out $(OUT)/plaza
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache .ruff_cache .mypy_cache .hypothesis
