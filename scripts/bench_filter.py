@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import math
+import os
 import statistics
 import sys
 import time
@@ -23,6 +24,9 @@ from typing import Any
 
 import numpy as np
 import torch
+
+# JAX (dynamax rows on the GPU) must not pre-allocate most of the GPU memory that torch uses.
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import environment, table, write_json
@@ -107,6 +111,173 @@ def torchfilt_runner(
     return run, time.perf_counter() - t0
 
 
+# --------------------------------------------------------------------------- GPU
+def graphed_runner(y: torch.Tensor, *, compile: bool) -> tuple[Callable[[], None], float]:
+    """A closure replaying a CUDA graph of the whole run, and the time capture took."""
+    dtype, device = y.dtype, y.device
+    x0 = torch.tensor(reentry.PRIOR_MEAN, dtype=dtype, device=device)
+    P0 = reentry.prior_cov(dtype).to(device)
+    filt = torchfilt.CKF(reentry.model(dtype=dtype).to(device), compile=compile)
+    t0 = time.perf_counter()
+    with torch.inference_mode(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", torchfilt.NumericsWarning)
+        graphed = filt.graphed(y, x0=x0, P0=P0)
+    torch.cuda.synchronize()
+    capture = time.perf_counter() - t0
+
+    def run() -> None:
+        with torch.inference_mode(), warnings.catch_warnings():
+            warnings.simplefilter("ignore", torchfilt.NumericsWarning)
+            graphed.filter(y, clone=False)
+        torch.cuda.synchronize()
+
+    return run, capture
+
+
+def dynamax_runner(
+    y: np.ndarray, m0: np.ndarray | None = None, P0: np.ndarray | None = None
+) -> tuple[Callable[[], Any], float]:
+    """dynamax's UKF with alpha = 1, beta = 0, kappa = 0 (that is the CKF), jit (+ vmap).
+
+    dynamax's first step is an update of ``N(m0, P0)``; by default the paper's prior.
+    """
+    import jax
+    import jax.numpy as jnp
+    from dynamax.nonlinear_gaussian_ssm import (  # type: ignore[import-not-found]
+        ParamsNLGSSM,
+        UKFHyperParams,
+        unscented_kalman_filter,
+    )
+
+    gamma, M, H = reentry.GAMMA, reentry.RADAR_M, reentry.RADAR_H
+    sub, h = reentry.SUBSTEPS, reentry.DT / reentry.SUBSTEPS
+
+    def drift(x: Any) -> Any:
+        return jnp.stack([-x[1], -jnp.exp(-gamma * x[0]) * x[1] ** 2 * x[2], jnp.zeros_like(x[2])])
+
+    def f(x: Any) -> Any:
+        for _ in range(sub):
+            k1 = drift(x)
+            k2 = drift(x + 0.5 * h * k1)
+            k3 = drift(x + 0.5 * h * k2)
+            k4 = drift(x + h * k3)
+            x = x + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        return x
+
+    def hx(x: Any) -> Any:
+        return jnp.sqrt(M**2 + (x[:1] - H) ** 2)
+
+    params = ParamsNLGSSM(
+        initial_mean=jnp.asarray(reentry.PRIOR_MEAN if m0 is None else m0, dtype=jnp.float32),
+        initial_covariance=jnp.asarray(
+            np.diag(reentry.PRIOR_COV_DIAG) if P0 is None else P0, dtype=jnp.float32
+        ),
+        dynamics_function=f,
+        dynamics_covariance=jnp.zeros((3, 3), dtype=jnp.float32),
+        emission_function=hx,
+        emission_covariance=jnp.full((1, 1), reentry.R_VAR, dtype=jnp.float32),
+    )
+    hyper = UKFHyperParams(alpha=1.0, beta=0.0, kappa=0.0)
+
+    def one(ys: Any) -> Any:
+        post = unscented_kalman_filter(params, ys, hyper)
+        return post.marginal_loglik, post.filtered_means, post.filtered_covariances
+
+    fn = jax.jit(one if y.ndim == 2 else jax.vmap(one))
+    yj = jax.device_put(jnp.asarray(y, dtype=jnp.float32))
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(yj))
+    first = time.perf_counter() - t0
+
+    def run() -> Any:
+        return jax.block_until_ready(fn(yj))
+
+    return run, first
+
+
+def gpu_benchmark(
+    args: argparse.Namespace,
+    rows: list[dict[str, Any]],
+    record: Callable[..., None],
+    variants: list[tuple[bool, str]],
+) -> dict[str, Any]:
+    """GPU rows (float32): eager, per-step compiled, CUDA graph (eager and compiled); dynamax."""
+    out: dict[str, Any] = {"device": torch.cuda.get_device_name(), "errors": []}
+    print(f"GPU: {out['device']}, float32, batches {args.gpu_batches}", flush=True)
+    big = max(args.gpu_batches)
+    sim = reentry.simulate_truth(big, seed=0, dtype=torch.float32)
+    y_all = sim.measurements
+    for batch in args.gpu_batches:
+        yg = y_all[:batch].cuda()
+        reps = max(3, args.repeats)
+        for compile_, tag in variants:
+            try:
+                run, first = torchfilt_runner(yg, compile=compile_)
+                record(f"torchfilt CKF float32, {tag}", "cuda", batch, timeit(run, reps), first)
+            except Exception as e:  # report and go on: one failing row must not lose the rest
+                out["errors"].append(f"{tag} batch {batch}: {type(e).__name__}: {e}"[:400])
+                print("  ERROR", out["errors"][-1], flush=True)
+            try:
+                run, first = graphed_runner(yg, compile=compile_)
+                record(
+                    f"torchfilt CKF float32, {tag} + CUDA graph",
+                    "cuda",
+                    batch,
+                    timeit(run, reps),
+                    first,
+                )
+            except Exception as e:
+                out["errors"].append(f"graph {tag} batch {batch}: {type(e).__name__}: {e}"[:400])
+                print("  ERROR", out["errors"][-1], flush=True)
+        del yg
+        torch.cuda.empty_cache()
+    if args.no_dynamax or not importlib.util.find_spec("dynamax"):
+        out["dynamax"] = "not run (not installed)" if not args.no_dynamax else "skipped"
+        return out
+    try:
+        import jax
+
+        out["dynamax"] = f"dynamax with jax {jax.__version__} on {jax.devices()[0]}"
+        # Same computation? Start dynamax from torchfilt's first predicted state (float64 CPU
+        # reference) and compare the filtered means of one sequence.
+        y0 = y_all[:1].double()
+        ref = torchfilt.CKF(reentry.model()).filter(
+            y0, x0=torch.tensor(reentry.PRIOR_MEAN), P0=reentry.prior_cov()
+        )
+        run, _ = dynamax_runner(
+            y0[0].float().numpy(),
+            ref.predicted_mean[0, 0].numpy(),
+            ref.predicted_cov[0, 0].numpy(),
+        )
+        dm = torch.as_tensor(np.array(run()[1]), dtype=torch.float64)
+        sd = ref.cov[0].diagonal(dim1=-2, dim2=-1).sqrt()
+        diff = ((dm - ref.mean[0]).abs() / sd).amax(0)
+        out["dynamax_vs_torchfilt_max_diff_in_sd"] = diff.tolist()
+        print(f"  dynamax vs torchfilt (float64), max |diff| / sd per state: {diff.tolist()}")
+        for batch in args.gpu_batches:
+            yb = y_all[:batch].numpy()
+            run, first = dynamax_runner(yb[0] if batch == 1 else yb)
+            record(
+                "dynamax UKF-as-CKF float32, jit" + (" + vmap" if batch > 1 else ""),
+                "cuda",
+                batch,
+                timeit(run, max(3, args.repeats)),
+                first,
+            )
+    except Exception as e:
+        out["errors"].append(f"dynamax: {type(e).__name__}: {e}"[:400])
+        print("  ERROR", out["errors"][-1], flush=True)
+    for r in rows:
+        if r["device"] != "cuda" or r["name"].startswith("dynamax"):
+            continue
+        ref = next(
+            (d for d in rows if d["name"].startswith("dynamax") and d["batch"] == r["batch"]), None
+        )
+        if ref is not None:
+            r["ratio_to_dynamax"] = r["sequence_steps_per_s"] / ref["sequence_steps_per_s"]
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -115,16 +286,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--batch", type=int, default=1000)
-    ap.add_argument("--gpu-batch", type=int, default=10_000)
+    ap.add_argument(
+        "--gpu-batches",
+        type=int,
+        nargs="+",
+        default=[1, 1000, 10_000, 100_000],
+        help="batch sizes of the GPU rows (float32)",
+    )
+    ap.add_argument(
+        "--gpu-only", action="store_true", help="skip the CPU rows (run on the GPU machine)"
+    )
+    ap.add_argument(
+        "--no-dynamax", action="store_true", help="skip dynamax even if it is importable"
+    )
     ap.add_argument("--no-compile", action="store_true", help="skip the torch.compile rows")
     ap.add_argument("--cckf", action="store_true", help="also run the constrained-CKF benchmark")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
 
-    sim = reentry.simulate_truth(max(args.batch, 1), seed=0)
-    y1 = sim.measurements[:1]
-    yB = sim.measurements[: args.batch]
     rows: list[dict[str, Any]] = []
+    if not args.gpu_only:
+        sim = reentry.simulate_truth(max(args.batch, 1), seed=0)
+        y1 = sim.measurements[:1]
+        yB = sim.measurements[: args.batch]
 
     def record(
         name: str, device: str, batch: int, seconds: float, first: float | None = None
@@ -142,34 +326,34 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(f"  {name:<42} {batch * T / seconds:12.4g} seq-steps/s", flush=True)
 
-    print(f"Re-entry CKF, T = {T}, float64, {args.threads} CPU threads")
-    fp = filterpy_runner(y1[0].numpy())
-    record("filterpy CKF (Python-float dynamics)", "cpu", 1, timeit(fp, args.repeats))
     variants = [(False, "eager")] + ([] if args.no_compile else [(True, "torch.compile")])
-    for compile_, tag in variants:
-        run, first = torchfilt_runner(y1, compile=compile_)
-        record(f"torchfilt CKF, {tag}", "cpu", 1, timeit(run, args.repeats), first)
-    for compile_, tag in variants:
-        run, first = torchfilt_runner(yB, compile=compile_)
-        record(
-            f"torchfilt CKF, {tag}",
-            "cpu",
-            args.batch,
-            timeit(run, max(2, args.repeats // 2)),
-            first,
-        )
+    if not args.gpu_only:
+        print(f"Re-entry CKF, T = {T}, float64, {args.threads} CPU threads")
+        fp = filterpy_runner(y1[0].numpy())
+        record("filterpy CKF (Python-float dynamics)", "cpu", 1, timeit(fp, args.repeats))
+        for compile_, tag in variants:
+            run, first = torchfilt_runner(y1, compile=compile_)
+            record(f"torchfilt CKF, {tag}", "cpu", 1, timeit(run, args.repeats), first)
+        for compile_, tag in variants:
+            run, first = torchfilt_runner(yB, compile=compile_)
+            record(
+                f"torchfilt CKF, {tag}",
+                "cpu",
+                args.batch,
+                timeit(run, max(2, args.repeats // 2)),
+                first,
+            )
 
     gpu: dict[str, Any] = {}
     if torch.cuda.is_available():
-        yg = reentry.simulate_truth(args.gpu_batch, seed=0, dtype=torch.float32).measurements.cuda()
-        for compile_, tag in variants:
-            run, first = torchfilt_runner(yg, compile=compile_)
-            record(f"torchfilt CKF float32, {tag}", "cuda", args.gpu_batch, timeit(run, 3), first)
+        gpu = gpu_benchmark(args, rows, record, variants)
     else:
         gpu["note"] = "not measured: no CUDA device on this machine"
         print("  GPU rows: not measured (no CUDA device)")
 
     dynamax = "installed" if importlib.util.find_spec("dynamax") else "not installed"
+    if "dynamax" in gpu:
+        dynamax = gpu["dynamax"]
 
     cckf: dict[str, Any] | None = None
     if args.cckf:
@@ -177,9 +361,9 @@ def main(argv: list[str] | None = None) -> int:
 
         cckf = run_cckf_benchmark(repeats=max(3, args.repeats))
 
-    fp_rate = rows[0]["sequence_steps_per_s"]
+    fp_rate = next((r["sequence_steps_per_s"] for r in rows if "filterpy" in r["name"]), None)
     for r in rows:
-        r["ratio_to_filterpy"] = r["sequence_steps_per_s"] / fp_rate
+        r["ratio_to_filterpy"] = None if fp_rate is None else r["sequence_steps_per_s"] / fp_rate
     print()
     print(
         table(
@@ -190,6 +374,7 @@ def main(argv: list[str] | None = None) -> int:
                 "us/step",
                 "seq-steps/s",
                 "x filterpy",
+                "x dynamax",
                 "first call s",
             ],
             [
@@ -199,7 +384,8 @@ def main(argv: list[str] | None = None) -> int:
                     r["batch"],
                     r["us_per_step"],
                     r["sequence_steps_per_s"],
-                    r["ratio_to_filterpy"],
+                    "" if r["ratio_to_filterpy"] is None else r["ratio_to_filterpy"],
+                    r.get("ratio_to_dynamax", ""),
                     "" if r["first_call_s"] is None else r["first_call_s"],
                 ]
                 for r in rows
@@ -211,6 +397,8 @@ def main(argv: list[str] | None = None) -> int:
         "steps": T,
         "substeps": reentry.SUBSTEPS,
         "dtype": "float64 (CPU), float32 (GPU)",
+        "gpu_timing": "median of --repeats runs after a warm-up; torch.cuda.synchronize / "
+        "jax.block_until_ready before the clock is read",
         "rows": rows,
         "gpu": gpu,
         "dynamax": dynamax,

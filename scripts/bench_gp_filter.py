@@ -28,6 +28,7 @@ GPU rows are reported as not measured when no CUDA device is present.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import os
 import platform
@@ -335,6 +336,155 @@ def bench_size(S: int, args: argparse.Namespace, seq: Any) -> dict[str, Any]:
     return out
 
 
+# --------------------------------------------------------------------------- GPU
+def _sync() -> None:
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+
+
+def _sync_time(fn: Callable[[], Any], repeats: int, warmup: int = 1) -> float:
+    def run() -> None:
+        fn()
+        _sync()
+
+    return timeit(run, repeats, warmup)
+
+
+def gpu_filter(args: argparse.Namespace) -> dict[str, Any]:
+    """Batch of ``--gpu-batch`` sequences, S = ``--gpu-S``, float32, on the GPU."""
+    S, B, dev = args.gpu_S, args.gpu_batch, args.device
+    out: dict[str, Any] = {"S": S, "batch": B, "dtype": "float32", "rows": [], "errors": []}
+    out["device"] = torch.cuda.get_device_name() if dev == "cuda" else dev
+    rec = reentry.record_training_data(S, seed=args.seed)
+    t0 = time.perf_counter()
+    f = GPTransition.fit(rec.states, increment=True, progress=False, device=dev, **RECIPE)
+    h = GPMeasurement.fit(
+        rec.states, rec.measurements, inputs=[0], progress=False, device=dev, **RECIPE
+    )
+    _sync()
+    out["train_seconds_f_and_h_gpu_float64"] = time.perf_counter() - t0
+    sim = reentry.simulate_truth(B, seed=1, dtype=torch.float32)
+    y = sim.measurements.to(dev)
+    x0 = torch.tensor(reentry.PRIOR_MEAN, dtype=torch.float32, device=dev)
+    P0 = reentry.prior_cov(torch.float32).to(dev)
+    # float64 reference on a few sequences (CPU copy of the float64 exact model)
+    ref_n = min(B, 32)
+    fc, hc = copy.deepcopy(f).to("cpu"), copy.deepcopy(h).to("cpu")
+    for m in (fc, hc):
+        m.freeze("exact")
+    with torch.no_grad():
+        ref = CKF(StateSpaceModel(fc, hc)).filter(
+            sim.measurements[:ref_n].double(), x0=x0.double().cpu(), P0=P0.double().cpu()
+        )
+    # (variance form, rank, model dtype, [(compile, CUDA graph), ...]). The filter is float32
+    # throughout; a float64 model keeps the GP's kernel sums in float64 (a float32 GP predictor
+    # loses accuracy: alpha = (K + s^2 I)^-1 y is large when the noise is small).
+    every = [(False, False), (True, False), (False, True), (True, True)]
+    plan = [
+        ("auto", None, torch.float64, every),
+        ("auto", None, torch.float32, [(True, True)]),
+        ("lowrank", 128, torch.float64, [(True, True)]),
+    ]
+    for variance, rank, mdtype, variants in plan:
+        name = f"{variance}" + (f" {rank}" if rank else "") + f", model {str(mdtype)[6:]}"
+        try:
+            for m in (f, h):
+                m.to(torch.float64).freeze(variance, rank=rank, chunk_size=args.gpu_chunk)
+                m.to(mdtype)
+            out_forms = {"f": f.variance_forms, "h": h.variance_forms}
+            model = StateSpaceModel(f, h)
+            for compile_, graph in variants if dev == "cuda" else variants[:1]:
+                tag = (
+                    f"{name}, "
+                    + ("compiled" if compile_ else "eager")
+                    + (" + CUDA graph" if graph else "")
+                )
+                try:
+                    ckf = CKF(model, compile=compile_)
+                    t0 = time.perf_counter()
+                    with torch.no_grad(), warnings.catch_warnings():
+                        warnings.simplefilter("ignore")
+                        if graph:
+                            g = ckf.graphed(y, x0=x0, P0=P0)
+                            run = lambda g=g: g.filter(y, clone=False)  # noqa: E731
+                        else:
+                            run = lambda ckf=ckf: ckf.filter(y, x0=x0, P0=P0)  # noqa: E731
+                        res = run()
+                        _sync()
+                        first = time.perf_counter() - t0
+                        sec = _sync_time(run, args.repeats)
+                    got = res.mean[:ref_n].double().cpu()
+                    ok = torch.isfinite(ref.mean).all(-1).all(-1)
+                    sd = ref.cov.diagonal(dim1=-2, dim2=-1).sqrt()[ok].clamp_min(1e-30)
+                    rel = ((got - ref.mean)[ok].abs() / sd).amax()
+                    finite = float(torch.isfinite(res.mean).all(-1).all(-1).float().mean())
+                    row = {
+                        "predictor": tag,
+                        "model_dtype": str(mdtype),
+                        "forms": out_forms,
+                        "seconds_per_run": sec,
+                        "sequence_steps_per_s": B * T / sec,
+                        "first_call_s": first,
+                        "finite_fraction": finite,
+                        "max_diff_vs_float64_exact_in_sd": float(rel),
+                    }
+                    out["rows"].append(row)
+                    print(
+                        f"  GPU S={S} batch={B} {tag}: {B * T / sec:.4g} seq-steps/s, "
+                        f"diff vs float64 exact {float(rel):.2g} sd",
+                        flush=True,
+                    )
+                except Exception as e:
+                    out["errors"].append(f"{tag}: {type(e).__name__}: {e}"[:400])
+                    print("  ERROR", out["errors"][-1], flush=True)
+                if dev == "cuda":
+                    torch.cuda.empty_cache()
+        except Exception as e:
+            out["errors"].append(f"{name}: {type(e).__name__}: {e}"[:400])
+            print("  ERROR", out["errors"][-1], flush=True)
+    return out
+
+
+def gpu_svgp(args: argparse.Namespace) -> dict[str, Any]:
+    """SVGP transition model on ``--svgp-n`` re-entry transitions, trained on the GPU."""
+    N, held, dev = args.svgp_n, args.svgp_n // 10, args.device
+    t0 = time.perf_counter()
+    rec = reentry.record_training_data(N + held, seed=args.seed + 1, batch=8192)
+    gen_s = time.perf_counter() - t0
+    x = torch.cat([s[:-1] for s in rec.states])
+    xn = torch.cat([s[1:] for s in rec.states])
+    perm = torch.randperm(x.shape[0], generator=torch.Generator().manual_seed(0))
+    tr, te = perm[:N], perm[N:]
+    out: dict[str, Any] = {"transitions": N, "held_out": int(te.numel()), "generate_s": gen_s}
+    t0 = time.perf_counter()
+    model = GPTransition.fit(
+        x[tr],
+        None,
+        xn[tr],
+        increment=True,
+        structure="sparse",
+        num_inducing=args.svgp_inducing,
+        batch_size=args.svgp_batch,
+        iterations=args.svgp_iters,
+        device=dev,
+        progress=False,
+    )
+    _sync()
+    out["train_s"] = time.perf_counter() - t0
+    out.update(inducing=args.svgp_inducing, batch_size=args.svgp_batch, iterations=args.svgp_iters)
+    with torch.no_grad():
+        pred = model.predict(x[te].to(dev)).mean.cpu()
+    err = pred - xn[te]
+    out["one_step_rmse"] = err.pow(2).mean(0).sqrt().tolist()
+    out["one_step_rmse_no_change_baseline"] = (x[te] - xn[te]).pow(2).mean(0).sqrt().tolist()
+    out["target_sd"] = (xn[te] - x[te]).std(0).tolist()
+    print(
+        f"  SVGP on {N} transitions: {out['train_s']:.1f} s, one-step RMSE {out['one_step_rmse']}",
+        flush=True,
+    )
+    return out
+
+
 # --------------------------------------------------------------------------- main
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -365,14 +515,34 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     p.add_argument("--sparse-iters", type=int, default=300)
     p.add_argument("--no-compile", dest="compile", action="store_false")
     p.add_argument("--out", type=Path, default=Path("out/bench_gp"))
+    p.add_argument("--gpu-only", action="store_true", help="skip the CPU sizes")
+    p.add_argument("--gpu-S", type=int, default=2000)
+    p.add_argument("--gpu-batch", type=int, default=10_000)
+    p.add_argument("--gpu-chunk", type=int, default=1 << 16, help="points per kernel chunk")
+    p.add_argument("--svgp-n", type=int, default=1_000_000)
+    p.add_argument("--svgp-inducing", type=int, default=512)
+    p.add_argument("--svgp-batch", type=int, default=4096)
+    p.add_argument("--svgp-iters", type=int, default=3000)
+    p.add_argument("--device", default="cuda", help="device of the GPU section (cpu: smoke test)")
+    p.add_argument("--force-gpu-section", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     seq = reentry.simulate_truth(1, seed=1)
     results: dict[str, Any] = {"environment": environment(), "sizes": []}
-    for S in args.sizes:
-        print(f"S = {S} ...", flush=True)
-        results["sizes"].append(bench_size(S, args, seq))
-    results["gpu"] = "not measured (no GPU lent)" if not torch.cuda.is_available() else "see README"
+    if not args.gpu_only:
+        for S in args.sizes:
+            print(f"S = {S} ...", flush=True)
+            results["sizes"].append(bench_size(S, args, seq))
+    if torch.cuda.is_available() or args.force_gpu_section:
+        results["gpu"] = {}
+        for key, fn in (("filter", gpu_filter), ("svgp", gpu_svgp)):
+            try:
+                results["gpu"][key] = fn(args)
+            except Exception as e:  # keep the other section's figures
+                results["gpu"][key] = {"error": f"{type(e).__name__}: {e}"[:600]}
+                print("  ERROR", results["gpu"][key]["error"], flush=True)
+    else:
+        results["gpu"] = "not measured (no GPU lent)"
     print_report(results)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(results, indent=2, default=float))
@@ -381,6 +551,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
 
 def print_report(results: dict[str, Any]) -> None:
+    print_gpu_report(results["gpu"])
+    if not results["sizes"]:
+        return
     env = results["environment"]
     print(
         f"\nre-entry, T = {T}, float64, CPU, {env['threads']} torch threads, "
@@ -470,10 +643,46 @@ def print_report(results: dict[str, Any]) -> None:
             rows,
         )
     )
-    print(
-        f"\nGPU (batch of 1e4 sequences, S = 2000, float32; SVGP on 1e6 transitions): "
-        f"{results['gpu']}"
-    )
+
+
+def print_gpu_report(gpu: Any) -> None:
+    if not isinstance(gpu, dict):
+        print(f"GPU (batch of 1e4 sequences, S = 2000, float32; SVGP on 1e6 transitions): {gpu}")
+        return
+    flt = gpu.get("filter", {})
+    if flt.get("rows"):
+        print(
+            f"\nGPU {flt.get('device')}: GP-model CKF, S = {flt['S']}, "
+            f"batch {flt['batch']}, float32, T = {T}"
+        )
+        print(
+            table(
+                ["predictor", "seq-steps/s", "s/run", "first call s", "finite", "diff vs f64 (sd)"],
+                [
+                    [
+                        r["predictor"],
+                        r["sequence_steps_per_s"],
+                        r["seconds_per_run"],
+                        r["first_call_s"],
+                        r["finite_fraction"],
+                        r["max_diff_vs_float64_exact_in_sd"],
+                    ]
+                    for r in flt["rows"]
+                ],
+            )
+        )
+    for e in flt.get("errors", []) + ([flt["error"]] if "error" in flt else []):
+        print("  error:", e)
+    sv = gpu.get("svgp", {})
+    if "train_s" in sv:
+        print(
+            f"\nSVGP on {sv['transitions']} transitions ({sv['inducing']} inducing, batch "
+            f"{sv['batch_size']}, {sv['iterations']} iterations): {sv['train_s']:.1f} s; one-step "
+            f"RMSE {[round(v, 4) for v in sv['one_step_rmse']]} (no-change baseline "
+            f"{[round(v, 4) for v in sv['one_step_rmse_no_change_baseline']]})"
+        )
+    elif sv:
+        print("  SVGP error:", sv.get("error"))
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ import torch
 
 import torchfilt
 from torchfilt import CKF, LinearGaussianModel, ShapeError, StateSpaceModel
+from torchfilt.systems import reentry
 
 D = torch.float64
 
@@ -189,3 +190,11 @@ def test_non_psd_noise_is_rejected():
         LinearGaussianModel(
             torch.eye(2, dtype=D), torch.ones(1, 2, dtype=D), bad, torch.eye(1, dtype=D)
         )
+
+
+def test_graphed_needs_cuda():
+    """A CUDA graph of a CPU run is a clear error that points to compile=True."""
+    sim = reentry.simulate_truth(2, seed=0)
+    filt = torchfilt.CKF(reentry.model())
+    with pytest.raises(ValueError, match=r"CUDA device.*compile=True"):
+        filt.graphed(sim.measurements, x0=torch.tensor(reentry.PRIOR_MEAN), P0=reentry.prior_cov())

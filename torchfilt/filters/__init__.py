@@ -2,6 +2,7 @@
 
 from torchfilt.filters.constrained import ConstrainedCKF, ConstrainedInfo
 from torchfilt.filters.gaussian import CKF, GaussianFilter
+from torchfilt.filters.graphed import GraphedFilter
 from torchfilt.filters.metrics import coverage, nees, nis, rmse
 from torchfilt.filters.results import FilterResult, SmootherResult
 from torchfilt.filters.smoother import rts_smooth
@@ -12,6 +13,7 @@ __all__ = [
     "ConstrainedInfo",
     "FilterResult",
     "GaussianFilter",
+    "GraphedFilter",
     "SmootherResult",
     "coverage",
     "nees",

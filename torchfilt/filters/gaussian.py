@@ -18,7 +18,7 @@ import contextlib
 import math
 import warnings
 from collections.abc import Callable
-from typing import Any, Literal, NamedTuple
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -28,6 +28,10 @@ from torchfilt.exceptions import DivergenceWarning, ShapeError
 from torchfilt.filters.results import FilterResult, SmootherResult
 from torchfilt.models import Prediction, StateSpaceModel
 from torchfilt.numerics import cholesky_solve, gaussian_log_prob, safe_cholesky, symmetrize, tria
+from torchfilt.numerics.linalg import _compiling
+
+if TYPE_CHECKING:
+    from torchfilt.filters.graphed import GraphedFilter
 
 __all__ = ["CKF", "GaussianFilter"]
 
@@ -43,6 +47,21 @@ class _Inputs(NamedTuple):
     x0: Tensor  # (B..., n)
     P0: Tensor  # (B..., n, n)
     batch: torch.Size
+
+
+def _warn_nonfinite(res: FilterResult, *, stacklevel: int) -> None:
+    """Emit a :class:`DivergenceWarning` if some sequences of ``res`` are non-finite.
+
+    ``stacklevel`` counts from this function (as in :func:`warnings.warn`)."""
+    finite = torch.isfinite(res.mean).all(-1).all(-1)
+    if not bool(finite.all()):
+        bad = int((~finite).sum())
+        warnings.warn(
+            f"{bad} of {finite.numel()} sequences produced non-finite estimates "
+            "(covariance lost definiteness or the model returned non-finite values)",
+            DivergenceWarning,
+            stacklevel=stacklevel,
+        )
 
 
 class _Step(NamedTuple):
@@ -73,7 +92,17 @@ def _point_noise(pred: Prediction, wc: Tensor) -> Tensor | None:
 
 
 def _noise_sqrt(A: Tensor) -> Tensor:
-    """A square root of a PSD noise matrix (Cholesky if definite, else eigen-decomposition)."""
+    """A square root of a PSD noise matrix (Cholesky if definite, else eigen-decomposition).
+
+    Where no host synchronisation is allowed (``torch.compile``, CUDA-graph capture) the choice
+    cannot be made on the host: the Cholesky factor of ``A + eps * mean|diag A| * I`` is used.
+    """
+    if _compiling():
+        n = A.shape[-1]
+        eye = torch.eye(n, dtype=A.dtype, device=A.device)
+        scale = A.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(A.dtype).tiny)
+        jitter = 16.0 * torch.finfo(A.dtype).eps * scale
+        return torch.linalg.cholesky_ex(A + jitter[..., None, None] * eye).L
     if not bool(A.any()):
         return torch.zeros_like(A)
     L, info = torch.linalg.cholesky_ex(A)
@@ -423,6 +452,13 @@ class GaussianFilter(nn.Module):
 
     def _assemble(self, inp: _Inputs, outs: list[_Step], *, stacklevel: int) -> FilterResult:
         """Stack per-step outputs into a :class:`FilterResult`; warn about non-finite sequences."""
+        res = self._stack(inp, outs)
+        _warn_nonfinite(res, stacklevel=stacklevel + 1)
+        return res
+
+    @staticmethod
+    def _stack(inp: _Inputs, outs: list[_Step]) -> FilterResult:
+        """Stack per-step outputs into a :class:`FilterResult` (no host synchronisation)."""
 
         def stack(i: int, dim: int) -> Tensor:
             return torch.stack([o[i] for o in outs], dim=dim)
@@ -439,16 +475,32 @@ class GaussianFilter(nn.Module):
             log_likelihood=torch.stack([o.loglik for o in outs], dim=-1).sum(-1),
             cross_cov=stack(9, -3),
         )
-        finite = torch.isfinite(res.mean).all(-1).all(-1)
-        if not bool(finite.all()):
-            bad = int((~finite).sum())
-            warnings.warn(
-                f"{bad} of {finite.numel()} sequences produced non-finite estimates "
-                "(covariance lost definiteness or the model returned non-finite values)",
-                DivergenceWarning,
-                stacklevel=stacklevel,
-            )
         return res
+
+    def graphed(
+        self,
+        y: Tensor,
+        u: Tensor | None = None,
+        *,
+        x0: Tensor,
+        P0: Tensor,
+        warmup: int = 2,
+    ) -> GraphedFilter:
+        """Capture a whole filtering run of this shape into a CUDA graph (GPU only).
+
+        The returned :class:`~torchfilt.filters.GraphedFilter` replays all ``T`` steps with one
+        graph launch; its ``filter(y, u, mask=...)`` takes new data of the same shape. Combine with
+        ``compile=True`` for fused kernels. See :mod:`torchfilt.filters.graphed` for the limits.
+
+        Args:
+            y: example measurements ``(..., T, m)`` on a CUDA device.
+            u: example inputs ``(..., T, nu)`` or ``None``.
+            x0: prior mean ``(..., n)``. P0: prior covariance ``(..., n, n)``; both fixed.
+            warmup: eager runs before the capture.
+        """
+        from torchfilt.filters.graphed import GraphedFilter
+
+        return GraphedFilter(self, y, u, x0=x0, P0=P0, warmup=warmup)
 
     def smooth(
         self,

@@ -36,7 +36,11 @@ def symmetrize(A: Tensor) -> Tensor:
 
 
 def _compiling() -> bool:
-    return bool(torch.compiler.is_compiling())
+    """True where a host synchronisation is not allowed: under ``torch.compile`` tracing, or while
+    a CUDA graph is being captured (see :class:`~torchfilt.filters.GraphedFilter`)."""
+    if torch.compiler.is_compiling():
+        return True
+    return bool(torch.cuda.is_available() and torch.cuda.is_current_stream_capturing())
 
 
 def safe_cholesky(
@@ -55,8 +59,8 @@ def safe_cholesky(
     Elements that still fail (or contain non-finite values) are set to NaN (``on_failure="nan"``,
     the default, so one bad sequence does not stop a batch) or raise ``ValueError``.
 
-    Inside ``torch.compile`` the retries (which need a host synchronisation) are skipped and failed
-    factors are NaN.
+    Inside ``torch.compile`` and during CUDA-graph capture the retries (which need a host
+    synchronisation) are skipped and failed factors are NaN.
 
     Args:
         A: symmetric matrices, shape ``(..., n, n)``.

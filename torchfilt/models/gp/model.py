@@ -281,7 +281,10 @@ class GPModel(ConditionalModel):
         train = {k: options.pop(k) for k in train_keys if k in options}
         freeze = {k: options.pop(k) for k in freeze_keys if k in options}
         seed = options.get("seed", 0)
+        device = options.pop("device", None)
         model = cls._from_pairs(pairs, **options)
+        if device is not None:
+            model.to(device)
         model.optimize(seed=seed, **train)
         model.freeze(**freeze)
         return model

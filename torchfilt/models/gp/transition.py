@@ -74,6 +74,8 @@ class GPTransition(GPModel):
                 rank: the low-rank root's rank; tol: tolerance of ``"auto"`` (default 0.05);
                 chunk_size: points per kernel chunk (default 128). See ``GPModel.freeze``.
             dtype: training dtype (default ``torch.float64``).
+            device: train and keep the model on this device (e.g. ``"cuda"``; default: the
+                CPU, where the data are prepared).
             seed: seeds every random choice (default 0).
             callback: per-iteration ``fn(FitState) -> bool | None``; ``True`` stops.
             progress: progress line on stderr (default ``True``).
