@@ -449,7 +449,7 @@ def gpu_svgp(args: argparse.Namespace) -> dict[str, Any]:
     """SVGP transition model on ``--svgp-n`` re-entry transitions, trained on the GPU."""
     N, held, dev = args.svgp_n, args.svgp_n // 10, args.device
     t0 = time.perf_counter()
-    rec = reentry.record_training_data(N + held, seed=args.seed + 1, batch=8192)
+    rec = reentry.record_training_data(N + held, seed=args.seed + 1, batch=1 << 17, device=dev)
     gen_s = time.perf_counter() - t0
     x = torch.cat([s[:-1] for s in rec.states])
     xn = torch.cat([s[1:] for s in rec.states])

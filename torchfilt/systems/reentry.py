@@ -178,6 +178,7 @@ def record_training_data(
     x0_cov: Tensor | None = None,
     M: float = RADAR_M,
     dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
 ) -> TrainingRecord:
     """Record physically plausible re-entry trajectories that cover where the filter looks.
 
@@ -211,6 +212,9 @@ def record_training_data(
         x0_cov: covariance of the initial states (default :func:`prior_cov`).
         M: radar horizontal offset of the recorded measurements.
         dtype: floating dtype.
+        device: simulate on this device (e.g. ``"cuda"`` for millions of samples); random draws
+            and the returned tensors stay on the CPU, so the record does not depend on it beyond
+            rounding.
 
     Returns:
         A :class:`TrainingRecord` with ``samples`` pairs.
@@ -229,9 +233,10 @@ def record_training_data(
     while total < samples:
         x = mean + torch.randn(batch, 3, generator=gen, dtype=dtype) @ L.T
         initial.append(x)
+        x = x.to(device) if device is not None else x
         traj = [x]
-        alive = torch.ones(batch, dtype=torch.bool)
-        length = torch.zeros(batch, dtype=torch.long)
+        alive = torch.ones(batch, dtype=torch.bool, device=x.device)
+        length = torch.zeros(batch, dtype=torch.long, device=x.device)
         for _ in range(horizon):
             with torch.no_grad():
                 nxt = transition(x)
@@ -254,7 +259,8 @@ def record_training_data(
             traj.append(x)
             if not bool(alive.any()):
                 break
-        stacked = torch.stack(traj, 1)  # (batch, steps + 1, 3)
+        stacked = torch.stack(traj, 1).cpu()  # (batch, steps + 1, 3)
+        length = length.cpu()
         for i in range(batch):
             steps = int(length[i])
             if steps < 1 or total >= samples:
