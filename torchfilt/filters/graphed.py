@@ -26,6 +26,7 @@ from torch import Tensor
 
 from torchfilt.exceptions import ShapeError
 from torchfilt.filters.results import FilterResult
+from torchfilt.numerics.linalg import sync_free
 
 if TYPE_CHECKING:
     from torchfilt.filters.gaussian import GaussianFilter
@@ -89,7 +90,7 @@ class GraphedFilter:
 
         side = torch.cuda.Stream(device=self.device)
         side.wait_stream(torch.cuda.current_stream(self.device))
-        with torch.cuda.stream(side), warnings.catch_warnings():
+        with torch.cuda.stream(side), warnings.catch_warnings(), sync_free():
             warnings.simplefilter("ignore")
             for _ in range(warmup):
                 filt._scan(self._inp, step_fn)
@@ -97,7 +98,7 @@ class GraphedFilter:
 
         self.graph = torch.cuda.CUDAGraph()
         try:
-            with torch.cuda.graph(self.graph):
+            with torch.cuda.graph(self.graph), sync_free():
                 outs = filt._scan(self._inp, step_fn)
                 self._out = filt._stack(self._inp, outs)
         except RuntimeError as e:

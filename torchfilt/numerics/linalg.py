@@ -6,7 +6,10 @@ Filters never form an explicit inverse: gains come from :func:`psd_solve`, squar
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import warnings
+from collections.abc import Iterator
 from typing import Literal
 
 import torch
@@ -35,10 +38,30 @@ def symmetrize(A: Tensor) -> Tensor:
     return 0.5 * (A + A.mT)
 
 
+_SYNC_FREE: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "torchfilt_sync_free", default=False
+)
+
+
+@contextlib.contextmanager
+def sync_free() -> Iterator[None]:
+    """Run the numerics' host-synchronisation-free paths inside this block.
+
+    Used around CUDA-graph warm-up and capture (:class:`~torchfilt.filters.GraphedFilter`) so that
+    the warm-up runs exactly the code that is captured (a compiled step must not see new guards,
+    and so recompile, during capture).
+    """
+    token = _SYNC_FREE.set(True)
+    try:
+        yield
+    finally:
+        _SYNC_FREE.reset(token)
+
+
 def _compiling() -> bool:
-    """True where a host synchronisation is not allowed: under ``torch.compile`` tracing, or while
-    a CUDA graph is being captured (see :class:`~torchfilt.filters.GraphedFilter`)."""
-    if torch.compiler.is_compiling():
+    """True where a host synchronisation is not allowed: under ``torch.compile`` tracing, inside
+    :func:`sync_free`, or while a CUDA graph is being captured."""
+    if torch.compiler.is_compiling() or _SYNC_FREE.get():
         return True
     return bool(torch.cuda.is_available() and torch.cuda.is_current_stream_capturing())
 
