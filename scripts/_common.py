@@ -1,12 +1,14 @@
-"""Helpers shared by the scripts in this folder (tables, JSON output, environment info)."""
+"""Helpers shared by the scripts in this folder (tables, timing, JSON output, environment info)."""
 
 from __future__ import annotations
 
 import json
 import os
 import platform
+import statistics
 import tempfile
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +23,21 @@ def environment() -> dict[str, Any]:
         "threads": torch.get_num_threads(),
         "cpu": platform.processor() or platform.machine(),
         "cpus": os.cpu_count(),
+        "load_average": os.getloadavg(),
         "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
     }
+
+
+def timeit(fn: Callable[[], Any], repeats: int, warmup: int = 1) -> float:
+    """Median wall time of ``fn`` over ``repeats`` runs, after ``warmup`` untimed runs."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
 
 
 def write_json(path: Path, payload: dict[str, Any]) -> None:
@@ -40,10 +55,10 @@ def table(headers: Sequence[str], rows: Sequence[Sequence[Any]], fmt: str = "{:.
     def cell(v: Any) -> str:
         if isinstance(v, float):
             return fmt.format(v)
-        return str(v)
+        return "-" if v is None else str(v)
 
     body = [[cell(v) for v in r] for r in rows]
-    widths = [max(len(h), *(len(r[i]) for r in body)) for i, h in enumerate(headers)]
+    widths = [max([len(h)] + [len(r[i]) for r in body]) for i, h in enumerate(headers)]
     line = "  ".join(h.ljust(w) for h, w in zip(headers, widths, strict=True))
     sep = "  ".join("-" * w for w in widths)
     out = [line, sep]

@@ -14,7 +14,6 @@ import argparse
 import importlib.util
 import math
 import os
-import statistics
 import sys
 import time
 import warnings
@@ -29,24 +28,12 @@ import torch
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import environment, table, write_json
+from _common import environment, table, timeit, write_json
 
 import torchfilt
 from torchfilt.systems import reentry
 
 T = reentry.STEPS
-
-
-def timeit(fn: Callable[[], Any], repeats: int, warmup: int = 1) -> float:
-    """Median wall time of ``fn`` over ``repeats`` runs, after ``warmup`` untimed runs."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 # --------------------------------------------------------------------------- filterpy

@@ -30,9 +30,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import os
-import platform
-import statistics
+import sys
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -41,6 +39,9 @@ from typing import Any
 
 import torch
 from torch import Tensor
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import environment, table, timeit
 
 from torchfilt import CKF, ConditionalModel, Prediction, StateSpaceModel
 from torchfilt.models.gp import GPMeasurement, GPModel, GPTransition
@@ -56,44 +57,6 @@ LOWRANKS = (32, 128, 512)
 
 
 # --------------------------------------------------------------------------- helpers
-def environment() -> dict[str, Any]:
-    return {
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "threads": torch.get_num_threads(),
-        "cpu": platform.processor() or platform.machine(),
-        "cpus": os.cpu_count(),
-        "load_average": os.getloadavg(),
-        "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
-    }
-
-
-def table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
-    def cell(v: Any) -> str:
-        if isinstance(v, float):
-            return f"{v:.4g}"
-        return "-" if v is None else str(v)
-
-    body = [[cell(v) for v in r] for r in rows]
-    widths = [max(len(h), *(len(r[i]) for r in body)) for i, h in enumerate(headers)]
-    out = ["  ".join(h.ljust(w) for h, w in zip(headers, widths, strict=True))]
-    out.append("  ".join("-" * w for w in widths))
-    out += ["  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)) for r in body]
-    return "\n".join(out)
-
-
-def timeit(fn: Callable[[], Any], repeats: int, warmup: int = 1) -> float:
-    """Median wall time of ``fn`` after ``warmup`` untimed runs."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
-
-
 class GPyTorchEval(ConditionalModel):
     """A GP model called through GPyTorch in eval mode at every step (the baseline)."""
 

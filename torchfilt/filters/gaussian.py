@@ -49,6 +49,30 @@ class _Inputs(NamedTuple):
     batch: torch.Size
 
 
+def _observed(y: Tensor, mask: Tensor | None) -> Tensor:
+    """Which components of ``y`` are observed: finite, and ``mask`` True where given.
+
+    Args:
+        y: measurements ``(..., T, m)``.
+        mask: bool ``(..., T, m)`` broadcastable with ``y``, or ``None``.
+
+    Returns:
+        Bool tensor of the broadcast shape.
+    """
+    obs = torch.isfinite(y)
+    if mask is None:
+        return obs
+    mask = torch.as_tensor(mask, device=y.device)
+    if mask.dtype != torch.bool:
+        raise TypeError(f"mask must be a bool tensor, got {mask.dtype}")
+    try:
+        return obs & mask
+    except RuntimeError:
+        raise ShapeError(
+            f"mask: shape {tuple(mask.shape)} does not broadcast with y {tuple(y.shape)}"
+        ) from None
+
+
 def _warn_nonfinite(res: FilterResult, *, stacklevel: int) -> None:
     """Emit a :class:`DivergenceWarning` if some sequences of ``res`` are non-finite.
 
@@ -238,18 +262,9 @@ class GaussianFilter(nn.Module):
             if not bool(torch.isfinite(u).all()):
                 raise ValueError("u contains non-finite entries; inputs cannot be missing")
             shapes["u"] = u.shape[:-2]
-        obs = torch.isfinite(y)
+        obs = _observed(y, mask)
         if mask is not None:
-            mask = torch.as_tensor(mask, device=device)
-            if mask.dtype != torch.bool:
-                raise TypeError(f"mask must be a bool tensor, got {mask.dtype}")
-            try:
-                obs = obs & mask
-            except RuntimeError:
-                raise ShapeError(
-                    f"mask: shape {tuple(mask.shape)} does not broadcast with y {tuple(y.shape)}"
-                ) from None
-            shapes["mask"] = mask.shape[:-2]
+            shapes["mask"] = torch.as_tensor(mask).shape[:-2]
         for name, side in (("Q", self.model.transition), ("R", self.model.measurement)):
             if side.time_varying_noise:
                 noise = side.noise_cov(0)

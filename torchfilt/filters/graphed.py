@@ -128,7 +128,7 @@ class GraphedFilter:
         Returns:
             A :class:`~torchfilt.filters.FilterResult`, as :meth:`GaussianFilter.filter` gives.
         """
-        from torchfilt.filters.gaussian import _warn_nonfinite
+        from torchfilt.filters.gaussian import _observed, _warn_nonfinite
 
         if not isinstance(y, Tensor):
             raise TypeError(f"y must be a torch.Tensor, got {type(y).__name__}")
@@ -147,17 +147,12 @@ class GraphedFilter:
                 + ("without" if self._u is None else "with")
                 + " inputs"
             )
-        obs = torch.isfinite(y)
-        if mask is not None:
-            mask = torch.as_tensor(mask, device=self.device)
-            if mask.dtype != torch.bool:
-                raise TypeError(f"mask must be a bool tensor, got {mask.dtype}")
-            try:
-                obs = obs & mask
-            except RuntimeError:
-                raise ShapeError(
-                    f"mask: shape {tuple(mask.shape)} does not broadcast with y {tuple(y.shape)}"
-                ) from None
+        obs = _observed(y, mask)
+        if obs.shape != self._obs.shape:
+            raise ShapeError(
+                f"mask: shape {tuple(obs.shape)} after broadcasting, the graph was captured for "
+                f"{tuple(self._obs.shape)}"
+            )
         self._obs.copy_(obs)
         self._y.copy_(torch.where(obs, y, torch.zeros((), dtype=y.dtype, device=y.device)))
         if u is not None:
