@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from torch import Tensor
 
@@ -64,57 +65,24 @@ def plot_recording(
     with style():
         fig = Figure(figsize=(8.5, 1.9 * (n + m + 1) + 0.6))
         axes = list(fig.subplots(n + m + 1, 1, sharex=True, squeeze=False)[:, 0])
-        sd = np.sqrt(np.clip(np.diagonal(to_numpy(filtered.cov), axis1=-2, axis2=-1), 0, None))
+        sd = _sd(filtered.cov)
+        sm = None if smoothed is None else (to_numpy(smoothed.mean), _sd(smoothed.cov))
         for i in range(n):
             ax = axes[i]
-            ax.fill_between(
-                t,
-                mean[:, i] - Z95 * sd[:, i],
-                mean[:, i] + Z95 * sd[:, i],
-                color=PALETTE[0],
-                alpha=0.15,
-                linewidth=0,
-                label="filter 95%",
-            )
-            ax.plot(t, mean[:, i], color=PALETTE[0], label="filter")
-            if smoothed is not None:
-                ms = to_numpy(smoothed.mean)
-                ss = np.sqrt(
-                    np.clip(np.diagonal(to_numpy(smoothed.cov), axis1=-2, axis2=-1), 0, None)
-                )
-                ax.fill_between(
-                    t,
-                    ms[:, i] - Z95 * ss[:, i],
-                    ms[:, i] + Z95 * ss[:, i],
-                    color=PALETTE[1],
-                    alpha=0.18,
-                    linewidth=0,
-                    label="smoother 95%",
-                )
-                ax.plot(t, ms[:, i], color=PALETTE[1], label="smoother")
+            _band(ax, t, mean[:, i], sd[:, i], PALETTE[0], 0.15, "filter")
+            if sm is not None:
+                _band(ax, t, sm[0][:, i], sm[1][:, i], PALETTE[1], 0.18, "smoother")
             if x_true is not None:
                 ax.plot(
                     t, x_true[:, i], color=TRUTH_COLOR, linestyle="--", linewidth=1.1, label="truth"
                 )
             ax.set_ylabel(label(sn[i], su[i]))
             ax.margins(x=0)
-        ym = to_numpy(filtered.measurement_mean)
-        ysd = np.sqrt(
-            np.clip(np.diagonal(to_numpy(filtered.innovation_cov), axis1=-2, axis2=-1), 0, None)
-        )
+        ym, ysd = to_numpy(filtered.measurement_mean), _sd(filtered.innovation_cov)
         y = None if measurements is None else to_numpy(measurements)
         for j in range(m):
             ax = axes[n + j]
-            ax.fill_between(
-                t,
-                ym[:, j] - Z95 * ysd[:, j],
-                ym[:, j] + Z95 * ysd[:, j],
-                color=PALETTE[2],
-                alpha=0.18,
-                linewidth=0,
-                label="predicted 95%",
-            )
-            ax.plot(t, ym[:, j], color=PALETTE[2], label="predicted")
+            _band(ax, t, ym[:, j], ysd[:, j], PALETTE[2], 0.18, "predicted")
             if y is not None:
                 ax.plot(t, y[:, j], ".", color=MEASUREMENT_COLOR, markersize=3.5, label="measured")
             ax.set_ylabel(label(mn[j], mu[j]))
@@ -128,3 +96,24 @@ def plot_recording(
         if title:
             fig.suptitle(title)
     return fig
+
+
+def _sd(cov: Tensor) -> np.ndarray:
+    """Standard deviations ``(T, d)`` from covariances ``(T, d, d)`` (negative rounding clipped)."""
+    return np.sqrt(np.clip(np.diagonal(to_numpy(cov), axis1=-2, axis2=-1), 0, None))
+
+
+def _band(
+    ax: Axes, t: np.ndarray, mean: np.ndarray, sd: np.ndarray, color: str, alpha: float, name: str
+) -> None:
+    """A mean line with its 95% band, labelled ``name`` and ``name 95%``."""
+    ax.fill_between(
+        t,
+        mean - Z95 * sd,
+        mean + Z95 * sd,
+        color=color,
+        alpha=alpha,
+        linewidth=0,
+        label=f"{name} 95%",
+    )
+    ax.plot(t, mean, color=color, label=name)
