@@ -1,7 +1,9 @@
 """CUDA path: the same filter on the GPU equals the CPU result. Skipped without a CUDA device."""
 
 import warnings
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -68,3 +70,31 @@ def test_graphed_filter_matches_eager(sqrt, compile_):
         torch.testing.assert_close(got.log_likelihood[ok], ref.log_likelihood[ok])
     with pytest.raises(torchfilt.ShapeError, match="captured for shape"):
         graphed.filter(y[:10])
+
+
+def test_cli_filter_with_a_gp_bundle_on_cuda_matches_cpu(tmp_path):
+    """`torchfilt filter --device cuda` with a learned (GP) bundle gives the CPU estimates."""
+    from torchfilt.cli import main
+    from torchfilt.io.estimates import read_estimates
+    from torchfilt.io.synth import simulate_dataset
+
+    data = tmp_path / "data"
+    simulate_dataset("reaction", data, recordings=6, steps=30, seed=0)
+    recipe = tmp_path / "tiny.toml"
+    recipe.write_text(
+        f'name = "tiny"\nseed = 3\n[dataset]\npath = "{data.as_posix()}"\n'
+        "[transition]\nincrement = true\niterations = 20\n[measurement]\niterations = 20\n"
+    )
+    run = tmp_path / "run"
+    assert main(["train", str(recipe), "--out", str(run), "--quiet"]) == 0
+    recs = sorted(str(p) for p in data.glob("rec_*.csv"))
+    for dev in ("cpu", "cuda"):
+        args = ["filter", "--model", str(run / "model.pt"), *recs, "--out", str(tmp_path / dev)]
+        assert main([*args, "--smooth", "--device", dev]) == 0
+    for p in recs:
+        for kind in ("filtered", "smoothed"):
+            name = f"{Path(p).stem}.{kind}.csv"
+            cpu = read_estimates(tmp_path / "cpu" / name)
+            gpu = read_estimates(tmp_path / "cuda" / name)
+            np.testing.assert_allclose(gpu.mean, cpu.mean, rtol=1e-8, atol=1e-10)
+            np.testing.assert_allclose(gpu.cov, cpu.cov, rtol=1e-6, atol=1e-12)
