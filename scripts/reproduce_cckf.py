@@ -401,7 +401,13 @@ def main(argv: list[str] | None = None) -> int:
         help="where reproduce_reentry.py cached its bundles (trained here if missing)",
     )
     ap.add_argument("--mfckf-samples", type=int, default=5000, help="GP training transitions")
-    ap.add_argument("--mfckf-runs", type=int, default=200, help="re-entry runs for the MF-CKF")
+    ap.add_argument(
+        "--mfckf-runs",
+        type=int,
+        default=50,
+        help="the learned model runs on the first N re-entry runs (its constrained filters "
+        "evaluate the GP radar many times per step: about 3 s per run and filter)",
+    )
     ap.add_argument("--skip-mfckf", action="store_true", help="no learned-model re-entry rows")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)

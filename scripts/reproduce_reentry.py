@@ -196,21 +196,25 @@ def filters(
     *,
     point_variance: str = "total",
     constrained: bool = True,
-) -> dict[str, FilterFn]:
-    """The filters compared, each a function of the measurements ``(runs, T, 1)``."""
+) -> dict[str, tuple[FilterFn, bool]]:
+    """The filters compared: ``{name: (function of the measurements (runs, T, 1), constrained)}``.
+
+    With learned models and ``constrained``, CKF1 and every learned variant also run inside
+    ``ConstrainedCKF`` with x3 >= 0 (corrected covariance).
+    """
     x0 = torch.tensor(reentry.PRIOR_MEAN, dtype=torch.float64)
     P0 = reentry.prior_cov()
     ckf1 = torchfilt.CKF(reentry.model())
     ckf2 = torchfilt.CKF(reentry.model(reentry.RADAR_M_WRONG))
-    out: dict[str, FilterFn] = {
-        "CKF1 (true model)": lambda y: ckf1.filter(y, x0=x0, P0=P0),
-        "CKF2 (M = 3e5)": lambda y: ckf2.filter(y, x0=x0, P0=P0),
+    out: dict[str, tuple[FilterFn, bool]] = {
+        "CKF1 (true model)": (lambda y: ckf1.filter(y, x0=x0, P0=P0), False),
+        "CKF2 (M = 3e5)": (lambda y: ckf2.filter(y, x0=x0, P0=P0), False),
     }
     for key, model in (learned or {}).items():
         ckf = torchfilt.CKF(model, point_variance=point_variance)  # type: ignore[arg-type]
-        out[variant_label(key)] = lambda y, f=ckf: f.filter(y, x0=x0, P0=P0)
-    if constrained:
-        for key, model in (learned or {}).items():
+        out[variant_label(key)] = (lambda y, f=ckf: f.filter(y, x0=x0, P0=P0), False)
+    if constrained and learned:
+        for key, model in {"ckf1": reentry.model(), **learned}.items():
             cckf = torchfilt.ConstrainedCKF(
                 model,
                 LOWER,
@@ -218,7 +222,8 @@ def filters(
                 covariance="corrected",
                 point_variance=point_variance,  # type: ignore[arg-type]
             )
-            out[variant_label(key, True)] = lambda y, f=cckf: f.filter(y, x0=x0, P0=P0)
+            name = "CKF1 (true model) + x3>=0" if key == "ckf1" else variant_label(key, True)
+            out[name] = (lambda y, f=cckf: f.filter(y, x0=x0, P0=P0), True)
     return out
 
 
@@ -251,31 +256,51 @@ def summarize(truth: torch.Tensor, res: FilterResult) -> dict:
     return out
 
 
-def acceptance(results: dict[str, dict]) -> dict[str, Any]:
-    """Issue 3's targets on the learned rows (unconstrained and constrained) against CKF1."""
+def acceptance(results: dict[str, dict], ckf1_failed_first: torch.Tensor) -> dict[str, Any]:
+    """Issue 3's targets on the learned rows (unconstrained and constrained) against CKF1.
+
+    Per learned row: RMSE within ``RMSE_RATIO`` x CKF1's on every state, failed runs no more than
+    CKF1's on the same runs (``ckf1_failed_first[k - 1]``: CKF1's failures among the first ``k``
+    runs; constrained rows run on the first ``--constrained-runs``), mean NEES in ``NEES_BAND`` x
+    n. The best variant is the row that meets the most of these, ties broken by the smaller worst
+    RMSE ratio; the issue's verdicts are its RMSE and NEES and every row's failures.
+    """
     ref = results["CKF1 (true model)"]
     learned = {k: r for k, r in results.items() if k.startswith("MF-CKF")}
     if not learned:
         return {}
     lo, hi = (b * N_STATES for b in NEES_BAND)
+    rows: dict[str, dict[str, Any]] = {}
+    for name, r in learned.items():
+        ratios = [a / c for a, c in zip(r["rmse"], ref["rmse"], strict=True)]
+        finite = all(np.isfinite(ratios))
+        rows[name] = {
+            "rmse_ratio_to_ckf1": ratios,
+            "rmse_within_1.5x": finite and all(v <= RMSE_RATIO for v in ratios),
+            "failed_le_ckf1": r["failed"] <= int(ckf1_failed_first[r["runs"] - 1]),
+            "ckf1_failed_same_runs": int(ckf1_failed_first[r["runs"] - 1]),
+            "nees_in_band": bool(lo <= r["nees"] <= hi),
+            "worst_ratio": max(ratios) if finite else float("inf"),
+        }
 
-    def worst_ratio(r: dict) -> float:
-        ratios = [a / b for a, b in zip(r["rmse"], ref["rmse"], strict=True)]
-        return max(ratios) if all(np.isfinite(ratios)) else float("inf")
+    def rank(name: str) -> tuple[int, float]:
+        v = rows[name]
+        met = v["rmse_within_1.5x"] + v["failed_le_ckf1"] + v["nees_in_band"]
+        return -met, v["worst_ratio"]
 
-    best = min(learned, key=lambda k: worst_ratio(learned[k]))
-    b = learned[best]
-    ratios = [a / c for a, c in zip(b["rmse"], ref["rmse"], strict=True)]
+    best = min(rows, key=rank)
+    b = rows[best]
     return {
         "best_variant": best,
-        "best_rmse_ratio_to_ckf1": ratios,
-        "best_rmse_within_1.5x": all(r <= RMSE_RATIO for r in ratios),
+        "best_rmse_ratio_to_ckf1": b["rmse_ratio_to_ckf1"],
+        "best_rmse_within_1.5x": b["rmse_within_1.5x"],
         "failed_runs_ckf1": ref["failed"],
-        "failed_runs": {k: r["failed"] for k, r in learned.items()},
-        "every_variant_failed_le_ckf1": all(r["failed"] <= ref["failed"] for r in learned.values()),
-        "best_nees": b["nees"],
+        "failed_runs": {k: f"{r['failed']}/{r['runs']}" for k, r in learned.items()},
+        "every_variant_failed_le_ckf1": all(v["failed_le_ckf1"] for v in rows.values()),
+        "best_nees": learned[best]["nees"],
         "nees_band": [lo, hi],
-        "best_nees_in_band": bool(lo <= b["nees"] <= hi),
+        "best_nees_in_band": b["nees_in_band"],
+        "per_variant": rows,
     }
 
 
@@ -376,7 +401,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=int, default=200, help="Monte Carlo runs (>= 100)")
     ap.add_argument("--seed", type=int, default=0, help="Monte Carlo seed; training data: seed + 1")
     ap.add_argument("--out", type=Path, default=Path("out/reentry"))
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="intra-op threads (on a shared 2-core machine a second thread slows the many small "
+        "operations of the GP filters down several-fold)",
+    )
     ap.add_argument("--samples", type=int, default=5000, help="recorded transition pairs")
     ap.add_argument(
         "--gamma-factor",
@@ -393,6 +424,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--no-learned", action="store_true", help="CKF1 and CKF2 only")
     ap.add_argument("--no-constrained", action="store_true", help="skip the x3 >= 0 rows")
+    ap.add_argument(
+        "--constrained-runs",
+        type=int,
+        default=50,
+        help="the x3 >= 0 rows run on the first N of the runs (each reconciliation evaluates the "
+        "GP radar many times: about 3 s per run and filter on this 2-core machine)",
+    )
     ap.add_argument("--progress", action="store_true", help="GP training progress on stderr")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -418,22 +456,28 @@ def main(argv: list[str] | None = None) -> int:
 
     results, errors = {}, {}
     fns = filters(learned, point_variance=args.point_variance, constrained=not args.no_constrained)
-    for name, fn in fns.items():
+    n_con = min(args.constrained_runs, args.runs)
+    ckf1_failed_first: torch.Tensor | None = None
+    for name, (fn, is_constrained) in fns.items():
+        n = n_con if is_constrained else args.runs
         t0 = time.perf_counter()
         with torch.no_grad(), warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", torchfilt.NumericsWarning)
             warnings.simplefilter("always", torchfilt.ConvergenceWarning)
-            res = fn(y)
+            res = fn(y[:n])
         seconds = time.perf_counter() - t0
         with warnings.catch_warnings():  # NEES of near-singular covariances (Q = 0) needs jitter
             warnings.simplefilter("ignore", torchfilt.CholeskyJitterWarning)
-            results[name] = summarize(truth, res)
+            results[name] = summarize(truth[:n], res)
+        if ckf1_failed_first is None:  # CKF1: failures among the first k runs, for every k
+            ckf1_failed_first = (~torch.isfinite(res.mean).all(-1).all(-1)).long().cumsum(0)
         results[name]["numerics_warnings"] = len(caught)
         results[name]["seconds"] = seconds
-        errors[name] = res.mean - truth
+        errors[name] = res.mean - truth[:n]
         r = results[name]
         print(f"  {name}: {seconds:.1f} s, failed {r['failed']}/{r['runs']}", flush=True)
-    verdict = acceptance(results)
+    assert ckf1_failed_first is not None
+    verdict = acceptance(results, ckf1_failed_first)
 
     headers = [
         "filter",
@@ -465,21 +509,26 @@ def main(argv: list[str] | None = None) -> int:
     print("RMSE: time average of the RMS over successful runs; NEES: over runs and time (n = 3).")
     print(table(headers, rows))
     if verdict:
-        ratio = ", ".join(f"{v:.2f}" for v in verdict["best_rmse_ratio_to_ckf1"])
         lo, hi = verdict["nees_band"]
-        yes = {True: "met", False: "NOT met"}
-        print(f"acceptance (issue 3), best learned variant: {verdict['best_variant']}")
+        yes = {True: "yes", False: "NO"}
         print(
-            f"  RMSE / CKF1's per state {ratio} (<= {RMSE_RATIO}): "
-            f"{yes[verdict['best_rmse_within_1.5x']]}"
+            f"acceptance (issue 3) per learned row: RMSE <= {RMSE_RATIO}x CKF1's on every state; "
+            f"failed runs <= CKF1's on the same runs; mean NEES in [{lo:g}, {hi:g}]"
         )
+        for name, v in verdict["per_variant"].items():
+            r = results[name]
+            ratio = ", ".join(f"{x:.2f}" for x in v["rmse_ratio_to_ckf1"])
+            print(
+                f"  {name}: RMSE ratios {ratio} {yes[v['rmse_within_1.5x']]}; failed "
+                f"{r['failed']}/{r['runs']} vs {v['ckf1_failed_same_runs']} "
+                f"{yes[v['failed_le_ckf1']]}; NEES {r['nees']:.3g} {yes[v['nees_in_band']]}"
+            )
+        met = {True: "met", False: "NOT met"}
         print(
-            f"  failed runs <= CKF1's ({verdict['failed_runs_ckf1']}) for every variant "
-            f"{verdict['failed_runs']}: {yes[verdict['every_variant_failed_le_ckf1']]}"
-        )
-        print(
-            f"  mean NEES {verdict['best_nees']:.3g} in [{lo:g}, {hi:g}]: "
-            f"{yes[verdict['best_nees_in_band']]}"
+            f"best learned variant: {verdict['best_variant']}: RMSE target "
+            f"{met[verdict['best_rmse_within_1.5x']]}, NEES target "
+            f"{met[verdict['best_nees_in_band']]}; failures target (every variant) "
+            f"{met[verdict['every_variant_failed_le_ckf1']]}"
         )
 
     times = torch.arange(1, reentry.STEPS + 1, dtype=torch.float64) * reentry.DT

@@ -45,7 +45,7 @@ def test_smoke_without_learned_models(tmp_path):
 @pytest.mark.slow
 def test_shortened_reproduction_and_reuse(tmp_path):
     mod = load("reproduce_reentry")
-    args = ["--runs", "40", "--samples", "2000", "--out", str(tmp_path)]
+    args = ["--runs", "40", "--samples", "2000", "--constrained-runs", "10", "--out", str(tmp_path)]
     assert mod.main(args) == 0
     saved = json.loads((tmp_path / "results.json").read_text())
     r = rows(saved)
@@ -53,6 +53,7 @@ def test_shortened_reproduction_and_reuse(tmp_path):
     assert r["CKF2 (M = 3e5)"]["failed"] == 40
     learned = {k: v for k, v in r.items() if k.startswith("MF-CKF")}
     assert len(learned) == 6  # (a), (b), (c), unconstrained and with x3 >= 0
+    assert r["CKF1 (true model) + x3>=0"]["runs"] == 10
     for name, s in learned.items():
         assert s["failed"] < s["runs"], name
         assert all(math.isfinite(v) and v > 0 for v in s["rmse"]), name
