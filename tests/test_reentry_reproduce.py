@@ -70,6 +70,7 @@ def test_shortened_reproduction_and_reuse(tmp_path):
     for key in mod.VARIANTS:
         assert (tmp_path / f"mfckf_{key}.pt").is_file()
     assert (tmp_path / "gp_measurement.png").stat().st_size > 0
+    assert (tmp_path / "errors_constrained.png").stat().st_size > 0
     # a second run loads the cached bundles instead of training
     again = ["--runs", "4", "--samples", "2000", "--reuse", "--no-constrained"]
     assert mod.main([*again, "--out", str(tmp_path)]) == 0
