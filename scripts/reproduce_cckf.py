@@ -406,7 +406,7 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         default=50,
         help="the learned model runs on the first N re-entry runs (its constrained filters "
-        "evaluate the GP radar many times per step: about 3 s per run and filter)",
+        "evaluate the GP radar many times per step: 3 to 5 s per run and filter)",
     )
     ap.add_argument("--skip-mfckf", action="store_true", help="no learned-model re-entry rows")
     args = ap.parse_args(argv)

@@ -429,7 +429,7 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         default=50,
         help="the x3 >= 0 rows run on the first N of the runs (each reconciliation evaluates the "
-        "GP radar many times: about 3 s per run and filter on this 2-core machine)",
+        "GP radar many times: 3 to 5 s per run and filter on this 2-core machine)",
     )
     ap.add_argument("--progress", action="store_true", help="GP training progress on stderr")
     args = ap.parse_args(argv)
