@@ -44,7 +44,7 @@ bench: $(STAMP)
 
 reproduce: $(STAMP)
 	$(BIN)/python scripts/reproduce_reentry.py --out $(OUT)/reentry
-	$(BIN)/python scripts/reproduce_cckf.py --out $(OUT)/cckf
+	$(BIN)/python scripts/reproduce_cckf.py --out $(OUT)/cckf --mfckf-dir $(OUT)/reentry
 	$(BIN)/python scripts/reproduce_dmc.py --out $(OUT)/dmc
 
 plaza: $(STAMP)

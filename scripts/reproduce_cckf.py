@@ -14,7 +14,12 @@ deviations; the true pressures there are about 0.3 and 2 to 6).
 
 Part 2, re-entry tracking (spec mf-ckf.md s.5): CKF1 (true model) unconstrained and with the bound
 x3 >= 0 on the ballistic coefficient, whose negative values make the true dynamics blow up.
-:func:`reentry_case` takes any model, so the learned-model filter (MF-CKF) slots in beside CKF1.
+:func:`reentry_case` takes any model, so the learned-model filter (MF-CKF) slots in beside CKF1:
+the best variant of ``scripts/reproduce_reentry.py`` (default (a): GP f in increment form and GP h
+on altitude, 5000 recorded transitions), loaded from its cached bundle
+``--mfckf-dir/mfckf_{variant}.pt`` or trained on the fly when the bundle is missing, runs
+unconstrained and constrained on the first ``--mfckf-runs`` re-entry runs, beside CKF1 on the same
+runs (GP filters cost far more per step than the analytic model).
 
 Prints the tables, writes ``results.json`` and figures like the paper's figures 1-2 into ``--out``.
 
@@ -41,6 +46,8 @@ from matplotlib.figure import Figure
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import environment, table, write_json
+from reproduce_reentry import VARIANTS, variant_label
+from reproduce_reentry import learned_models as learned_reentry_models
 from reproduce_reentry import summarize as summarize_reentry
 
 import torchfilt
@@ -237,6 +244,24 @@ def reentry_case(
     return summaries, errors
 
 
+def learned_reentry_model(
+    variant: str, directory: Path, samples: int, seed: int
+) -> tuple[StateSpaceModel, dict[str, Any]]:
+    """The MF-CKF model of ``variant`` from its cached bundle in ``directory`` (written by
+    ``scripts/reproduce_reentry.py``), or trained now (and cached there) when it is missing.
+
+    ``samples`` and ``seed`` are the reproduction's ``--samples`` and ``--seed`` (training data
+    seed ``seed + 1``); a cached bundle trained with other settings is trained again.
+    """
+    args = argparse.Namespace(
+        samples=samples, seed=seed, gamma_factor=1.25, reuse=True, out=directory, progress=False
+    )
+    directory.mkdir(parents=True, exist_ok=True)
+    log = reentry.record_training_data(samples, seed=seed + 1)
+    models, info = learned_reentry_models(args, log)
+    return models[variant], info
+
+
 # ------------------------------------------------------------------------------------- figures
 LINES = {
     "CKF": dict(color=PALETTE[0], linestyle="--"),
@@ -279,6 +304,79 @@ def plot_run(
     return fig
 
 
+def reentry_table(summaries: dict[str, dict]) -> str:
+    headers = [
+        "filter",
+        "non-finite",
+        "lost track",
+        *(f"RMSE {s}" for s in REENTRY_STATES),
+        "RMSE alt. (tracking)",
+        "mean NEES (n=3)",
+        "median NEES",
+        "x3<0 steps",
+        "s",
+    ]
+    rows = [
+        [
+            name,
+            f"{s['failed']}/{s['runs']}",
+            f"{s['lost']}/{s['runs']}",
+            *s["rmse"],
+            s["rmse_tracking"][0],
+            s["nees"],
+            s["nees_median"],
+            s["x3_negative_steps"],
+            s["seconds"],
+        ]
+        for name, s in summaries.items()
+    ]
+    return table(headers, rows, fmt="{:.4g}")
+
+
+def reentry_learned(
+    args: argparse.Namespace, truth: torch.Tensor, y: torch.Tensor
+) -> dict[str, Any]:
+    """The learned-model filter and CKF1, each unconstrained and with x3 >= 0, on the first
+    ``--mfckf-runs`` re-entry runs; prints the table and writes ``reentry_learned_errors.png``."""
+    n = min(args.mfckf_runs, truth.shape[0])
+    truth, y = truth[:n], y[:n]
+    t0 = time.perf_counter()
+    model, info = learned_reentry_model(
+        args.mfckf_variant, args.mfckf_dir, args.mfckf_samples, args.seed
+    )
+    label = variant_label(args.mfckf_variant)
+    print(
+        f"\nlearned model: {label} ({'cached bundle' if info['reused'] else 'trained now'}, "
+        f"{args.mfckf_dir}, {time.perf_counter() - t0:.0f} s)"
+    )
+    summaries, errors = reentry_case(reentry.model(), "CKF1", truth, y)
+    s2, e2 = reentry_case(model, f"MF-CKF ({args.mfckf_variant})", truth, y)
+    summaries.update(s2)
+    errors.update(e2)
+    print(
+        f"Re-entry with the learned model, first {n} runs (seed {args.seed + 2}), T = "
+        f"{reentry.STEPS}; columns as above"
+    )
+    print(reentry_table(summaries))
+    times = torch.arange(1, reentry.STEPS + 1, dtype=torch.float64) * reentry.DT
+    fig = plot_errors(
+        errors,
+        times=times,
+        state_names=REENTRY_STATES,
+        units=REENTRY_UNITS,
+        title=f"Re-entry, learned model ({label}), bound x3 >= 0: RMS error over {n} runs",
+    )
+    fig.savefig(args.out / "reentry_learned_errors.png")
+    return {
+        "runs": n,
+        "seed": args.seed + 2,
+        "variant": args.mfckf_variant,
+        "label": label,
+        "training": info,
+        "filters": summaries,
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -290,6 +388,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("out/cckf"))
     ap.add_argument("--threads", type=int, default=1, help="intra-op threads")
     ap.add_argument("--skip-reentry", action="store_true")
+    ap.add_argument(
+        "--mfckf-variant",
+        choices=sorted(VARIANTS),
+        default="a",
+        help="learned re-entry model (scripts/reproduce_reentry.py variant)",
+    )
+    ap.add_argument(
+        "--mfckf-dir",
+        type=Path,
+        default=Path("out/reentry"),
+        help="where reproduce_reentry.py cached its bundles (trained here if missing)",
+    )
+    ap.add_argument("--mfckf-samples", type=int, default=5000, help="GP training transitions")
+    ap.add_argument(
+        "--mfckf-runs",
+        type=int,
+        default=50,
+        help="the learned model runs on the first N re-entry runs (its constrained filters "
+        "evaluate the GP radar many times per step: 3 to 5 s per run and filter)",
+    )
+    ap.add_argument("--skip-mfckf", action="store_true", help="no learned-model re-entry rows")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -385,37 +504,12 @@ def main(argv: list[str] | None = None) -> int:
     if not args.skip_reentry:
         sim = reentry.simulate_truth(args.reentry_runs, seed=args.seed + 2)
         summaries, errors = reentry_case(reentry.model(), "CKF1", sim.states, sim.measurements)
-        headers = [
-            "filter",
-            "non-finite",
-            "lost track",
-            *(f"RMSE {s}" for s in REENTRY_STATES),
-            "RMSE alt. (tracking)",
-            "mean NEES (n=3)",
-            "median NEES",
-            "x3<0 steps",
-            "s",
-        ]
-        rows = [
-            [
-                name,
-                f"{s['failed']}/{s['runs']}",
-                f"{s['lost']}/{s['runs']}",
-                *s["rmse"],
-                s["rmse_tracking"][0],
-                s["nees"],
-                s["nees_median"],
-                s["x3_negative_steps"],
-                s["seconds"],
-            ]
-            for name, s in summaries.items()
-        ]
         print(
             f"\nRe-entry, {args.reentry_runs} runs, seed {args.seed + 2}, T = {reentry.STEPS}; "
             "RMSE: time average of the RMS over finite runs (tracking: runs that kept track); "
             f"lost track: altitude error over the last 10 steps > {LOST_ALTITUDE_ERROR:g} ft"
         )
-        print(table(headers, rows, fmt="{:.4g}"))
+        print(reentry_table(summaries))
         times = torch.arange(1, reentry.STEPS + 1, dtype=torch.float64) * reentry.DT
         fig = plot_errors(
             errors,
@@ -432,6 +526,9 @@ def main(argv: list[str] | None = None) -> int:
             "lower": list(REENTRY_LOWER),
             "filters": summaries,
         }
+        if not args.skip_mfckf:
+            payload["reentry_learned"] = reentry_learned(args, sim.states, sim.measurements)
+            figures.append("reentry_learned_errors.png")
     write_json(args.out / "results.json", payload)
     print(f"\nwrote {args.out / 'results.json'} and {len(figures)} figures in {args.out}")
     return 0

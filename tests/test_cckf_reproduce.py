@@ -26,6 +26,8 @@ def test_reproduction_smoke(tmp_path):
     """A few runs: the JSON has every filter and figure; the CCKF never leaves the box."""
     mod = load("reproduce_cckf")
     args = ["--runs", "6", "--steps", "40", "--reentry-runs", "4", "--out", str(tmp_path)]
+    # the learned re-entry model, trained on the fly (tiny) since no cached bundle exists there
+    args += ["--mfckf-samples", "300", "--mfckf-runs", "3", "--mfckf-dir", str(tmp_path / "mf")]
     assert mod.main(args) == 0
     saved = json.loads((tmp_path / "results.json").read_text())
     for start in ("paper", "hr"):
@@ -44,7 +46,18 @@ def test_reproduction_smoke(tmp_path):
         "CKF1 + x3>=0 (corrected cov)",
     }
     assert saved["reentry"]["filters"]["CKF1 + x3>=0 (corrected cov)"]["x3_negative_steps"] == 0
-    assert len(saved["figures"]) == 7
+    learned = saved["reentry_learned"]
+    assert learned["runs"] == 3 and learned["training"]["reused"] is False
+    assert set(learned["filters"]) == {
+        f"{m}{c}"
+        for m in ("CKF1", "MF-CKF (a)")
+        for c in ("", " + x3>=0 (paper cov)", " + x3>=0 (corrected cov)")
+    }
+    for name, s in learned["filters"].items():
+        if "x3>=0" in name:
+            assert s["x3_negative_steps"] == 0 and s["solver_not_converged"] == 0, name
+    assert (tmp_path / "mf" / "mfckf_a.pt").is_file()
+    assert len(saved["figures"]) == 8
     assert all((tmp_path / f).stat().st_size > 0 for f in saved["figures"])
 
 
@@ -52,7 +65,7 @@ def test_reproduction_smoke(tmp_path):
 def test_reproduction_meets_the_issue_targets(tmp_path):
     """The full 100-run reproduction: every target of issue 5 on both starts, theta default."""
     mod = load("reproduce_cckf")
-    assert mod.main(["--out", str(tmp_path), "--reentry-runs", "200"]) == 0
+    assert mod.main(["--out", str(tmp_path), "--reentry-runs", "200", "--skip-mfckf"]) == 0
     saved = json.loads((tmp_path / "results.json").read_text())
     for start in ("paper", "hr"):
         assert all(saved["targets"][start].values()), saved["targets"][start]

@@ -186,6 +186,45 @@ def test_batched_equals_looped_and_chunked(data, batch):
     torch.testing.assert_close(chunked.var, full.var, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize(
+    "options",
+    [
+        dict(variance="exact"),
+        dict(variance="lowrank", rank=8),
+        dict(structure="multitask", num_latents=2, variance="exact"),
+        dict(structure="sparse", num_inducing=20, batch_size=40),
+        dict(inputs=[[0], [1]]),
+    ],
+    ids=["exact", "lowrank", "multitask", "sparse", "per-output-inputs"],
+)
+def test_predict_mean_equals_predict(data, options):
+    """The mean-only path (what the constrained CKF's solver calls) is the full prediction's mean,
+    frozen and chunked, batched, and unfrozen (GPyTorch)."""
+    model = _fit(data, **options)
+    g = torch.Generator().manual_seed(8)
+    x = torch.randn(3, 7, 2, generator=g, dtype=DT)
+    with torch.no_grad():
+        for chunk in (128, 4):
+            model.freeze(**{**model._freeze_opts, "chunk_size": chunk})
+            assert torch.equal(model.predict_mean(x), model.predict(x).mean)
+        model.unfreeze()
+        torch.testing.assert_close(model.predict_mean(x), model.predict(x).mean, rtol=0, atol=0)
+
+
+def test_predict_mean_with_prior_mean_and_increment():
+    g = torch.Generator().manual_seed(9)
+    x = torch.randn(50, 2, generator=g, dtype=DT)
+    x_next = torch.stack([0.9 * x[:, 0], torch.sin(x[:, 1])], -1)
+    opts = dict(iterations=ITERS, progress=False)
+    xq = torch.randn(6, 2, generator=g, dtype=DT)
+    for f in (
+        GPTransition.fit(x, None, x_next, increment=True, **opts),
+        GPTransition.fit(x, None, x_next, prior_mean=lambda x: 0.8 * x, **opts),
+    ):
+        with torch.no_grad():
+            assert torch.equal(f.predict_mean(xq), f.predict(xq).mean)
+
+
 def test_float32_predictor_is_close_to_float64(data):
     model = _fit(data, variance="exact")
     xq = query_points()

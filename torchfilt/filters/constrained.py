@@ -398,8 +398,8 @@ class ConstrainedCKF(GaussianFilter):
 
         ones_n, ones_m = mean.new_ones(n), mean.new_ones(m)
 
-        def h_mean(x: Tensor) -> Tensor:
-            return h.predict(x, uP).mean
+        def h_mean(x: Tensor) -> Tensor:  # the solver needs the mean only
+            return h.predict_mean(x, uP)
 
         def residual(x: Tensor) -> Tensor:  # (..., 2n, n) -> (..., 2n, n + m)
             # W v as (W * v) @ 1: much faster than a batched matmul for tiny matrices on CPU

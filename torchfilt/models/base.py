@@ -84,6 +84,13 @@ class ConditionalModel(nn.Module):
             A :class:`Prediction` with mean ``(..., P, d)``.
         """
 
+    def predict_mean(self, x: Tensor, u: Tensor | None = None) -> Tensor:
+        """The predictive mean alone, ``(..., P, d)``: all that an optimiser over ``x`` needs (the
+        constrained CKF's reconciliation calls it many times per step). Equal to
+        ``predict(x, u).mean``; models whose variance costs extra override it to skip that work.
+        """
+        return self.predict(x, u).mean
+
     def noise_cov(self, step: int | None = None) -> Tensor | None:
         """Additive noise covariance at ``step`` (``(..., d, d)``), or ``None`` for none."""
         return None

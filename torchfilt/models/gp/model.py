@@ -542,6 +542,16 @@ class GPModel(ConditionalModel):
             return Prediction(mean, None, out.cov)
         return Prediction(mean, out.var)
 
+    def predict_mean(self, x: Tensor, u: Tensor | None = None) -> Tensor:
+        """The predictive mean alone, ``(..., P, d)``, equal to ``predict(x, u).mean``; a frozen
+        model skips the variance (for a low-rank or exact variance form, most of the work)."""
+        if self.predictor is None:
+            return self.predict(x, u).mean
+        z = self._features(x, u)
+        mean = self.predictor.mean(z)
+        base = self._base(x, u if self.config.input_dim else None)
+        return mean if base is None else mean + base
+
     def predict_gpytorch(
         self, x: Tensor, u: Tensor | None = None, *, fast_pred_var: bool = False
     ) -> Prediction:

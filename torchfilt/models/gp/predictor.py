@@ -98,6 +98,10 @@ class _Block(nn.Module):
     def forward(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:  # pragma: no cover
         raise NotImplementedError
 
+    def mean(self, z: Tensor) -> Tensor:  # pragma: no cover
+        """The predictive mean alone, ``(N, F) -> (N, g)`` (the same arithmetic as ``forward``)."""
+        raise NotImplementedError
+
 
 class _IndependentBlock(_Block):
     """``g`` independent outputs sharing inputs (exact GP or SVGP).
@@ -166,6 +170,10 @@ class _IndependentBlock(_Block):
         zs = torch.addcmul(self.in_bias, zf.unsqueeze(0), self.in_weight)  # (g, N, D)
         return correlation(scaled_sq_dist(zs, self.points, self.points_sq), self.kernel)
 
+    def mean(self, z: Tensor) -> Tensor:
+        c = self.correlation_rows(z)
+        return torch.baddbmm(self.mean0.unsqueeze(-1), c, self.alpha).squeeze(-1).T
+
     def forward(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
         c = self.correlation_rows(z)  # (g, N, S)
         mean = torch.baddbmm(self.mean0.unsqueeze(-1), c, self.alpha).squeeze(-1)  # (g, N)
@@ -233,6 +241,11 @@ class _MultitaskBlock(_Block):
         k = correlation(scaled_sq_dist(zs, self.points, self.points_sq), self.kernel)
         N, S, d = k.shape[1], k.shape[2], self.task_covar.shape[-1]
         return torch.einsum("qns,qtu->ntsu", k, self.task_covar).reshape(N, d, S * d)
+
+    def mean(self, z: Tensor) -> Tensor:
+        c = self.kernel_rows(z)
+        mean = self.const + (c @ self.alpha).squeeze(-1)
+        return mean * self.out_scale + self.out_shift
 
     def forward(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
         c = self.kernel_rows(z)  # (N, d, S d)
@@ -313,6 +326,33 @@ class FrozenGP(nn.Module):
             v.reshape(*lead, d).to(z.dtype),
             None if c is None else c.reshape(*lead, d, d).to(z.dtype),
         )
+
+    def mean(self, z: Tensor) -> Tensor:
+        """The predictive mean alone at features ``z`` ``(..., F)``, ``(..., d)``: the same
+        numbers as ``forward(z).mean`` without the variance's work."""
+        if z.device != self.fill_mean.device:
+            raise ValueError(
+                f"x is on {z.device} but the GP model is on {self.fill_mean.device}; move one "
+                "of them with .to()"
+            )
+        lead = z.shape[:-1]
+        flat = z.reshape(-1, z.shape[-1]).to(self.fill_mean.dtype)
+        m = torch.cat(
+            [
+                self._chunk_mean(flat[i : i + self.chunk_size])
+                for i in range(0, max(flat.shape[0], 1), self.chunk_size)
+            ]
+        )
+        return m.reshape(*lead, self.out_dim).to(z.dtype)
+
+    def _chunk_mean(self, z: Tensor) -> Tensor:
+        if self._whole:
+            return self.blocks[0].mean(z)  # type: ignore[operator]
+        mean = self.fill_mean.expand(z.shape[0], self.out_dim)
+        for blk in self.blocks:
+            assert isinstance(blk, _Block)
+            mean = mean.index_copy(1, blk.outputs, blk.mean(z))
+        return mean
 
     def _chunk(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
         if self._whole:
