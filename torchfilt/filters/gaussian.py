@@ -118,7 +118,7 @@ def _point_noise(pred: Prediction, wc: Tensor) -> Tensor | None:
 def _noise_sqrt(A: Tensor) -> Tensor:
     """A square root of a PSD noise matrix (Cholesky if definite, else eigen-decomposition).
 
-    Where no host synchronisation is allowed (``torch.compile``, CUDA-graph capture) the choice
+    Where no host synchronisation is allowed (``torch.compile``, ``sync_free``) the choice
     cannot be made on the host: the Cholesky factor of ``A + eps * mean|diag A| * I`` is used.
     """
     if _compiling():
@@ -263,8 +263,7 @@ class GaussianFilter(nn.Module):
                 raise ValueError("u contains non-finite entries; inputs cannot be missing")
             shapes["u"] = u.shape[:-2]
         obs = _observed(y, mask)
-        if mask is not None:
-            shapes["mask"] = torch.as_tensor(mask).shape[:-2]
+        shapes["mask"] = obs.shape[:-2]  # y's batch shape broadcast with the mask's
         for name, side in (("Q", self.model.transition), ("R", self.model.measurement)):
             if side.time_varying_noise:
                 noise = side.noise_cov(0)

@@ -168,11 +168,6 @@ class GraphedFilter:
         self.graph.replay()
         out = self._out
         if clone:
-            out = FilterResult(
-                *(
-                    v.clone() if isinstance(v, Tensor) else v
-                    for v in (getattr(out, f) for f in out._fields)
-                )
-            )
+            out = FilterResult(*(v.clone() if isinstance(v, Tensor) else v for v in out))
         _warn_nonfinite(out, stacklevel=2)
         return out

@@ -59,11 +59,9 @@ def sync_free() -> Iterator[None]:
 
 
 def _compiling() -> bool:
-    """True where a host synchronisation is not allowed: under ``torch.compile`` tracing, inside
-    :func:`sync_free`, or while a CUDA graph is being captured."""
-    if torch.compiler.is_compiling() or _SYNC_FREE.get():
-        return True
-    return bool(torch.cuda.is_available() and torch.cuda.is_current_stream_capturing())
+    """True where a host synchronisation is not allowed: under ``torch.compile`` tracing, or
+    inside :func:`sync_free` (CUDA-graph warm-up and capture)."""
+    return torch.compiler.is_compiling() or _SYNC_FREE.get()
 
 
 def safe_cholesky(
@@ -82,8 +80,8 @@ def safe_cholesky(
     Elements that still fail (or contain non-finite values) are set to NaN (``on_failure="nan"``,
     the default, so one bad sequence does not stop a batch) or raise ``ValueError``.
 
-    Inside ``torch.compile`` and during CUDA-graph capture the retries (which need a host
-    synchronisation) are skipped and failed factors are NaN.
+    Inside ``torch.compile`` and :func:`sync_free` (CUDA-graph capture) the retries (which need a
+    host synchronisation) are skipped and failed factors are NaN.
 
     Args:
         A: symmetric matrices, shape ``(..., n, n)``.
