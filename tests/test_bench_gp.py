@@ -2,22 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 import torch
-
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "bench_gp_filter.py"
+from script_support import load_script
 
 
 @pytest.mark.slow
 def test_bench_gp_filter_small(tmp_path):
-    spec = importlib.util.spec_from_file_location("bench_gp_filter", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_script("bench_gp_filter")
     threads = torch.get_num_threads()
     try:
         mod.main(

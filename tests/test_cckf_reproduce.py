@@ -1,30 +1,17 @@
 """scripts/reproduce_cckf.py and scripts/bench_cckf.py end to end (the full run is slow)."""
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import matplotlib
 import pytest
+from script_support import load_script
 
 matplotlib.use("Agg")
-
-SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
-
-
-def load(name):
-    sys.path.insert(0, str(SCRIPTS))
-    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def test_reproduction_smoke(tmp_path):
     """A few runs: the JSON has every filter and figure; the CCKF never leaves the box."""
-    mod = load("reproduce_cckf")
+    mod = load_script("reproduce_cckf")
     args = ["--runs", "6", "--steps", "40", "--reentry-runs", "4", "--out", str(tmp_path)]
     # the learned re-entry model, trained on the fly (tiny) since no cached bundle exists there
     args += ["--mfckf-samples", "300", "--mfckf-runs", "3", "--mfckf-dir", str(tmp_path / "mf")]
@@ -64,7 +51,7 @@ def test_reproduction_smoke(tmp_path):
 @pytest.mark.slow
 def test_reproduction_meets_the_issue_targets(tmp_path):
     """The full 100-run reproduction: every target of issue 5 on both starts, theta default."""
-    mod = load("reproduce_cckf")
+    mod = load_script("reproduce_cckf")
     assert mod.main(["--out", str(tmp_path), "--reentry-runs", "200", "--skip-mfckf"]) == 0
     saved = json.loads((tmp_path / "results.json").read_text())
     for start in ("paper", "hr"):
@@ -76,7 +63,7 @@ def test_reproduction_meets_the_issue_targets(tmp_path):
 
 def test_benchmark_function_returns_rows():
     """Structure only (no timing assertions): rows per batch and filter, ratios against the CKF."""
-    mod = load("bench_cckf")
+    mod = load_script("bench_cckf")
     res = mod.run_cckf_benchmark((1, 3), steps=4, repeats=1)
     assert [(r["batch"], r["filter"]) for r in res["rows"]] == [
         (b, f) for b in (1, 3) for f in ("CKF", "CCKF (paper cov)", "CCKF (corrected cov)")

@@ -1,12 +1,10 @@
 """End-to-end run of scripts/reproduce_dmc.py (slow: the full fractionator closed loops)."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
+from script_support import load_script
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "reproduce_dmc.py"
 #: The paper's section-3.2 requirement on the noise-free observer error.
 OBSERVER_TOL = 1e-8
 #: LMG and ours agree to the DARE solvers' precision (relative to the prediction scale).
@@ -18,10 +16,7 @@ COINCIDE_FRACTION = 0.1
 
 @pytest.mark.slow
 def test_reproduction_script(tmp_path):
-    spec = importlib.util.spec_from_file_location("reproduce_dmc", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_script("reproduce_dmc")
     out = mod.main(["--out", str(tmp_path), "--steps-31", "200", "--steps-32", "1000"])
     saved = json.loads((tmp_path / "results.json").read_text())
     assert saved["section_3_2"]["observer"] == out["section_3_2"]["observer"]

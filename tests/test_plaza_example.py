@@ -6,19 +6,17 @@ Needs gtsam (the Plaza data ship in its wheel; the dev extra installs it), skipp
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import sys
-from pathlib import Path
 
 import pytest
 import torch
+from script_support import load_script
 
 pytest.importorskip("gtsam")
 pytest.importorskip("scipy.io")
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "plaza_example.py"
 
 #: Reduced run: 25% of the run trains (~100 s), the next 40 s are filtered.
 ARGS = ["--train-fraction", "0.25", "--test-steps", "400", "--tune-steps", "400"]
@@ -33,21 +31,12 @@ BIAS_ATOL = 0.5
 FIGURES = ("trajectory.png", "errors.png", "range_residuals.png")
 
 
-def _load_script():
-    spec = importlib.util.spec_from_file_location("plaza_example", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["plaza_example"] = mod  # dataclasses resolve annotations through sys.modules
-    spec.loader.exec_module(mod)
-    return mod
-
-
 @pytest.fixture(scope="module")
 def results(tmp_path_factory):
     out = tmp_path_factory.mktemp("plaza")
     threads = torch.get_num_threads()
     try:
-        assert _load_script().main([*ARGS, "--threads", "1", "--out", str(out)]) == 0
+        assert load_script("plaza_example").main([*ARGS, "--threads", "1", "--out", str(out)]) == 0
     finally:
         torch.set_num_threads(threads)
         sys.modules.pop("plaza_example", None)
@@ -104,7 +93,7 @@ def test_full_example_headline(tmp_path):
     and the noise tuning brings its NEES down towards 3."""
     threads = torch.get_num_threads()
     try:
-        assert _load_script().main(["--threads", "1", "--out", str(tmp_path)]) == 0
+        assert load_script("plaza_example").main(["--threads", "1", "--out", str(tmp_path)]) == 0
     finally:
         torch.set_num_threads(threads)
         sys.modules.pop("plaza_example", None)

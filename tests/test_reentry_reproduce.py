@@ -4,29 +4,17 @@ The smoke test trains tiny GPs; the slow one runs a shortened reproduction (fewe
 recorded transitions) and checks the acceptance-style properties loosely.
 """
 
-import importlib.util
 import json
 import math
-import sys
-from pathlib import Path
 
 import matplotlib
 import pytest
+from script_support import load_script
 
 matplotlib.use("Agg")
 
-SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 #: the slow test's loose version of issue 3's "within 1.5x of CKF1" (fewer runs and samples)
 LOOSE_RMSE_RATIO = 2.0
-
-
-def load(name):
-    sys.path.insert(0, str(SCRIPTS))
-    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def rows(saved):
@@ -34,7 +22,7 @@ def rows(saved):
 
 
 def test_smoke_without_learned_models(tmp_path):
-    mod = load("reproduce_reentry")
+    mod = load_script("reproduce_reentry")
     assert mod.main(["--runs", "3", "--no-learned", "--out", str(tmp_path)]) == 0
     saved = json.loads((tmp_path / "results.json").read_text())
     assert set(rows(saved)) == {"CKF1 (true model)", "CKF2 (M = 3e5)"}
@@ -44,7 +32,7 @@ def test_smoke_without_learned_models(tmp_path):
 
 @pytest.mark.slow
 def test_shortened_reproduction_and_reuse(tmp_path):
-    mod = load("reproduce_reentry")
+    mod = load_script("reproduce_reentry")
     args = ["--runs", "40", "--samples", "2000", "--constrained-runs", "10", "--out", str(tmp_path)]
     assert mod.main(args) == 0
     saved = json.loads((tmp_path / "results.json").read_text())
