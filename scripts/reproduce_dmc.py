@@ -174,7 +174,6 @@ def plot_32(res: dict, outdir: Path) -> list[str]:
         for c in range(2):
             axes[2, c].set_xlabel("time k (min; T = 1 min)")
         fig.suptitle(title)
-        fig.tight_layout()
         fig.savefig(outdir / fname, dpi=DPI)
         plt.close(fig)
         files.append(fname)
@@ -189,7 +188,6 @@ def plot_32(res: dict, outdir: Path) -> list[str]:
     ax.set_title("Section 3.2: observation error")
     ax.grid(alpha=0.3, which="both")
     ax.legend()
-    fig.tight_layout()
     fig.savefig(outdir / "fig_32_error.png", dpi=DPI)
     plt.close(fig)
     files.append("fig_32_error.png")
@@ -368,7 +366,6 @@ def plot_31(res: dict, outdir: Path) -> list[str]:
             f"largest KF-vs-classical difference: CV {res['max_abs_cv_difference']:.3g}, "
             f"MV {res['max_abs_mv_difference']:.3g}"
         )
-        fig.tight_layout()
         fig.savefig(outdir / fname, dpi=DPI)
         plt.close(fig)
         files.append(fname)
