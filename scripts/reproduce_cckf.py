@@ -304,6 +304,15 @@ def plot_run(
     return fig
 
 
+def save_reentry_errors(errors: dict[str, torch.Tensor], title: str, path: Path) -> None:
+    """RMS error over time of re-entry filters (``errors``: name -> ``(runs, T, 3)``) to ``path``."""
+    times = torch.arange(1, reentry.STEPS + 1, dtype=torch.float64) * reentry.DT
+    fig = plot_errors(
+        errors, times=times, state_names=REENTRY_STATES, units=REENTRY_UNITS, title=title
+    )
+    fig.savefig(path)
+
+
 def reentry_table(summaries: dict[str, dict]) -> str:
     headers = [
         "filter",
@@ -358,15 +367,11 @@ def reentry_learned(
         f"{reentry.STEPS}; columns as above"
     )
     print(reentry_table(summaries))
-    times = torch.arange(1, reentry.STEPS + 1, dtype=torch.float64) * reentry.DT
-    fig = plot_errors(
+    save_reentry_errors(
         errors,
-        times=times,
-        state_names=REENTRY_STATES,
-        units=REENTRY_UNITS,
-        title=f"Re-entry, learned model ({label}), bound x3 >= 0: RMS error over {n} runs",
+        f"Re-entry, learned model ({label}), bound x3 >= 0: RMS error over {n} runs",
+        args.out / "reentry_learned_errors.png",
     )
-    fig.savefig(args.out / "reentry_learned_errors.png")
     return {
         "runs": n,
         "seed": args.seed + 2,
@@ -510,15 +515,11 @@ def main(argv: list[str] | None = None) -> int:
             f"lost track: altitude error over the last 10 steps > {LOST_ALTITUDE_ERROR:g} ft"
         )
         print(reentry_table(summaries))
-        times = torch.arange(1, reentry.STEPS + 1, dtype=torch.float64) * reentry.DT
-        fig = plot_errors(
+        save_reentry_errors(
             errors,
-            times=times,
-            state_names=REENTRY_STATES,
-            units=REENTRY_UNITS,
-            title=f"Re-entry, bound x3 >= 0: RMS error over {args.reentry_runs} runs (band: IQR)",
+            f"Re-entry, bound x3 >= 0: RMS error over {args.reentry_runs} runs (band: IQR)",
+            args.out / "reentry_errors.png",
         )
-        fig.savefig(args.out / "reentry_errors.png")
         figures.append("reentry_errors.png")
         payload["reentry"] = {
             "runs": args.reentry_runs,
