@@ -5,13 +5,23 @@ Every layer may import this module; it imports nothing from torchfilt.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 __all__ = [
+    "BundleError",
     "CholeskyJitterWarning",
     "ConvergenceWarning",
+    "DataError",
     "DivergenceWarning",
+    "InfeasibleError",
+    "InputError",
+    "ModelError",
     "NotDetectableError",
     "NumericsWarning",
+    "RecipeError",
+    "RunError",
     "ShapeError",
+    "TorchfiltError",
     "TorchfiltWarning",
 ]
 
@@ -36,9 +46,80 @@ class DivergenceWarning(NumericsWarning):
     """A filter produced non-finite estimates for some sequences of a batch."""
 
 
-class ShapeError(ValueError):
+# ---------------------------------------------------------------------------------------- errors
+# Every error caused by what a user passed in (arguments, files, recipes, run directories) is a
+# ``TorchfiltError``. The CLI catches exactly these (one line, exit 2); anything else is a bug and
+# keeps its traceback. Each subclass also derives from the builtin exception it refines, so
+# ``except ValueError`` keeps working.
+
+
+class TorchfiltError(Exception):
+    """Base class of every error torchfilt raises for bad input. The message names the argument,
+    file or key and says what is wrong."""
+
+
+class InputError(TorchfiltError, ValueError):
+    """An argument of a public function is invalid (value, dtype, option)."""
+
+
+class ShapeError(InputError):
     """An argument has the wrong shape. The message names the argument and the expected shape."""
 
 
-class NotDetectableError(ValueError):
+class ModelError(TorchfiltError, ValueError):
+    """A model is inconsistent: its outputs do not match its declared dimensions, or its
+    parameters are invalid."""
+
+
+class NotDetectableError(ModelError):
     """A state-space pair is not detectable (or not stabilisable): no steady-state gain exists."""
+
+
+class InfeasibleError(TorchfiltError, RuntimeError):
+    """A constrained problem has no feasible point (or the solver did not converge)."""
+
+
+class RecipeError(InputError):
+    """A recipe is invalid; the message names the file and the key."""
+
+
+class RunError(TorchfiltError, RuntimeError):
+    """A run directory cannot be used as asked (resume without a run, a changed recipe, ...)."""
+
+
+class BundleError(TorchfiltError, ValueError):
+    """A file is not a usable torchfilt model bundle (foreign, corrupted, tampered or unsafe)."""
+
+
+class DataError(TorchfiltError, ValueError):
+    """A data file is invalid. The message names the file and, where it applies, the column and row.
+
+    Attributes:
+        path: the offending file.
+        column: the offending column, if any.
+        line: the 1-based line in the file (CSV, header = line 1) or 0-based row (NPZ), if any.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        path: str | Path | None = None,
+        column: str | None = None,
+        line: int | None = None,
+        row: int | None = None,
+    ) -> None:
+        where = []
+        if path is not None:
+            where.append(str(path))
+        if column is not None:
+            where.append(f"column {column!r}")
+        if line is not None:
+            where.append(f"line {line}")
+        if row is not None:
+            where.append(f"row {row}")
+        super().__init__(f"{', '.join(where)}: {message}" if where else message)
+        self.path = None if path is None else Path(path)
+        self.column = column
+        self.line = line
+        self.row = row

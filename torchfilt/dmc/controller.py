@@ -32,14 +32,10 @@ from torch import Tensor
 
 from torchfilt.dmc.qp import QP_MAX_ITER, QP_TOL, solve_qp
 from torchfilt.dmc.step_response import StepResponseModel
-from torchfilt.exceptions import ShapeError
+from torchfilt.exceptions import InfeasibleError, ShapeError
 from torchfilt.numerics import psd_solve
 
 __all__ = ["ControlPlan", "DMCController", "InfeasibleError"]
-
-
-class InfeasibleError(RuntimeError):
-    """The constrained control problem has no feasible point (or the solver did not converge)."""
 
 
 class ControlPlan(NamedTuple):

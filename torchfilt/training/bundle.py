@@ -19,6 +19,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchfilt.exceptions import BundleError
 from torchfilt.io import Channel, atomic_write
 from torchfilt.models import ConditionalModel, StateSpaceModel
 from torchfilt.systems import get_system
@@ -37,10 +38,6 @@ __all__ = [
 #: Schema identifier stored in every bundle.
 BUNDLE_SCHEMA = "torchfilt.bundle/1"
 _REQUIRED = ("schema", "transition", "measurement", "channels", "sample_time", "prior")
-
-
-class BundleError(ValueError):
-    """A file is not a usable torchfilt model bundle (foreign, corrupted or unsafe)."""
 
 
 @dataclass

@@ -36,6 +36,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from torchfilt.exceptions import RecipeError
+
 __all__ = ["GP_OPTIONS", "Recipe", "RecipeError", "load_recipe"]
 
 #: Options passed through to ``GPTransition.fit`` / ``GPMeasurement.fit``.
@@ -66,10 +68,6 @@ _TOP = {"name", "description", "seed", "dataset", "transition", "measurement", "
 _DATASET = {"path"}
 _TRAIN = {"checkpoint_every", "dtype", "threads"}
 _FILTER = {"prior", "mean", "cov_diag"}
-
-
-class RecipeError(ValueError):
-    """A recipe is invalid; the message names the file and the key."""
 
 
 @dataclass

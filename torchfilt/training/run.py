@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from torchfilt._version import __version__
+from torchfilt.exceptions import RunError
 from torchfilt.io import Dataset, atomic_write, atomic_write_text, load_dataset
 from torchfilt.io.recording import Recording
 from torchfilt.systems import get_system
@@ -39,10 +40,6 @@ from torchfilt.training.validation import one_step_metrics
 __all__ = ["RunError", "train_recipe"]
 
 STAGES = ("transition", "measurement")
-
-
-class RunError(RuntimeError):
-    """A run directory cannot be used as asked (resume without a run, a changed recipe, ...)."""
 
 
 def _now() -> str:
