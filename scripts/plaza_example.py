@@ -93,6 +93,12 @@ RATIOS = (0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0, 1000.0)
 LEVELS = (0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0)
 #: The level is chosen for this mean NEES on the training part (the state dimension).
 NEES_TARGET = 3.0
+#: Calibration by the filter likelihood (``torchfilt.calibrate``) on the training part: windows of
+#: this many steps, the first ``CAL_BURN_IN`` of each uncounted, Adam on the log scales and floors.
+CAL_WINDOW = 100
+CAL_BURN_IN = 20
+CAL_ITERATIONS = 100
+CAL_LR = 0.1
 #: Nominal probability of the coverage intervals.
 COVERAGE = 0.95
 
@@ -531,13 +537,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     # -- hand-set filters
     t0 = time.perf_counter()
-    cal = calibrate(train, beacons)
+    cal_constants = calibrate(train, beacons)
     f_text, h_text = Unicycle(), Ranges(beacons)
     models["textbook CKF"], tuning["textbook CKF"], Q_text, R_text = hand_set(
         train, f_text, h_text, tune_on
     )
-    f_cal = Unicycle(cal["heading_gain"], cal["heading_bias"])
-    h_cal = Ranges(beacons, cal["range_scale"])
+    f_cal = Unicycle(cal_constants["heading_gain"], cal_constants["heading_bias"])
+    h_cal = Ranges(beacons, cal_constants["range_scale"])
     models["calibrated CKF"], tuning["calibrated CKF"], *_ = hand_set(train, f_cal, h_cal, tune_on)
     timings["tune hand-set filters"] = time.perf_counter() - t0
 
@@ -565,6 +571,31 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     q, r = (torch.tensor(choice[k], dtype=DT) for k in ("q_scale", "r_scale"))
     models["learned CKF, noise tuned"] = learned(q, r)
     timings["tune learned filter"] = time.perf_counter() - t0
+    # -- learned models calibrated by the filter likelihood on the training part: no hand-tuning
+    t0 = time.perf_counter()
+    x0_train, P0_train = prior(train)
+    cal = torchfilt.calibrate(
+        torchfilt.StateSpaceModel(f_gp, h_gp),
+        torchfilt.Sequences(train.measurements[1:], train.inputs[:-1]),
+        x0=x0_train,
+        P0=P0_train,
+        window=args.cal_window,
+        burn_in=args.cal_burn_in,
+        iterations=args.cal_iterations,
+        lr=args.cal_lr,
+        progress=args.progress,
+    )
+    models["learned CKF, calibrated"] = cal.model
+    timings["calibrate learned filter"] = time.perf_counter() - t0
+    calibration = {
+        **cal.parameters,
+        "stopped": cal.fit.stopped,
+        "iterations": cal.fit.iterations,
+        "log_likelihood": [cal.fit.initial_log_likelihood, cal.fit.log_likelihood],
+        "window": args.cal_window,
+        "burn_in": args.cal_burn_in,
+        "lr": args.cal_lr,
+    }
     # ablation: one learned model at a time, the other textbook (with its tuned noise)
     ablation = {
         "learned transition + textbook ranges": torchfilt.StateSpaceModel(f_gp, h_text, R=R_text),
@@ -623,9 +654,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         torch.cat([train.inputs, test.inputs[1:]]),
         torch.cat([train.measurements, test.measurements[1:]]),
     )
-    plot_range_residuals(whole, len(train) - 1, h_gp, beacons, ids, cal["range_scale"]).savefig(
-        args.out / "range_residuals.png"
-    )
+    plot_range_residuals(
+        whole, len(train) - 1, h_gp, beacons, ids, cal_constants["range_scale"]
+    ).savefig(args.out / "range_residuals.png")
     payload: dict[str, Any] = {
         "experiment": "plaza2",
         "command": " ".join(["python", "scripts/plaza_example.py", *sys.argv[1:]]),
@@ -658,10 +689,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "levels": list(LEVELS),
             "criteria": "ratio: train position RMSE; level: train mean NEES closest to 3",
         },
-        "calibration": cal,
+        "calibration": cal_constants,
+        "likelihood_calibration": calibration,
         "noise": tuning,
         "learned": {"transition": _hyper(f_gp), "measurement": _hyper(h_gp)},
-        "range_bias_test": range_bias(test, h_gp, beacons, ids, cal["range_scale"]),
+        "range_bias_test": range_bias(test, h_gp, beacons, ids, cal_constants["range_scale"]),
         "results": results,
         "timings_s": timings,
         "environment": environment(),
@@ -724,6 +756,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--tune-steps", type=int, default=None, help="tune the noise on the last N training steps"
     )
+    ap.add_argument("--cal-window", type=int, default=CAL_WINDOW, help="calibration window")
+    ap.add_argument("--cal-burn-in", type=int, default=CAL_BURN_IN, help="uncounted steps")
+    ap.add_argument("--cal-iterations", type=int, default=CAL_ITERATIONS)
+    ap.add_argument("--cal-lr", type=float, default=CAL_LR)
+    ap.add_argument("--progress", action="store_true", help="show the calibration progress")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest here)")
     args = ap.parse_args(argv)

@@ -48,9 +48,15 @@ from torchfilt.filters import (
 from torchfilt.io import Recording, load_dataset, read_recording, write_recording
 from torchfilt.io.synth import simulate_dataset
 from torchfilt.models import (
+    Bounded,
+    CalibratedModel,
+    CholeskyCovariance,
     ConditionalModel,
+    DiagonalCovariance,
     LinearGaussianModel,
+    Positive,
     Prediction,
+    ScalarCovariance,
     StateSpaceModel,
     TimeVarying,
 )
@@ -65,14 +71,24 @@ from torchfilt.numerics import (
 )
 from torchfilt.pipeline import evaluate_outputs, filter_recordings
 from torchfilt.systems import simulate
-from torchfilt.training import load_bundle, load_model, train_recipe
+from torchfilt.training import (
+    Sequences,
+    calibrate,
+    fit_likelihood,
+    load_bundle,
+    load_model,
+    train_recipe,
+)
 
 __all__ = [
     "CKF",
     "FOPDT",
     "IPDT",
+    "Bounded",
     "Box",
     "BundleError",
+    "CalibratedModel",
+    "CholeskyCovariance",
     "CholeskyJitterWarning",
     "ConditionalModel",
     "ConstrainedCKF",
@@ -80,6 +96,7 @@ __all__ = [
     "ConvergenceWarning",
     "DMCController",
     "DataError",
+    "DiagonalCovariance",
     "DivergenceWarning",
     "FilterResult",
     "FitState",
@@ -97,10 +114,13 @@ __all__ = [
     "NotDetectableError",
     "NumericsWarning",
     "OpenLoopPredictor",
+    "Positive",
     "Prediction",
     "RecipeError",
     "Recording",
     "RunError",
+    "ScalarCovariance",
+    "Sequences",
     "ShapeError",
     "SmootherResult",
     "SolverStatus",
@@ -112,6 +132,7 @@ __all__ = [
     "UnscentedRule",
     "__version__",
     "bounded_least_squares",
+    "calibrate",
     "coverage",
     "cubature",
     "dmc",
@@ -119,6 +140,7 @@ __all__ = [
     "exceptions",
     "filter_recordings",
     "filters",
+    "fit_likelihood",
     "load_bundle",
     "load_dataset",
     "load_model",

@@ -6,16 +6,32 @@ or covariance ``(..., P, d, d)`` (how a GP supplies Q and R), plus an additive n
 """
 
 from torchfilt.models.base import ConditionalModel, Prediction, TimeVarying
+from torchfilt.models.calibrated import CalibratedModel
 from torchfilt.models.functional import FunctionModel, StateSpaceModel, as_conditional
 from torchfilt.models.integrate import rk4
 from torchfilt.models.linear import LinearGaussianModel, LinearModel
+from torchfilt.models.params import (
+    Bounded,
+    CholeskyCovariance,
+    CovarianceParameter,
+    DiagonalCovariance,
+    Positive,
+    ScalarCovariance,
+)
 
 __all__ = [
+    "Bounded",
+    "CalibratedModel",
+    "CholeskyCovariance",
     "ConditionalModel",
+    "CovarianceParameter",
+    "DiagonalCovariance",
     "FunctionModel",
     "LinearGaussianModel",
     "LinearModel",
+    "Positive",
     "Prediction",
+    "ScalarCovariance",
     "StateSpaceModel",
     "TimeVarying",
     "as_conditional",

@@ -104,10 +104,10 @@ class ConditionalModel(nn.Module):
         return self.predict(x, u)
 
 
-def check_noise(value: Tensor | TimeVarying | None, name: str) -> Tensor | TimeVarying | None:
+def check_noise(value: Any, name: str) -> Any:
     """Validate a noise covariance argument: ``(..., d, d)`` symmetric, or a :class:`TimeVarying`."""
-    if value is None:
-        return value
+    if value is None or isinstance(value, torch.nn.Module):
+        return value  # a learnable covariance parameter is positive definite by construction
     if isinstance(value, TimeVarying):
         check_noise(value.values.flatten(0, -3), name)
         return value

@@ -11,6 +11,7 @@ from torch import Tensor
 
 from torchfilt.exceptions import ShapeError
 from torchfilt.models.base import ConditionalModel, Prediction, TimeVarying, check_noise
+from torchfilt.models.params import CovarianceParameter
 
 __all__ = ["FunctionModel", "StateSpaceModel", "as_conditional"]
 
@@ -28,15 +29,28 @@ def _positional_arity(fn: Fn) -> int:
     return sum(1 for p in params if p.kind in kinds)
 
 
-class _NoiseMixin:
-    """Stores a constant ``(..., d, d)`` or :class:`TimeVarying` noise as a buffer."""
+Noise = Tensor | TimeVarying | CovarianceParameter
 
-    def _set_noise(self, noise: Tensor | TimeVarying | None) -> None:
+
+class _NoiseMixin:
+    """Stores a constant ``(..., d, d)`` or :class:`TimeVarying` noise as a buffer, or a learnable
+    :class:`~torchfilt.models.params.CovarianceParameter` as a submodule."""
+
+    noise_param: CovarianceParameter | None
+
+    def _set_noise(self, noise: Noise | None) -> None:
         self._tv = isinstance(noise, TimeVarying)
+        if isinstance(noise, CovarianceParameter):
+            self.noise_param = noise  # a submodule: its parameters are the model's
+            self.register_buffer("_noise", None)  # type: ignore[attr-defined]
+            return
+        self.noise_param = None
         value = noise.values if isinstance(noise, TimeVarying) else noise
         self.register_buffer("_noise", value)  # type: ignore[attr-defined]
 
     def noise_cov(self, step: int | None = None) -> Tensor | None:
+        if self.noise_param is not None:
+            return self.noise_param()
         noise: Tensor | None = self._noise  # type: ignore[attr-defined]
         if noise is None or not self._tv:
             return noise
@@ -49,6 +63,8 @@ class _NoiseMixin:
         return bool(self._tv)
 
     def _noise_dim(self) -> int | None:
+        if self.noise_param is not None:
+            return int(self.noise_param.dim)
         noise: Tensor | None = self._noise  # type: ignore[attr-defined]
         return None if noise is None else int(noise.shape[-1])
 
@@ -60,7 +76,8 @@ class FunctionModel(_NoiseMixin, ConditionalModel):
         fn: ``fn(x, u)`` mapping ``(..., n)`` (and ``(..., nu)`` or ``None``) to ``(..., d)``. A
             callable of one argument, ``fn(x)``, is accepted too. It must broadcast over leading
             dimensions (use ``x[..., i]``, not ``x[i]``).
-        noise: additive covariance, ``(..., d, d)`` constant or :class:`TimeVarying` ``(..., T, d, d)``.
+        noise: additive covariance, ``(..., d, d)`` constant, :class:`TimeVarying` ``(..., T, d, d)``,
+            or a learnable :class:`~torchfilt.models.params.CovarianceParameter`.
         out_dim: output dimension; taken from ``noise`` when omitted.
         in_dim: input (state) dimension, if known, for shape checks.
         name: name used in error messages (``"transition"``, ``"measurement"``).
@@ -70,7 +87,7 @@ class FunctionModel(_NoiseMixin, ConditionalModel):
     def __init__(
         self,
         fn: Fn,
-        noise: Tensor | TimeVarying | None = None,
+        noise: Noise | None = None,
         *,
         out_dim: int | None = None,
         in_dim: int | None = None,
@@ -117,7 +134,7 @@ class FunctionModel(_NoiseMixin, ConditionalModel):
 class WithNoise(_NoiseMixin, ConditionalModel):
     """Adds an extra noise covariance to another model's own noise."""
 
-    def __init__(self, base: ConditionalModel, noise: Tensor | TimeVarying, name: str) -> None:
+    def __init__(self, base: ConditionalModel, noise: Noise, name: str) -> None:
         super().__init__()
         self.base = base
         self._set_noise(check_noise(noise, name))
@@ -145,7 +162,7 @@ class WithNoise(_NoiseMixin, ConditionalModel):
 
 def as_conditional(
     obj: ConditionalModel | Fn,
-    noise: Tensor | TimeVarying | None,
+    noise: Noise | None,
     *,
     name: str,
     noise_name: str,
@@ -174,8 +191,10 @@ class StateSpaceModel(torch.nn.Module):
     Args:
         transition: ``f(x, u)``, ``(..., n) -> (..., n)``, or a :class:`ConditionalModel`.
         measurement: ``h(x, u)``, ``(..., n) -> (..., m)``, or a :class:`ConditionalModel`.
-        Q: process noise, ``(..., n, n)`` or :class:`TimeVarying`; required for a callable
-            transition, optional (extra noise) for a model.
+        Q: process noise, ``(..., n, n)``, :class:`TimeVarying`, or a learnable
+            :class:`~torchfilt.models.params.CovarianceParameter` (see
+            :func:`torchfilt.fit_likelihood`); required for a callable transition, optional (extra
+            noise) for a model.
         R: measurement noise, ``(..., m, m)`` or :class:`TimeVarying`; likewise.
 
     Example:
@@ -189,8 +208,8 @@ class StateSpaceModel(torch.nn.Module):
         self,
         transition: ConditionalModel | Fn,
         measurement: ConditionalModel | Fn,
-        Q: Tensor | TimeVarying | Any = None,
-        R: Tensor | TimeVarying | Any = None,
+        Q: Noise | Any = None,
+        R: Noise | Any = None,
     ) -> None:
         super().__init__()
         self.transition = as_conditional(transition, Q, name="transition", noise_name="Q")

@@ -13,6 +13,14 @@ from torchfilt.training.bundle import (
     load_model_spec,
     save_bundle,
 )
+from torchfilt.training.calibrate import CalibrationResult, calibrate, consistency
+from torchfilt.training.likelihood import (
+    LikelihoodFit,
+    LikelihoodState,
+    Sequences,
+    fit_likelihood,
+    step_log_likelihood,
+)
 from torchfilt.training.recipe import Recipe, RecipeError, load_recipe
 from torchfilt.training.run import RunError, train_recipe
 from torchfilt.training.validation import one_step_metrics
@@ -20,15 +28,23 @@ from torchfilt.training.validation import one_step_metrics
 __all__ = [
     "BUNDLE_SCHEMA",
     "BundleError",
+    "CalibrationResult",
+    "LikelihoodFit",
+    "LikelihoodState",
     "ModelSpec",
     "Recipe",
     "RecipeError",
     "RunError",
+    "Sequences",
+    "calibrate",
+    "consistency",
+    "fit_likelihood",
     "load_bundle",
     "load_model",
     "load_model_spec",
     "load_recipe",
     "one_step_metrics",
     "save_bundle",
+    "step_log_likelihood",
     "train_recipe",
 ]

@@ -19,9 +19,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import BundleError
+from torchfilt.exceptions import BundleError, InputError
 from torchfilt.io import Channel, atomic_write
-from torchfilt.models import ConditionalModel, StateSpaceModel
+from torchfilt.models import CalibratedModel, ConditionalModel, StateSpaceModel
 from torchfilt.systems import get_system
 
 __all__ = [
@@ -110,6 +110,19 @@ def build_side(entry: dict[str, Any], role: str) -> ConditionalModel:
     raise BundleError(f"unknown {role} kind {kind!r} (expected 'gp' or 'system')")
 
 
+def apply_calibration(side: ConditionalModel, entry: dict[str, Any] | None) -> ConditionalModel:
+    """Wrap a side in a :class:`~torchfilt.models.CalibratedModel` with its stored variance scales
+    and floor ``{"scale": [...], "floor": [...]}`` (``None``: the side as it is)."""
+    if not entry:
+        return side
+    try:
+        cal = CalibratedModel(side, scale=entry["scale"], floor=entry["floor"])
+    except (InputError, KeyError) as e:
+        raise BundleError(f"invalid calibration entry ({e})") from None
+    cal.requires_grad_(False)
+    return cal
+
+
 def save_bundle(path: str | Path, bundle: dict[str, Any]) -> Path:
     """Write a bundle atomically (temporary file + rename)."""
     bundle = {"schema": BUNDLE_SCHEMA, **bundle}
@@ -157,8 +170,10 @@ def load_model_spec(path: str | Path) -> ModelSpec:
     """A bundle's model with its channels, sample time and default prior."""
     b = load_bundle(path)
     try:
+        cal = b.get("calibration") or {}
         model = StateSpaceModel(
-            build_side(b["transition"], "transition"), build_side(b["measurement"], "measurement")
+            apply_calibration(build_side(b["transition"], "transition"), cal.get("transition")),
+            apply_calibration(build_side(b["measurement"], "measurement"), cal.get("measurement")),
         )
     except (KeyError, TypeError) as e:
         raise BundleError(f"{path}: malformed model entry ({type(e).__name__}: {e})") from None
@@ -172,7 +187,11 @@ def load_model_spec(path: str | Path) -> ModelSpec:
         prior_mean=b["prior"]["mean"],
         prior_cov=b["prior"]["cov"],
         source=str(path),
-        info={k: b[k] for k in ("name", "dataset", "validation", "recipe", "created") if k in b},
+        info={
+            k: b[k]
+            for k in ("name", "dataset", "calibration", "validation", "recipe", "created")
+            if b.get(k) is not None
+        },
     )
 
 

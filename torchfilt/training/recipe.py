@@ -38,7 +38,7 @@ from typing import Any
 
 from torchfilt.exceptions import RecipeError
 
-__all__ = ["GP_OPTIONS", "Recipe", "RecipeError", "load_recipe"]
+__all__ = ["CALIBRATE_DEFAULTS", "GP_OPTIONS", "Recipe", "RecipeError", "load_recipe"]
 
 #: Options passed through to ``GPTransition.fit`` / ``GPMeasurement.fit``.
 GP_OPTIONS = frozenset(
@@ -64,10 +64,31 @@ GP_OPTIONS = frozenset(
         "chunk_size",
     }
 )
-_TOP = {"name", "description", "seed", "dataset", "transition", "measurement", "train", "filter"}
+_TOP = {
+    "name",
+    "description",
+    "seed",
+    "dataset",
+    "transition",
+    "measurement",
+    "train",
+    "filter",
+    "calibrate",
+}
 _DATASET = {"path"}
 _TRAIN = {"checkpoint_every", "dtype", "threads"}
 _FILTER = {"prior", "mean", "cov_diag"}
+#: ``[calibrate]``: the calibration stage (see :func:`torchfilt.training.calibrate`), with defaults.
+CALIBRATE_DEFAULTS: dict[str, Any] = {
+    "enabled": True,
+    "sides": "learned",
+    "window": 100,
+    "burn_in": 20,
+    "iterations": 100,
+    "lr": 0.1,
+    "optimizer": "adam",
+    "patience": 15,
+}
 
 
 @dataclass
@@ -86,6 +107,11 @@ class Recipe:
         threads: torch threads for training (``None``: leave as is).
         filter: default filter prior for the bundle (``prior = "data"`` (default), ``"system:NAME"``,
             or explicit ``mean`` and ``cov_diag``).
+        calibrate: the calibration stage (``[calibrate]``, on by default; ``enabled = false``
+            turns it off): ``sides`` (``"learned"``, the GP sides, or a list of
+            ``"transition"``/``"measurement"``), ``window``, ``burn_in``, ``iterations``, ``lr``,
+            ``optimizer`` (``"adam"`` or ``"lbfgs"``), ``patience`` (early stopping on the
+            validation recordings).
         description: free text.
     """
 
@@ -100,6 +126,7 @@ class Recipe:
     threads: int | None = None
     filter: dict[str, Any] = field(default_factory=dict)
     description: str = ""
+    calibrate: dict[str, Any] = field(default_factory=lambda: dict(CALIBRATE_DEFAULTS))
 
     def resolved(self) -> dict[str, Any]:
         """The fully resolved configuration (what a run directory records)."""
@@ -116,6 +143,7 @@ class Recipe:
                 "threads": self.threads,
             },
             "filter": copy.deepcopy(self.filter),
+            "calibrate": copy.deepcopy(self.calibrate),
         }
 
     def digest(self) -> str:
@@ -174,6 +202,7 @@ def load_recipe(path: str | Path) -> Recipe:
     every = int(train.get("checkpoint_every", 25))
     if every < 1:
         raise RecipeError(f"{path}: [train] checkpoint_every must be >= 1, got {every}")
+    calib = _calibrate(d.get("calibrate", {}), path)
     seed = d.get("seed", 0)
     if not isinstance(seed, int):
         raise RecipeError(f"{path}: seed must be an integer, got {seed!r}")
@@ -189,4 +218,40 @@ def load_recipe(path: str | Path) -> Recipe:
         threads=None if train.get("threads") is None else int(train["threads"]),
         filter=filt,
         description=str(d.get("description", "")),
+        calibrate=calib,
     )
+
+
+def _calibrate(table: Any, path: Path | None) -> dict[str, Any]:
+    """Validate ``[calibrate]`` and fill in its defaults."""
+    t = _check_keys(table, set(CALIBRATE_DEFAULTS), "calibrate", path)
+    out = {**CALIBRATE_DEFAULTS, **t}
+    if not isinstance(out["enabled"], bool):
+        raise RecipeError(f"{path}: [calibrate] enabled must be true or false")
+    sides = out["sides"]
+    ok_sides = sides == "learned" or (
+        isinstance(sides, list) and sides and set(sides) <= {"transition", "measurement"}
+    )
+    if not ok_sides:
+        raise RecipeError(
+            f'{path}: [calibrate] sides must be "learned" or a list of "transition" and/or '
+            f'"measurement", got {sides!r}'
+        )
+    for key in ("window", "iterations", "patience"):
+        v = out[key]
+        if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+            raise RecipeError(f"{path}: [calibrate] {key} must be a positive integer, got {v!r}")
+    b = out["burn_in"]
+    if not isinstance(b, int) or isinstance(b, bool) or not 0 <= b < out["window"]:
+        raise RecipeError(
+            f"{path}: [calibrate] burn_in must be an integer in [0, window), got {b!r}"
+        )
+    lr = out["lr"]
+    if not isinstance(lr, int | float) or isinstance(lr, bool) or not 0 < float(lr) <= 10:
+        raise RecipeError(f"{path}: [calibrate] lr must be a number in (0, 10], got {lr!r}")
+    out["lr"] = float(lr)
+    if out["optimizer"] not in ("adam", "lbfgs"):
+        raise RecipeError(
+            f'{path}: [calibrate] optimizer must be "adam" or "lbfgs", got {out["optimizer"]!r}'
+        )
+    return out

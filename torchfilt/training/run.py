@@ -8,7 +8,11 @@ A run directory holds:
 - ``checkpoint.pt``: the latest checkpoint (written atomically every ``checkpoint_every``
   iterations), and ``{transition,measurement}.pt`` once a stage is done;
 - ``train.log``: plain progress lines;
-- ``validation.json``: one-step RMSE, NLPD and 95% coverage on the validation recordings;
+- ``calibration.pt`` once the calibration stage is done (``calibrate.ckpt`` while it runs): the
+  variance scales and noise floors fitted by the filter likelihood (``[calibrate]`` in the recipe);
+- ``validation.json``: one-step RMSE, NLPD and 95% coverage on the validation recordings, and the
+  filter's consistency there (NIS; NEES and 95% coverage where states are logged) before and
+  after calibration;
 - ``model.pt``: the final model bundle.
 
 A run killed at any moment resumes from its last checkpoint with ``resume=True`` (``torchfilt train
@@ -31,8 +35,16 @@ from torchfilt._version import __version__
 from torchfilt.exceptions import RunError
 from torchfilt.io import Dataset, atomic_write, atomic_write_text, load_dataset
 from torchfilt.io.recording import Recording
+from torchfilt.models import StateSpaceModel
 from torchfilt.systems import get_system
-from torchfilt.training.bundle import BUNDLE_SCHEMA, build_side, nominal_model, save_bundle
+from torchfilt.training.bundle import (
+    BUNDLE_SCHEMA,
+    apply_calibration,
+    build_side,
+    nominal_model,
+    save_bundle,
+)
+from torchfilt.training.calibrate import calibrate, consistency
 from torchfilt.training.progress import ProgressBar
 from torchfilt.training.recipe import Recipe, load_recipe
 from torchfilt.training.validation import one_step_metrics
@@ -40,6 +52,8 @@ from torchfilt.training.validation import one_step_metrics
 __all__ = ["RunError", "train_recipe"]
 
 STAGES = ("transition", "measurement")
+#: The calibration stage's checkpoint in a run directory.
+CALIBRATE_CHECKPOINT = "calibrate.ckpt"
 
 
 def _now() -> str:
@@ -229,7 +243,38 @@ def _run(r: Recipe, out: Path, resume: bool, progress: bool, stream: TextIO, log
 
     f = build_side(entries["transition"], "transition")
     h = build_side(entries["measurement"], "measurement")
+    m0, P0, how = _prior(r, train, len(states))
+    calibration = _calibrate_stage(
+        r,
+        entries,
+        StateSpaceModel(f, h),
+        train,
+        val,
+        m0,
+        P0,
+        dtype,
+        out,
+        resume,
+        progress,
+        stream,
+        log,
+    )
     validation = one_step_metrics(f, h, val) if val else {}
+    if val:
+        validation["filter"] = {
+            "uncalibrated": consistency(StateSpaceModel(f, h), val, x0=m0, P0=P0)
+        }
+        if calibration is not None:
+            fc = apply_calibration(f, calibration.get("transition"))
+            hc = apply_calibration(h, calibration.get("measurement"))
+            validation["filter"]["calibrated"] = consistency(
+                StateSpaceModel(fc, hc), val, x0=m0, P0=P0
+            )
+        for k, v in validation["filter"].items():
+            nees_txt = f", NEES {v['nees_mean']:.3g}" if "nees_mean" in v else ""
+            log(
+                f"validation filter ({k}): NIS {v['nis_mean']:.3g} per {v['nis_dof_mean']:.3g} dof{nees_txt}"
+            )
     atomic_write_text(
         out / "validation.json", json.dumps(validation, indent=2, default=float) + "\n"
     )
@@ -239,7 +284,6 @@ def _run(r: Recipe, out: Path, resume: bool, progress: bool, stream: TextIO, log
             f"measurement {_fmt(validation['measurement']['rmse'])}; 95% coverage: transition "
             f"{_fmt(validation['transition']['coverage95'])}, measurement {_fmt(validation['measurement']['coverage95'])}"
         )
-    m0, P0, how = _prior(r, train, len(states))
     bundle = {
         "name": r.name,
         "transition": entries["transition"],
@@ -254,6 +298,7 @@ def _run(r: Recipe, out: Path, resume: bool, progress: bool, stream: TextIO, log
         "sample_time": ds.manifest.sample_time,
         "time_unit": ds.manifest.time_unit,
         "prior": {"mean": m0, "cov": P0, "source": how},
+        "calibration": calibration,
         "dataset": dlog["fingerprint"],
         "recipe": r.resolved(),
         "validation": validation,
@@ -303,8 +348,18 @@ def _trim_metrics(path: Path, ckpt: dict[str, Any] | None, fresh: bool) -> None:
             path.unlink()
         return
     keep = []
+    cal_done = (path.parent / "calibration.pt").is_file()
+    cal_ckpt = path.parent / CALIBRATE_CHECKPOINT
+    cal_it = _checkpoint_iteration(cal_ckpt) if cal_ckpt.is_file() else 0
     for line in path.read_text().splitlines():
-        rec = json.loads(line)
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue  # a line torn by a kill: it is redone
+        if rec.get("stage") == "calibrate":
+            if cal_done or rec["iteration"] <= cal_it:
+                keep.append(line)
+            continue
         if ckpt is None:
             # no checkpoint: only completed stages survive (their stage files exist)
             if (path.parent / f"{rec['stage']}.pt").is_file():
@@ -394,3 +449,110 @@ def _fit_stage(
         metrics.close()
     log(f"{stage}: trained ({type(model).__name__})")
     return {"kind": "gp", "state": model.to_state(), "prior_mean": pm}
+
+
+def _checkpoint_iteration(path: Path) -> int:
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+        return int(ck["iteration"])
+    except Exception:
+        return 0
+
+
+def _calibrate_stage(
+    r: Recipe,
+    entries: dict[str, dict[str, Any]],
+    model: StateSpaceModel,
+    train: list[Recording],
+    val: list[Recording],
+    m0: Tensor,
+    P0: Tensor,
+    dtype: torch.dtype,
+    out: Path,
+    resume: bool,
+    progress: bool,
+    stream: TextIO,
+    log: _Log,
+) -> dict[str, Any] | None:
+    """Fit variance scales and floors by the filter likelihood on the training recordings."""
+    c = r.calibrate
+    if not c["enabled"]:
+        log("calibrate: off ([calibrate] enabled = false)")
+        return None
+    learned = [s for s in STAGES if entries[s].get("kind") == "gp"]
+    sides = learned if c["sides"] == "learned" else list(c["sides"])
+    if not sides:
+        log("calibrate: no learned side to calibrate; skipped")
+        return None
+    done = out / "calibration.pt"
+    if resume and done.is_file():
+        log("calibrate: already done (resumed)")
+        return dict(torch.load(done, weights_only=True))
+    ckpt = out / CALIBRATE_CHECKPOINT
+    if resume and ckpt.is_file():
+        log(f"calibrate: resuming from iteration {_checkpoint_iteration(ckpt)}")
+    iterations = int(c["iterations"])
+    bar = ProgressBar("calibrate", iterations, stream, enabled=progress)
+    every = r.checkpoint_every
+    with open(out / "metrics.jsonl", "a", encoding="utf-8") as metrics:
+
+        def callback(state: Any) -> None:
+            rec = {
+                "stage": "calibrate",
+                "iteration": state.iteration,
+                "loss": state.loss,
+                "validation": state.validation,
+                "elapsed": state.elapsed,
+            }
+            metrics.write(json.dumps(rec) + "\n")
+            metrics.flush()
+            bar.update(state.iteration, f"-loglik/meas {state.loss:.4g}")
+            if state.iteration % every == 0:
+                log(f"calibrate: iteration {state.iteration}/{iterations} loss {state.loss:.6g}")
+
+        res = calibrate(
+            model,
+            train,
+            x0=m0,
+            P0=P0,
+            validation=val or None,
+            sides=sides,  # type: ignore[arg-type]
+            window=int(c["window"]),
+            burn_in=int(c["burn_in"]),
+            iterations=iterations,
+            lr=float(c["lr"]),
+            optimizer=c["optimizer"],
+            patience=int(c["patience"]),
+            callback=callback,
+            checkpoint=ckpt,
+            resume=resume,
+            checkpoint_every=every,
+            dtype=dtype,
+        )
+    fit = res.fit
+    entry: dict[str, Any] = {
+        **res.parameters,
+        "fit": {
+            "stopped": fit.stopped,
+            "iterations": fit.iterations,
+            "best_iteration": fit.best_iteration,
+            "log_likelihood": fit.log_likelihood,
+            "initial_log_likelihood": fit.initial_log_likelihood,
+            "validation_per_measurement": fit.validation,
+            "measurements": fit.measurements,
+            "windows": fit.windows,
+            "options": dict(c),
+        },
+    }
+    _save(done, entry)
+    if ckpt.exists():
+        ckpt.unlink()
+    log(
+        f"calibrate: {fit.stopped} after {fit.iterations} iterations; log-likelihood "
+        f"{fit.initial_log_likelihood:.6g} -> {fit.log_likelihood:.6g}; "
+        + "; ".join(
+            f"{k} scale {_fmt(v['scale'])} floor {_fmt(v['floor'])}"
+            for k, v in res.parameters.items()
+        )
+    )
+    return entry

@@ -1,0 +1,294 @@
+"""Calibration of learned models by the filter likelihood: honest ``Q`` and ``R`` on real data.
+
+A GP fitted on one-step pairs reports the one-step scatter of its residuals; when real residuals
+drift slowly, a filter that takes that variance as its ``Q`` and ``R`` is over-confident.
+:func:`calibrate` wraps both sides of a model in a :class:`~torchfilt.models.CalibratedModel`
+(per-output variance scales ``s`` and an additive diagonal floor ``f``, both log-parametrised) and
+fits ``s`` and ``f`` by :func:`~torchfilt.training.likelihood.fit_likelihood` on recordings of
+measurements and inputs: no logged states are needed. The GP means are left as they are; the
+gradient flows through the frozen predictor (its caches are constants, the cubature points are
+not).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+from torch import Tensor
+
+from torchfilt.exceptions import InputError
+from torchfilt.filters import CKF, coverage, nees, nis
+from torchfilt.io import Recording
+from torchfilt.models import CalibratedModel, ConditionalModel, StateSpaceModel
+from torchfilt.training.likelihood import (
+    LikelihoodFit,
+    LikelihoodState,
+    Sequences,
+    fit_likelihood,
+)
+
+__all__ = [
+    "CalibrationResult",
+    "calibrate",
+    "calibration_entry",
+    "consistency",
+]
+
+#: Initial floor, relative to the side's typical variance: small, but reachable in a few dozen
+#: Adam steps on its log (a floor started at 1e-9 would need hundreds).
+FLOOR_INIT = 1e-2
+
+
+@dataclass
+class CalibrationResult:
+    """What :func:`calibrate` returns.
+
+    Attributes:
+        model: the calibrated model (both sides wrapped in
+            :class:`~torchfilt.models.CalibratedModel`; the base models are shared, not copied).
+        fit: the likelihood fit.
+        parameters: ``{"transition": {"scale", "floor"}, "measurement": {...}}`` as lists.
+    """
+
+    model: StateSpaceModel
+    fit: LikelihoodFit
+    parameters: dict[str, dict[str, list[float]]]
+
+
+def _typical_variance(side: ConditionalModel, x: Tensor, u: Tensor | None) -> Tensor:
+    """Mean predictive variance per output ``(d,)`` at the points ``x (N, n)`` (+ additive noise)."""
+    with torch.no_grad():
+        pred = side.predict(x.unsqueeze(0), None if u is None else u.unsqueeze(0))
+        d = side.out_dim
+        var = x.new_zeros(d)
+        if pred.var is not None:
+            var = var + pred.var.reshape(-1, d).mean(0)
+        if pred.cov is not None:
+            var = var + pred.cov.reshape(-1, d, d).diagonal(dim1=-2, dim2=-1).mean(0)
+        noise = side.noise_cov(0) if side.time_varying_noise else side.noise_cov()
+        if noise is not None:
+            var = var + noise.to(var).reshape(-1, d, d).diagonal(dim1=-2, dim2=-1).mean(0)
+    tiny = torch.finfo(var.dtype).tiny
+    return torch.where(var > tiny, var, torch.ones_like(var))
+
+
+def _sequences(
+    data: Sequence[Recording] | Sequences, name: str
+) -> tuple[Any, Any, Any, Any]:
+    """``(y, u, x0, P0)`` from recordings (first row = prior time) or a :class:`Sequences`."""
+    if isinstance(data, Sequences):
+        return data.y, data.u, data.x0, data.P0
+    recs = list(data)
+    if not recs:
+        raise InputError(f"{name}: no recordings given")
+    for r in recs:
+        if not isinstance(r, Recording):
+            raise InputError(f"{name}: expected Recording objects, got {type(r).__name__}")
+        if len(r) < 2:
+            raise InputError(f"{name}: {r.path}: needs at least 2 rows (row 0 is the prior's time)")
+    ys = [r.measurements[1:] for r in recs]
+    us = None if recs[0].inputs is None else [r.inputs[:-1] for r in recs]  # type: ignore[index]
+    return ys, us, None, None
+
+
+def calibrate(
+    model: StateSpaceModel,
+    recordings: Sequence[Recording] | Sequences,
+    *,
+    x0: Tensor,
+    P0: Tensor,
+    validation: Sequence[Recording] | Sequences | None = None,
+    sides: Sequence[Literal["transition", "measurement"]] = ("transition", "measurement"),
+    window: int | None = 100,
+    burn_in: int = 20,
+    iterations: int = 150,
+    lr: float = 0.1,
+    optimizer: Literal["adam", "lbfgs"] = "adam",
+    patience: int = 15,
+    progress: bool = False,
+    callback: Callable[[LikelihoodState], bool | None] | None = None,
+    checkpoint: str | Path | None = None,
+    resume: bool = False,
+    checkpoint_every: int = 10,
+    dtype: torch.dtype = torch.float64,
+    sqrt: bool = False,
+    compile: bool = False,
+) -> CalibrationResult:
+    """Calibrate a model's predictive variances by the filter likelihood on recordings.
+
+    Each side in ``sides`` is wrapped in a :class:`~torchfilt.models.CalibratedModel` whose
+    variance scales (start 1) and diagonal floor (start ``FLOOR_INIT`` x the side's mean variance)
+    are fitted; the other side is left as it is.
+
+    Args:
+        model: the model to calibrate (typically GP transition and measurement). It is not
+            modified; the result shares its base models.
+        recordings: training recordings (row 0 is each one's prior time, as in
+            :func:`~torchfilt.pipeline.filter_recordings`: ``y = measurements[1:]``,
+            ``u = inputs[:-1]``), or a :class:`~torchfilt.training.likelihood.Sequences` of tensors.
+        x0: prior mean ``(n,)`` (or one per recording).
+        P0: prior covariance ``(n, n)`` (or one per recording).
+        validation: held-out recordings for early stopping (optional).
+        sides: which sides to calibrate.
+        window, burn_in: windows of the likelihood (see :mod:`torchfilt.training.likelihood`).
+        iterations, lr, optimizer, patience: the optimiser (Adam on the log parameters by default).
+        progress: show a progress bar.
+        callback: per-iteration callback (return ``True`` to stop).
+        checkpoint, resume, checkpoint_every: checkpointing; a resumed calibration equals an
+            uninterrupted one.
+        dtype: floating dtype (float64 by default).
+        sqrt: use the square-root CKF.
+        compile: compile the filter step.
+
+    Returns:
+        A :class:`CalibrationResult`.
+    """
+    if not isinstance(model, StateSpaceModel):
+        raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
+    bad = [s for s in sides if s not in ("transition", "measurement")]
+    if bad or not sides:
+        raise InputError(f"sides: expected 'transition' and/or 'measurement', got {list(sides)}")
+    y, u, rx0, rP0 = _sequences(recordings, "recordings")
+    x0 = x0 if rx0 is None else rx0
+    P0 = P0 if rP0 is None else rP0
+    x0 = torch.as_tensor(x0, dtype=dtype)
+    P0 = torch.as_tensor(P0, dtype=dtype)
+    val = None
+    if validation is not None:
+        vy, vu, vx0, vP0 = _sequences(validation, "validation")
+        val = Sequences(vy, vu, x0 if vx0 is None else vx0, P0 if vP0 is None else vP0)
+
+    base_f, base_h = model.transition.to(dtype), model.measurement.to(dtype)
+    m0 = x0.reshape(-1, model.state_dim)[:1]
+    pts = m0 + torch.linalg.cholesky(P0.reshape(-1, model.state_dim, model.state_dim)[0]) @ (
+        torch.eye(model.state_dim, dtype=dtype)
+    )
+    pts = torch.cat([m0, pts.mT], 0)  # the mean and n spread points
+    u0 = None
+    if u is not None:
+        first_u = u[0] if isinstance(u, list) else u.reshape(-1, u.shape[-2], u.shape[-1])[0]
+        u0 = first_u[:1].to(dtype).expand(pts.shape[0], -1)
+
+    def wrap(side: ConditionalModel, name: str, uu: Tensor | None) -> ConditionalModel:
+        if name not in sides:
+            return side
+        var = _typical_variance(side, pts, uu)
+        return CalibratedModel(side, scale=1.0, floor=FLOOR_INIT * var, dtype=dtype)
+
+    f = wrap(base_f, "transition", u0)
+    h = wrap(base_h, "measurement", None)
+    calibrated = StateSpaceModel(f, h)
+    params = [
+        p
+        for side in (f, h)
+        if isinstance(side, CalibratedModel)
+        for p in side.parameters()
+        if p is side.log_scale or p is side.log_floor
+    ]
+    for p in calibrated.parameters():
+        if not any(p is q for q in params):
+            p.requires_grad_(False)
+    fit = fit_likelihood(
+        calibrated,
+        y,
+        u,
+        x0=x0,
+        P0=P0,
+        params=params,
+        window=window,
+        burn_in=burn_in,
+        validation=val,
+        patience=patience,
+        optimizer=optimizer,
+        lr=lr,
+        iterations=iterations,
+        callback=callback,
+        progress=progress,
+        dtype=dtype,
+        sqrt=sqrt,
+        compile=compile,
+        checkpoint=checkpoint,
+        checkpoint_every=checkpoint_every,
+        resume=resume,
+    )
+    return CalibrationResult(calibrated, fit, calibration_entry(calibrated))
+
+
+def calibration_entry(model: StateSpaceModel) -> dict[str, dict[str, list[float]]]:
+    """The calibration parameters of a model's calibrated sides, as plain lists (for a bundle)."""
+    out = {}
+    for name in ("transition", "measurement"):
+        side = getattr(model, name)
+        if isinstance(side, CalibratedModel):
+            out[name] = side.summary()
+    return out
+
+
+@torch.no_grad()
+def consistency(
+    model: StateSpaceModel,
+    recordings: Sequence[Recording],
+    *,
+    x0: Tensor,
+    P0: Tensor,
+    level: float = 0.95,
+) -> dict[str, Any]:
+    """Filter recordings and score the filter's honesty: NIS always, NEES and coverage where the
+    recordings log the true states.
+
+    Args:
+        model: the model.
+        recordings: recordings (row 0 is the prior's time).
+        x0, P0: the prior ``(n,)``, ``(n, n)``.
+        level: nominal probability of the coverage intervals.
+
+    Returns:
+        ``{"nis_mean", "nis_dof_mean", "nees_mean", "coverage95", "steps", "recordings"}``
+        (NEES and coverage only where states are logged).
+    """
+    recs = list(recordings)
+    if not recs:
+        raise InputError("recordings: none given")
+    filt = CKF(model)
+    dtype = x0.dtype if x0.is_floating_point() else torch.float64
+    nis_sum = dof_sum = 0.0
+    nis_steps = 0
+    nees_all: list[Tensor] = []
+    truths: list[Tensor] = []
+    means: list[Tensor] = []
+    covs: list[Tensor] = []
+    for r in recs:
+        y = r.measurements[1:].to(dtype)
+        u = None if r.inputs is None else r.inputs[:-1].to(dtype)
+        res = filt.filter(y, u, x0=x0.to(dtype), P0=P0.to(dtype))
+        value, dof = nis(res)
+        ok = dof > 0
+        nis_sum += float(value[ok].sum())
+        dof_sum += float(dof[ok].double().sum())
+        nis_steps += int(ok.sum())
+        if r.states.shape[-1] == model.state_dim:
+            truth = r.states[1:].to(dtype)
+            good = torch.isfinite(truth).all(-1)
+            if bool(good.any()):
+                nees_all.append(nees(truth[good], res.mean[good], res.cov[good]))
+                truths.append(truth[good])
+                means.append(res.mean[good])
+                covs.append(res.cov[good])
+    out: dict[str, Any] = {
+        "recordings": len(recs),
+        "nis_mean": nis_sum / max(nis_steps, 1),
+        "nis_dof_mean": dof_sum / max(nis_steps, 1),
+        "steps": nis_steps,
+    }
+    if nees_all:
+        ne = torch.cat(nees_all)
+        out["nees_mean"] = float(ne.mean()) if bool(torch.isfinite(ne).all()) else math.inf
+        out["coverage95"] = coverage(
+            torch.cat(truths), torch.cat(means), torch.cat(covs), level
+        ).tolist()
+    return out

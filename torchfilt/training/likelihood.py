@@ -1,0 +1,631 @@
+"""Maximum likelihood through the filter: fit any model's parameters by the CKF's innovation
+log-likelihood.
+
+For measurements ``y_{1:T}`` the cubature Kalman filter gives, at every step, the predicted
+measurement ``y^-_k`` and its covariance ``P_yy,k``; the prediction-error decomposition
+
+    log p(y_{1:T} | theta) ~= sum_k log N(y_k; y^-_k(theta), P_yy,k(theta))
+
+is exact for a linear-Gaussian model and the CKF's Gaussian approximation otherwise.
+:func:`fit_likelihood` maximises it over ``theta`` (any ``nn.Parameter`` of the model: a drag
+constant, a sensor bias, a learnable ``Q`` or ``R`` from :mod:`torchfilt.models.params`, the
+variance scales of a :class:`~torchfilt.models.CalibratedModel`) with gradients through the
+batched filter.
+
+What matters to a filter is how its predictions fail over many steps; a one-step fit cannot see
+slowly drifting errors, the filter likelihood can.
+
+**Windows.** Long recordings are cut into windows of ``window`` steps, all filtered as one batch.
+Consecutive windows overlap by ``burn_in`` steps, and the first ``burn_in`` steps of every window
+(the first window of a recording included) are not counted in the likelihood: they let the filter
+forget its start, so a diffuse or misplaced start never dominates the fit, and every other step is
+counted exactly once. A recording's first window starts from its prior ``N(x0, P0)``; each later
+window starts from the previous pass's estimate of the state just before it (``start="filtered"``,
+the default, or ``"smoothed"``, the RTS estimate), refreshed every ``refresh_every`` iterations
+with the current parameters. ``x0`` may itself be a learnable tensor listed in ``params``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from torchfilt.cubature import CubatureRule
+from torchfilt.exceptions import InputError, RunError, ShapeError
+from torchfilt.filters import CKF, FilterResult, rts_smooth
+from torchfilt.io import atomic_write
+from torchfilt.models import StateSpaceModel
+from torchfilt.numerics import gaussian_log_prob, safe_cholesky
+from torchfilt.training.progress import ProgressBar
+
+__all__ = [
+    "LikelihoodFit",
+    "LikelihoodState",
+    "Sequences",
+    "fit_likelihood",
+    "step_log_likelihood",
+    "window_data",
+]
+
+#: Checkpoint format identifier.
+_CKPT_SCHEMA = "torchfilt.likelihood-checkpoint/1"
+
+
+def step_log_likelihood(res: FilterResult) -> Tensor:
+    """Per-step innovation log-likelihood ``log N(y_k; y^-_k, P_yy,k)`` over observed components.
+
+    Args:
+        res: a filter result with innovations ``(..., T, m)`` (NaN where unobserved), innovation
+            covariances ``(..., T, m, m)`` and the observed mask ``(..., T, m)``.
+
+    Returns:
+        ``(..., T)``; 0 at a step with no observed component. Its sum over ``T`` equals
+        ``res.log_likelihood``.
+    """
+    obs = res.observed
+    o = obs.to(res.innovation_cov.dtype)
+    P = res.innovation_cov * (o.unsqueeze(-1) * o.unsqueeze(-2)) + torch.diag_embed(1.0 - o)
+    L = safe_cholesky(P, name="innovation covariance")
+    e = torch.where(obs, res.innovation, torch.zeros_like(res.innovation))
+    return gaussian_log_prob(e, L, dim=o.sum(-1))
+
+
+# ----------------------------------------------------------------------------------- data
+class Sequences(NamedTuple):
+    """Recordings given as tensors: training data of :func:`~torchfilt.training.calibrate`, or
+    held-out data for early stopping (filtered whole, every step counted).
+
+    Attributes:
+        y: measurements ``(..., T, m)`` or a list of ``(T_i, m)``; NaN is missing.
+        u: inputs ``(..., T, nu)``, a list, or ``None``.
+        x0: prior means ``(..., n)`` or ``(n,)``; ``None``: the training ``x0`` when it is one
+            shared ``(n,)``.
+        P0: prior covariances ``(..., n, n)``; ``None``: the training ``P0`` likewise.
+    """
+
+    y: Tensor | Sequence[Tensor]
+    u: Tensor | Sequence[Tensor] | None = None
+    x0: Tensor | None = None
+    P0: Tensor | None = None
+
+
+class _Recs(NamedTuple):
+    y: Tensor  # (R, T, m), NaN-padded
+    u: Tensor | None  # (R, T, nu), zero-padded
+    x0: Tensor  # (R, n)
+    P0: Tensor  # (R, n, n)
+    lengths: list[int]
+
+
+def _stack(
+    seqs: Tensor | Sequence[Tensor], name: str, fill: float, dtype: torch.dtype
+) -> tuple[Tensor, list[int]]:
+    if isinstance(seqs, Tensor):
+        if seqs.dim() < 2:
+            raise ShapeError(f"{name}: expected shape (..., T, d), got {tuple(seqs.shape)}")
+        t = seqs.reshape(-1, *seqs.shape[-2:])
+        return t.to(dtype), [int(t.shape[-2])] * int(t.shape[0])
+    seqs = list(seqs)
+    if not seqs:
+        raise InputError(f"{name}: no recordings given")
+    for i, s in enumerate(seqs):
+        if not isinstance(s, Tensor) or s.dim() != 2:
+            raise ShapeError(f"{name}[{i}]: expected a tensor of shape (T, d)")
+        if s.shape[-1] != seqs[0].shape[-1]:
+            raise ShapeError(
+                f"{name}[{i}]: has {s.shape[-1]} columns, {name}[0] has {seqs[0].shape[-1]}"
+            )
+    T = max(int(s.shape[0]) for s in seqs)
+    out = torch.full((len(seqs), T, int(seqs[0].shape[-1])), fill, dtype=dtype)
+    for i, s in enumerate(seqs):
+        out[i, : s.shape[0]] = s.to(dtype)
+    return out, [int(s.shape[0]) for s in seqs]
+
+
+def _prior_batch(v: Tensor, R: int, shape: tuple[int, ...], name: str) -> Tensor:
+    if v.shape == shape:
+        return v.expand(R, *shape)
+    if v.dim() >= 1 and v.reshape(-1, *shape).shape[0] == R and v.shape[-len(shape) :] == shape:
+        return v.reshape(R, *shape)
+    raise ShapeError(
+        f"{name}: expected {shape} or one per recording ({R}, {', '.join(map(str, shape))}), "
+        f"got {tuple(v.shape)}"
+    )
+
+
+def _recordings(
+    model: StateSpaceModel,
+    y: Tensor | Sequence[Tensor],
+    u: Tensor | Sequence[Tensor] | None,
+    x0: Tensor,
+    P0: Tensor,
+    dtype: torch.dtype,
+    prefix: str = "",
+) -> _Recs:
+    n, m = model.state_dim, model.obs_dim
+    Y, lengths = _stack(y, prefix + "y", math.nan, dtype)
+    if Y.shape[-1] != m:
+        raise ShapeError(f"{prefix}y: expected m = {m} columns, got {Y.shape[-1]}")
+    R, T = int(Y.shape[0]), int(Y.shape[1])
+    U = None
+    if u is not None:
+        U, ulen = _stack(u, prefix + "u", 0.0, dtype)
+        if U.shape[0] != R or ulen != lengths:
+            raise ShapeError(
+                f"{prefix}u: needs one input row per measurement row of every recording "
+                f"(y lengths {lengths[:5]}, u lengths {ulen[:5]})"
+            )
+        if not bool(torch.isfinite(U).all()):
+            raise InputError(f"{prefix}u: contains non-finite entries; inputs cannot be missing")
+    if not isinstance(x0, Tensor) or not isinstance(P0, Tensor):
+        raise InputError(f"{prefix}x0 and {prefix}P0 must be tensors")
+    X0 = _prior_batch(x0.to(dtype), R, (n,), prefix + "x0")
+    C0 = _prior_batch(P0.to(dtype), R, (n, n), prefix + "P0")
+    del T
+    return _Recs(Y, U, X0, C0, lengths)
+
+
+class _Windows(NamedTuple):
+    y: Tensor  # (W, L, m)
+    u: Tensor | None  # (W, L, nu)
+    counted: Tensor  # (W, L) bool: steps counted in the likelihood
+    rec: Tensor  # (W,) recording index
+    start: Tensor  # (W,) first step of the window in its recording
+
+
+def window_data(
+    y: Tensor, u: Tensor | None, lengths: Sequence[int], window: int | None, burn_in: int
+) -> _Windows:
+    """Cut padded recordings ``y (R, T, m)`` into overlapping windows (see the module docstring).
+
+    Args:
+        y: measurements ``(R, T, m)``, NaN-padded past each recording's length.
+        u: inputs ``(R, T, nu)`` or ``None``.
+        lengths: steps of each recording.
+        window: window length ``L`` (``None``: whole recordings).
+        burn_in: uncounted steps at the start of each window, ``0 <= burn_in < L``.
+
+    Returns:
+        Windows ``y (W, L, m)``, ``u (W, L, nu)``, the counted steps ``(W, L)``, and for each
+        window its recording and first step ``(W,)``.
+    """
+    R, T = int(y.shape[0]), int(y.shape[1])
+    L = T if window is None else int(window)
+    if L < 1:
+        raise InputError(f"window must be at least 1 step, got {window}")
+    if not 0 <= burn_in < L:
+        raise InputError(f"burn_in must be in [0, window) = [0, {L}), got {burn_in}")
+    stride = L - burn_in
+    ys, us, counts, recs, starts = [], [], [], [], []
+    for r in range(R):
+        s = 0
+        while s + burn_in < lengths[r]:
+            stop = min(s + L, lengths[r])
+            yw = y.new_full((L, y.shape[-1]), math.nan)
+            yw[: stop - s] = y[r, s:stop]
+            ys.append(yw)
+            if u is not None:
+                uw = u.new_zeros(L, u.shape[-1])
+                uw[: stop - s] = u[r, s:stop]
+                us.append(uw)
+            c = torch.zeros(L, dtype=torch.bool)
+            c[burn_in : stop - s] = True
+            counts.append(c)
+            recs.append(r)
+            starts.append(s)
+            if stop >= lengths[r]:
+                break
+            s += stride
+    return _Windows(
+        torch.stack(ys),
+        None if u is None else torch.stack(us),
+        torch.stack(counts),
+        torch.tensor(recs),
+        torch.tensor(starts),
+    )
+
+
+# ----------------------------------------------------------------------------------- results
+class LikelihoodState(NamedTuple):
+    """What the per-iteration callback sees.
+
+    Attributes:
+        iteration: iterations done (1-based).
+        iterations: the budget.
+        loss: negative log-likelihood per counted measurement (training windows).
+        log_likelihood: the training log-likelihood (sum over counted steps).
+        validation: held-out log-likelihood per measurement, when evaluated this iteration.
+        elapsed: seconds since the fit started (this process).
+    """
+
+    iteration: int
+    iterations: int
+    loss: float
+    log_likelihood: float
+    validation: float | None
+    elapsed: float
+
+
+@dataclass
+class LikelihoodFit:
+    """Outcome of :func:`fit_likelihood`. The model holds the best parameters found.
+
+    Attributes:
+        log_likelihood: training log-likelihood at the returned parameters (counted steps).
+        per_measurement: the same per counted measurement.
+        initial_log_likelihood: training log-likelihood before the fit.
+        validation: held-out log-likelihood per measurement at the returned parameters.
+        iterations: iterations run.
+        best_iteration: iteration whose parameters are returned (0: the initial ones).
+        stopped: why the loop ended: ``"iterations"``, ``"converged"``, ``"early stopping"``,
+            ``"callback"`` or ``"non-finite"``.
+        measurements: counted measurement components.
+        windows: windows per iteration.
+        history: one record per iteration (``iteration``, ``loss``, ``validation``, ``elapsed``).
+        elapsed: seconds of the whole fit.
+    """
+
+    log_likelihood: float
+    per_measurement: float
+    initial_log_likelihood: float
+    validation: float | None
+    iterations: int
+    best_iteration: int
+    stopped: str
+    measurements: int
+    windows: int
+    history: list[dict[str, Any]] = field(default_factory=list)
+    elapsed: float = 0.0
+
+
+# ----------------------------------------------------------------------------------- the fit
+def _digest(*tensors: Tensor | None) -> str:
+    h = hashlib.sha256()
+    for t in tensors:
+        if t is not None:
+            h.update(str(tuple(t.shape)).encode())
+            h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def fit_likelihood(
+    model: StateSpaceModel,
+    y: Tensor | Sequence[Tensor],
+    u: Tensor | Sequence[Tensor] | None = None,
+    *,
+    x0: Tensor,
+    P0: Tensor,
+    params: Iterable[nn.Parameter] | None = None,
+    window: int | None = None,
+    burn_in: int = 0,
+    start: Literal["filtered", "smoothed"] = "filtered",
+    refresh_every: int = 10,
+    validation: Sequences | None = None,
+    validate_every: int = 1,
+    patience: int = 20,
+    optimizer: Literal["adam", "lbfgs"] = "adam",
+    lr: float | None = None,
+    iterations: int = 200,
+    tol: float | None = None,
+    callback: Callable[[LikelihoodState], bool | None] | None = None,
+    progress: bool = False,
+    dtype: torch.dtype = torch.float64,
+    sqrt: bool = False,
+    rule: CubatureRule | None = None,
+    compile: bool = False,
+    checkpoint: str | Path | None = None,
+    checkpoint_every: int = 10,
+    resume: bool = False,
+) -> LikelihoodFit:
+    """Maximise the CKF's innovation log-likelihood over a model's parameters.
+
+    The step convention is the filter's: step ``k`` predicts with ``u[k]`` from ``x_{k-1}`` (the
+    prior ``N(x0, P0)`` is the state just before the first step) and updates with ``y[k]``.
+
+    Args:
+        model: the state-space model; converted to ``dtype`` in place. It ends holding the best
+            parameters found (by held-out likelihood when ``validation`` is given, else by
+            training likelihood).
+        y: measurements ``(..., T, m)`` (a batch of recordings) or a list of ``(T_i, m)`` of
+            different lengths. NaN marks a missing component.
+        u: inputs ``(..., T, nu)``, a list of ``(T_i, nu)``, or ``None``.
+        x0: prior mean ``(n,)`` shared, or one per recording ``(..., n)``.
+        P0: prior covariance ``(n, n)`` or one per recording ``(..., n, n)``.
+        params: the parameters to fit (default: every parameter of ``model`` with
+            ``requires_grad``). Positive-definite ``Q``/``R`` and bounded constants come from
+            :mod:`torchfilt.models.params`: ``DiagonalCovariance`` (log-diagonal),
+            ``CholeskyCovariance`` (Cholesky factor with a log diagonal), ``ScalarCovariance``
+            (log variance), ``Positive`` (softplus), ``Bounded`` (logit).
+        window: window length in steps (``None``: whole recordings).
+        burn_in: uncounted steps at the start of every window (see the module docstring).
+        start: where a later window starts: the previous pass's ``"filtered"`` or
+            ``"smoothed"`` estimate of the state just before it.
+        refresh_every: iterations between refreshes of the window starts.
+        validation: held-out recordings for early stopping.
+        validate_every: iterations between held-out evaluations.
+        patience: stop after this many held-out evaluations without improvement.
+        optimizer: ``"adam"`` (default) or ``"lbfgs"`` (strong-Wolfe line search; best for a few
+            parameters and tight optima).
+        lr: learning rate (default 0.05 for Adam, 1 for L-BFGS).
+        iterations: iteration budget (an L-BFGS iteration runs up to 20 inner steps).
+        tol: stop when the loss changes by less than ``tol * (1 + |loss|)`` in an iteration
+            (default ``1e-10`` for L-BFGS, off for Adam).
+        callback: called after every iteration with a :class:`LikelihoodState`; return ``True``
+            to stop.
+        progress: show a progress bar on stderr.
+        dtype: floating dtype of the fit (float64 by default).
+        sqrt: use the square-root CKF.
+        rule: cubature rule (default the third-degree spherical-radial rule).
+        compile: compile the filter step with ``torch.compile`` (pays on one or a few long
+            windows; see ``scripts/bench_calibrate.py``).
+        checkpoint: file for checkpoints (atomic); with ``resume=True`` an existing one is
+            continued, and the result equals an uninterrupted fit.
+        checkpoint_every: iterations between checkpoints.
+        resume: continue from ``checkpoint`` if it exists.
+
+    Returns:
+        A :class:`LikelihoodFit`.
+
+    Raises:
+        InputError, ShapeError: invalid arguments; RunError: a checkpoint of another fit.
+    """
+    if not isinstance(model, StateSpaceModel):
+        raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
+    if optimizer not in ("adam", "lbfgs"):
+        raise InputError(f"optimizer must be 'adam' or 'lbfgs', got {optimizer!r}")
+    if start not in ("filtered", "smoothed"):
+        raise InputError(f"start must be 'filtered' or 'smoothed', got {start!r}")
+    if iterations < 0:
+        raise InputError(f"iterations must be non-negative, got {iterations}")
+    for name, v in (
+        ("refresh_every", refresh_every),
+        ("validate_every", validate_every),
+        ("patience", patience),
+        ("checkpoint_every", checkpoint_every),
+    ):
+        if v < 1:
+            raise InputError(f"{name} must be at least 1, got {v}")
+    lr = (0.05 if optimizer == "adam" else 1.0) if lr is None else float(lr)
+    if not (math.isfinite(lr) and 0 < lr <= 100):
+        raise InputError(f"lr must be a finite positive number (at most 100), got {lr}")
+    tol = (1e-10 if optimizer == "lbfgs" else 0.0) if tol is None else float(tol)
+    if dtype not in (torch.float32, torch.float64):
+        raise InputError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+
+    model.to(dtype)
+    recs = _recordings(model, y, u, x0, P0, dtype)
+    plist = [p for p in (model.parameters() if params is None else params) if p.requires_grad]
+    if not plist:
+        raise InputError("params: nothing to fit (no parameter with requires_grad)")
+    win = window_data(recs.y, recs.u, recs.lengths, window, burn_in)
+    counted = int((torch.isfinite(win.y) & win.counted.unsqueeze(-1)).sum())
+    if counted == 0:
+        raise InputError("y: no measurement is counted (all missing, or burn_in covers them)")
+    val = None
+    if validation is not None:
+        vx0 = recs.x0[0] if validation.x0 is None else validation.x0
+        vP0 = recs.P0[0] if validation.P0 is None else validation.P0
+        val = _recordings(model, validation.y, validation.u, vx0, vP0, dtype, "validation.")
+        val_count = int(torch.isfinite(val.y).sum())
+        if val_count == 0:
+            raise InputError("validation.y: no measurement observed")
+
+    filt = CKF(model, rule=rule, sqrt=sqrt, compile=compile)
+    first = win.start == 0
+    R = int(recs.y.shape[0])
+
+    @torch.no_grad()
+    def starts() -> tuple[Tensor, Tensor]:
+        """Initial means ``(W, n)`` and covariances ``(W, n, n)`` of the windows."""
+        wx0, wP0 = recs.x0[win.rec].detach().clone(), recs.P0[win.rec].detach().clone()
+        if bool(first.all()):
+            return wx0, wP0
+        res = filt.filter(recs.y, recs.u, x0=recs.x0.detach(), P0=recs.P0.detach())
+        if start == "smoothed":
+            sm = rts_smooth(res)
+            mean, cov = sm.mean, sm.cov
+        else:
+            mean, cov = res.mean, res.cov
+        later = ~first
+        idx = win.start[later] - 1
+        wx0[later] = mean[win.rec[later], idx]
+        wP0[later] = cov[win.rec[later], idx]
+        return wx0, wP0
+
+    learn_x0 = isinstance(x0, Tensor) and x0.requires_grad
+
+    def x0_windows(wx0: Tensor) -> Tensor:
+        # windows that start a recording take the learnable prior mean, with its graph
+        if not learn_x0:
+            return wx0
+        X0 = _prior_batch(x0.to(dtype), R, (model.state_dim,), "x0")
+        return torch.where(first.unsqueeze(-1), X0[win.rec], wx0)
+
+    def train_loglik(wx0: Tensor, wP0: Tensor) -> Tensor:
+        res = filt.filter(win.y, win.u, x0=x0_windows(wx0), P0=wP0)
+        ll = step_log_likelihood(res)
+        return (ll * win.counted.to(ll.dtype)).sum()
+
+    def val_loglik() -> float:
+        assert val is not None
+        with torch.no_grad():
+            res = filt.filter(val.y, val.u, x0=val.x0, P0=val.P0)
+        return float(res.log_likelihood.sum()) / val_count
+
+    opt: torch.optim.Optimizer
+    if optimizer == "adam":
+        opt = torch.optim.Adam(plist, lr=lr)
+    else:
+        opt = torch.optim.LBFGS(
+            plist,
+            lr=lr,
+            max_iter=20,
+            line_search_fn="strong_wolfe",
+            tolerance_change=1e-14,
+            tolerance_grad=1e-12,
+            history_size=20,
+        )
+
+    def snapshot() -> list[Tensor]:
+        return [p.detach().clone() for p in plist]
+
+    def restore(values: list[Tensor]) -> None:
+        with torch.no_grad():
+            for p, v in zip(plist, values, strict=True):
+                p.copy_(v)
+
+    ckpt_path = None if checkpoint is None else Path(checkpoint)
+    fingerprint = _digest(recs.y, recs.u, *snapshot()) if ckpt_path is not None else ""
+    it0, history, bad = 0, [], 0
+    best_it, best_score, best_params = 0, -math.inf, snapshot()
+    wx0: Tensor | None = None
+    wP0: Tensor | None = None
+    initial: float | None = None
+    if resume and ckpt_path is not None and ckpt_path.is_file():
+        ck = _load_checkpoint(ckpt_path, fingerprint)
+        restore(ck["params"])
+        opt.load_state_dict(ck["optimizer"])
+        it0, history, bad = int(ck["iteration"]), list(ck["history"]), int(ck["bad"])
+        best_it, best_score = int(ck["best_iteration"]), float(ck["best_score"])
+        best_params = [t.clone() for t in ck["best_params"]]
+        wx0, wP0, initial = ck["wx0"], ck["wP0"], float(ck["initial"])
+
+    t_start = time.perf_counter()
+    if wx0 is None or wP0 is None:
+        wx0, wP0 = starts()
+    if initial is None:
+        with torch.no_grad():
+            initial = float(train_loglik(wx0, wP0))
+        best_score = val_loglik() if val is not None else initial / counted
+    bar = ProgressBar("fit likelihood", iterations, enabled=progress)
+    stopped = "iterations"
+    last_loss = math.inf if not history else float(history[-1]["loss"])
+    good = snapshot()
+    it = it0
+    for it in range(it0 + 1, iterations + 1):
+        if it > 1 and (it - 1) % refresh_every == 0:
+            wx0, wP0 = starts()
+
+        def closure(ux0: Tensor = wx0, uP0: Tensor = wP0) -> Tensor:
+            opt.zero_grad()
+            loss = -train_loglik(ux0, uP0) / counted
+            if bool(torch.isfinite(loss)):
+                loss.backward()
+            return loss.detach()
+
+        if optimizer == "adam":
+            loss_t = closure()
+            finite = bool(torch.isfinite(loss_t))
+            if finite:
+                good = snapshot()  # the parameters that loss_t scores
+                opt.step()  # type: ignore[call-arg]
+        else:
+            good = snapshot()
+            loss_t = opt.step(closure)  # type: ignore[assignment]
+            finite = bool(torch.isfinite(loss_t))
+        loss = float(loss_t)
+        finite = finite and all(bool(torch.isfinite(p).all()) for p in plist)
+        elapsed = time.perf_counter() - t_start
+        if not finite:
+            restore(good)
+            stopped = "non-finite"
+            break
+        rec: dict[str, Any] = {"iteration": it, "loss": loss, "elapsed": elapsed}
+        vscore = None
+        if val is not None and it % validate_every == 0:
+            vscore = val_loglik()
+            rec["validation"] = vscore
+            if vscore > best_score:
+                best_it, best_score, best_params, bad = it, vscore, snapshot(), 0
+            else:
+                bad += 1
+        history.append(rec)
+        info = f"-loglik/meas {loss:.5g}" + ("" if vscore is None else f", held-out {vscore:.5g}")
+        bar.update(it, info)
+        state = LikelihoodState(it, iterations, loss, -loss * counted, vscore, elapsed)
+        stop = bool(callback(state)) if callback is not None else False
+        if ckpt_path is not None and (it % checkpoint_every == 0 or it == iterations):
+            _save_checkpoint(
+                ckpt_path,
+                {
+                    "fingerprint": fingerprint,
+                    "iteration": it,
+                    "params": snapshot(),
+                    "optimizer": opt.state_dict(),
+                    "history": history,
+                    "bad": bad,
+                    "best_iteration": best_it,
+                    "best_score": best_score,
+                    "best_params": best_params,
+                    "wx0": wx0,
+                    "wP0": wP0,
+                    "initial": initial,
+                },
+            )
+        if stop:
+            stopped = "callback"
+            break
+        if val is not None and bad >= patience:
+            stopped = "early stopping"
+            break
+        if tol > 0 and abs(last_loss - loss) <= tol * (1 + abs(loss)):
+            stopped = "converged"
+            break
+        last_loss = loss
+
+    # The returned parameters: the best held-out ones; without held-out data the last (finite) ones.
+    if val is not None:
+        restore(best_params)
+    else:
+        best_it = it if stopped != "non-finite" else max(it - 1, 0)
+    wx0, wP0 = starts()
+    with torch.no_grad():
+        final = float(train_loglik(wx0, wP0))
+    vfinal = val_loglik() if val is not None else None
+    return LikelihoodFit(
+        log_likelihood=final,
+        per_measurement=final / counted,
+        initial_log_likelihood=initial,
+        validation=vfinal,
+        iterations=len(history),
+        best_iteration=best_it,
+        stopped=stopped,
+        measurements=counted,
+        windows=int(win.y.shape[0]),
+        history=history,
+        elapsed=time.perf_counter() - t_start,
+    )
+
+
+def _load_checkpoint(path: Path, fingerprint: str) -> dict[str, Any]:
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise RunError(
+            f"{path}: unreadable checkpoint ({type(e).__name__}); delete it to start again"
+        ) from None
+    if not isinstance(ck, dict) or ck.get("schema") != _CKPT_SCHEMA:
+        raise RunError(f"{path}: not a torchfilt likelihood checkpoint; delete it to start again")
+    if ck.get("fingerprint") != fingerprint:
+        raise RunError(
+            f"{path}: the checkpoint belongs to another fit (different data, parameters or "
+            "initial values); delete it to start again"
+        )
+    return ck
+
+
+def _save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
+    data = {"schema": _CKPT_SCHEMA, **payload}
+
+    def write(fh: Any) -> None:
+        torch.save(data, fh)
+
+    atomic_write(path, write)
