@@ -97,7 +97,7 @@ NEES_TARGET = 3.0
 #: this many steps, the first ``CAL_BURN_IN`` of each uncounted, Adam on the log scales and floors.
 CAL_WINDOW = 100
 CAL_BURN_IN = 20
-CAL_ITERATIONS = 100
+CAL_ITERATIONS = 60
 CAL_LR = 0.1
 #: Nominal probability of the coverage intervals.
 COVERAGE = 0.95

@@ -81,14 +81,18 @@ def test_end_to_end_train_filter_evaluate(tmp_path, tiny_data):
         assert (run / f).is_file(), f
     assert not (run / "checkpoint.pt").exists()
     lines = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
-    assert [(r["stage"], r["iteration"]) for r in lines] == [
+    assert [(r["stage"], r["iteration"]) for r in lines if r["stage"] != "calibrate"] == [
         (s, i) for s in ("transition", "measurement") for i in range(1, 21)
     ]
+    cal_lines = [r["iteration"] for r in lines if r["stage"] == "calibrate"]
+    assert cal_lines == list(range(1, len(cal_lines) + 1)) and cal_lines
     assert "lengthscale" in " ".join(lines[0]["hyperparameters"])
     dlog = json.loads((run / "dataset.json").read_text())
     assert len(dlog["fingerprint"]["files"]) == 6 and dlog["split"]["test"] == ["rec_005"]
     val = json.loads((run / "validation.json").read_text())
     assert set(val) >= {"transition", "measurement"} and len(val["transition"]["rmse"]) == 2
+    assert set(val["filter"]) == {"uncalibrated", "calibrated"}
+    assert {"nis_mean", "nees_mean", "coverage95"} <= set(val["filter"]["calibrated"])
     bundle = load_bundle(run / "model.pt")
     assert bundle["dataset"] == dlog["fingerprint"] and bundle["schema"] == BUNDLE_SCHEMA
     # the learned model filters the held-out recording about as well as the true model
@@ -99,7 +103,13 @@ def test_end_to_end_train_filter_evaluate(tmp_path, tiny_data):
     r_true = true["recordings"][0]["filtered_metrics"]["rmse"]
     assert all(a < 3.0 * b + 0.05 for a, b in zip(r_gp, r_true, strict=True)), (r_gp, r_true)
     model = load_model(run / "model.pt")
-    assert isinstance(model.transition, torchfilt.GPTransition)
+    assert isinstance(model.transition, torchfilt.CalibratedModel)
+    assert isinstance(model.transition.base, torchfilt.GPTransition)
+    cal = bundle["calibration"]
+    assert torch.allclose(
+        model.transition.scale, torch.tensor(cal["transition"]["scale"], dtype=torch.float64)
+    )
+    assert min(cal["transition"]["scale"] + cal["measurement"]["scale"]) >= 1.0  # inflate only
 
 
 def _wait_for(path: Path, proc: subprocess.Popen, log: Path, timeout: float = 120.0) -> None:
@@ -135,9 +145,59 @@ def test_resume_after_kill_reaches_the_same_model(tmp_path, tiny_data):
     assert a.keys() == b.keys()
     for k in a:
         assert torch.allclose(a[k], b[k], rtol=RESUME_RTOL, atol=0), k
+    assert (
+        load_bundle(killed / "model.pt")["calibration"]
+        == load_bundle(fresh / "model.pt")["calibration"]
+    )
     lines = [json.loads(x) for x in (killed / "metrics.jsonl").read_text().splitlines()]
-    keys = [(r["stage"], r["iteration"]) for r in lines]
+    keys = [(r["stage"], r["iteration"]) for r in lines if r["stage"] != "calibrate"]
     assert keys == [(s, i) for s in ("transition", "measurement") for i in range(1, 151)]
+
+
+def test_resume_after_kill_during_calibration_equals_uninterrupted(
+    tmp_path, tiny_data, monkeypatch
+):
+    """A run killed in the calibration stage resumes from its checkpoint to the same bundle."""
+    import torchfilt.training.run as run_mod
+
+    recipe = write_recipe(tmp_path / "tiny.toml", tiny_data, iters=10, every=3)
+    fresh = tmp_path / "fresh"
+    train_recipe(recipe, fresh, progress=False)
+    real = run_mod.calibrate
+
+    def killed_at_8(*args, **kwargs):
+        inner = kwargs["callback"]
+
+        def cb(state):
+            inner(state)
+            if state.iteration == 8:  # after the checkpoint at 6
+                raise KeyboardInterrupt
+
+        return real(*args, **{**kwargs, "callback": cb})
+
+    killed = tmp_path / "killed"
+    monkeypatch.setattr(run_mod, "calibrate", killed_at_8)
+    with pytest.raises(KeyboardInterrupt):
+        train_recipe(recipe, killed, progress=False)
+    assert (killed / "calibrate.ckpt").is_file() and not (killed / "model.pt").exists()
+    monkeypatch.setattr(run_mod, "calibrate", real)
+    train_recipe(recipe, killed, resume=True, progress=False)
+    a, b = load_bundle(killed / "model.pt"), load_bundle(fresh / "model.pt")
+    assert a["calibration"] == b["calibration"]
+    assert not (killed / "calibrate.ckpt").exists()
+    lines = [json.loads(x) for x in (killed / "metrics.jsonl").read_text().splitlines()]
+    its = [r["iteration"] for r in lines if r["stage"] == "calibrate"]
+    assert its == list(range(1, a["calibration"]["fit"]["iterations"] + 1))
+
+
+def test_calibration_can_be_switched_off(tmp_path, tiny_data):
+    recipe = write_recipe(tmp_path / "tiny.toml", tiny_data, iters=3, every=3)
+    recipe.write_text(recipe.read_text() + "[calibrate]\nenabled = false\n")
+    run = tmp_path / "run"
+    train_recipe(recipe, run, progress=False)
+    assert load_bundle(run / "model.pt")["calibration"] is None
+    assert isinstance(load_model(run / "model.pt").transition, torchfilt.GPTransition)
+    assert set(json.loads((run / "validation.json").read_text())["filter"]) == {"uncalibrated"}
 
 
 def test_resume_refuses_changes(tmp_path, tiny_data):

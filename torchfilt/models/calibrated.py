@@ -8,11 +8,18 @@ adds a diagonal floor,
     V'(x, u) = D_s^{1/2} V(x, u) D_s^{1/2},    N' = D_s^{1/2} N D_s^{1/2} + diag(f),
 
 with ``s = exp(log_scale)`` and ``f = exp(log_floor)`` (log parametrisations, so both stay
-positive under any optimiser step). :func:`torchfilt.training.calibrate` fits ``s`` and ``f`` by the
+positive under any optimiser step). A lower bound ``s >= s_min`` is kept by projection
+(:meth:`CalibratedModel.project_`, after each optimiser step). With ``s_min = 1`` (what
+:func:`torchfilt.training.calibrate` uses by default) calibration can only add uncertainty: it never
+makes the filter more confident than its learned models say, which matters where a measurement
+likelihood cannot see some states. :func:`torchfilt.training.calibrate` fits ``s`` and ``f`` by the
 filter's own innovation likelihood.
 """
 
 from __future__ import annotations
+
+import math
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -45,9 +52,11 @@ class CalibratedModel(ConditionalModel):
 
     Args:
         base: the model to calibrate.
-        scale: initial variance scales ``s``, a scalar or ``(d,)``, positive (default 1).
+        scale: initial variance scales ``s``, a scalar or ``(d,)``, at least ``min_scale``
+            (default: ``max(1, min_scale)``).
         floor: initial floor ``f``, a scalar or ``(d,)``, positive (default ``1e-9``: none, in
             practice; a zero floor has no log).
+        min_scale: lower bound ``s_min >= 0`` of the scales, kept by :meth:`project_`.
         dtype: dtype of the parameters (default float64).
 
     Attributes:
@@ -59,8 +68,9 @@ class CalibratedModel(ConditionalModel):
         self,
         base: ConditionalModel,
         *,
-        scale: Tensor | float | list[float] = 1.0,
+        scale: Tensor | float | list[float] | None = None,
         floor: Tensor | float | list[float] = 1e-9,
+        min_scale: float = 0.0,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         super().__init__()
@@ -72,13 +82,27 @@ class CalibratedModel(ConditionalModel):
         self.out_dim, self.in_dim = base.out_dim, base.in_dim
         like = torch.zeros((), dtype=dtype)
         d = self.out_dim
-        self.log_scale = nn.Parameter(_per_output(scale, d, "scale", like).log())
+        if not (math.isfinite(min_scale) and min_scale >= 0):
+            raise InputError(f"min_scale must be finite and non-negative, got {min_scale}")
+        self.min_scale = float(min_scale)
+        if scale is None:
+            scale = max(1.0, min_scale)
+        s0 = _per_output(scale, d, "scale", like)
+        if bool((s0 < min_scale).any()):
+            raise InputError(f"scale: must be at least min_scale = {min_scale}, got {s0.tolist()}")
+        self.log_scale = nn.Parameter(s0.log())
         self.log_floor = nn.Parameter(_per_output(floor, d, "floor", like).log())
 
     @property
     def scale(self) -> Tensor:
         """Variance scales ``s (d,)``."""
         return self.log_scale.exp()
+
+    @torch.no_grad()
+    def project_(self) -> None:
+        """Clamp the scales to ``s >= min_scale`` in place (call after an optimiser step)."""
+        if self.min_scale > 0:
+            self.log_scale.clamp_(min=math.log(self.min_scale))
 
     @property
     def floor(self) -> Tensor:
@@ -106,6 +130,10 @@ class CalibratedModel(ConditionalModel):
         r = self.scale.sqrt()
         return base.to(own) * (r.unsqueeze(-1) * r) + own
 
-    def summary(self) -> dict[str, list[float]]:
-        """``{"scale": s, "floor": f}`` as plain lists."""
-        return {"scale": self.scale.detach().tolist(), "floor": self.floor.detach().tolist()}
+    def summary(self) -> dict[str, Any]:
+        """``{"scale": s, "floor": f, "min_scale": s_min}`` as plain values."""
+        return {
+            "scale": self.scale.detach().tolist(),
+            "floor": self.floor.detach().tolist(),
+            "min_scale": self.min_scale,
+        }

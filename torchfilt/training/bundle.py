@@ -116,7 +116,12 @@ def apply_calibration(side: ConditionalModel, entry: dict[str, Any] | None) -> C
     if not entry:
         return side
     try:
-        cal = CalibratedModel(side, scale=entry["scale"], floor=entry["floor"])
+        cal = CalibratedModel(
+            side,
+            scale=entry["scale"],
+            floor=entry["floor"],
+            min_scale=float(entry.get("min_scale", 0.0)),
+        )
     except (InputError, KeyError) as e:
         raise BundleError(f"invalid calibration entry ({e})") from None
     cal.requires_grad_(False)

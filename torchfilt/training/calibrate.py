@@ -12,6 +12,7 @@ not).
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -25,6 +26,7 @@ from torchfilt.exceptions import InputError
 from torchfilt.filters import CKF, coverage, nees, nis
 from torchfilt.io import Recording
 from torchfilt.models import CalibratedModel, ConditionalModel, StateSpaceModel
+from torchfilt.models.drift import DriftModel, _DriftMeasurement, _DriftTransition
 from torchfilt.training.likelihood import (
     LikelihoodFit,
     LikelihoodState,
@@ -57,7 +59,7 @@ class CalibrationResult:
 
     model: StateSpaceModel
     fit: LikelihoodFit
-    parameters: dict[str, dict[str, list[float]]]
+    parameters: dict[str, dict[str, Any]]
 
 
 def _typical_variance(side: ConditionalModel, x: Tensor, u: Tensor | None) -> Tensor:
@@ -77,9 +79,7 @@ def _typical_variance(side: ConditionalModel, x: Tensor, u: Tensor | None) -> Te
     return torch.where(var > tiny, var, torch.ones_like(var))
 
 
-def _sequences(
-    data: Sequence[Recording] | Sequences, name: str
-) -> tuple[Any, Any, Any, Any]:
+def _sequences(data: Sequence[Recording] | Sequences, name: str) -> tuple[Any, Any, Any, Any]:
     """``(y, u, x0, P0)`` from recordings (first row = prior time) or a :class:`Sequences`."""
     if isinstance(data, Sequences):
         return data.y, data.u, data.x0, data.P0
@@ -110,6 +110,7 @@ def calibrate(
     lr: float = 0.1,
     optimizer: Literal["adam", "lbfgs"] = "adam",
     patience: int = 15,
+    inflate_only: bool = True,
     progress: bool = False,
     callback: Callable[[LikelihoodState], bool | None] | None = None,
     checkpoint: str | Path | None = None,
@@ -121,8 +122,12 @@ def calibrate(
 ) -> CalibrationResult:
     """Calibrate a model's predictive variances by the filter likelihood on recordings.
 
+    A :class:`~torchfilt.models.drift.DriftModel` (sensor drift states, from
+    :func:`~torchfilt.models.drift.with_sensor_drift`) keeps its drift states, and their time
+    constants and standard deviations are fitted too.
+
     Each side in ``sides`` is wrapped in a :class:`~torchfilt.models.CalibratedModel` whose
-    variance scales (start 1) and diagonal floor (start ``FLOOR_INIT`` x the side's mean variance)
+    variance scales (start just above 1) and diagonal floor (start ``FLOOR_INIT`` x the side's mean variance)
     are fitted; the other side is left as it is.
 
     Args:
@@ -134,6 +139,10 @@ def calibrate(
         x0: prior mean ``(n,)`` (or one per recording).
         P0: prior covariance ``(n, n)`` (or one per recording).
         validation: held-out recordings for early stopping (optional).
+        inflate_only: keep the variance scales at or above 1 (default): calibration then only adds
+            uncertainty, never makes the filter more confident than its models. A measurement
+            likelihood cannot see states that the measurements do not observe; shrinking their
+            variance there would go unpunished by the fit and make the filter over-confident.
         sides: which sides to calibrate.
         window, burn_in: windows of the likelihood (see :mod:`torchfilt.training.likelihood`).
         iterations, lr, optimizer, patience: the optimiser (Adam on the log parameters by default).
@@ -164,11 +173,10 @@ def calibrate(
         val = Sequences(vy, vu, x0 if vx0 is None else vx0, P0 if vP0 is None else vP0)
 
     base_f, base_h = model.transition.to(dtype), model.measurement.to(dtype)
-    m0 = x0.reshape(-1, model.state_dim)[:1]
-    pts = m0 + torch.linalg.cholesky(P0.reshape(-1, model.state_dim, model.state_dim)[0]) @ (
-        torch.eye(model.state_dim, dtype=dtype)
-    )
-    pts = torch.cat([m0, pts.mT], 0)  # the mean and n spread points
+    n = model.base_state_dim if isinstance(model, DriftModel) else model.state_dim
+    m0 = x0.reshape(-1, model.state_dim)[:1, :n]
+    S0 = torch.linalg.cholesky(P0.reshape(-1, model.state_dim, model.state_dim)[0, :n, :n])
+    pts = torch.cat([m0, m0 + S0.mT], 0)  # the mean and n spread points
     u0 = None
     if u is not None:
         first_u = u[0] if isinstance(u, list) else u.reshape(-1, u.shape[-2], u.shape[-1])[0]
@@ -178,54 +186,94 @@ def calibrate(
         if name not in sides:
             return side
         var = _typical_variance(side, pts, uu)
-        return CalibratedModel(side, scale=1.0, floor=FLOOR_INIT * var, dtype=dtype)
+        return CalibratedModel(
+            side, floor=FLOOR_INIT * var, min_scale=1.0 if inflate_only else 0.0, dtype=dtype
+        )
 
-    f = wrap(base_f, "transition", u0)
-    h = wrap(base_h, "measurement", None)
-    calibrated = StateSpaceModel(f, h)
+    drift = model if isinstance(model, DriftModel) else None
+    if drift is not None:
+        # calibrate the original sides inside the drift wrappers; the drift parameters are copied
+        # and fitted with the scales and floors
+        assert isinstance(base_f, _DriftTransition) and isinstance(base_h, _DriftMeasurement)
+        f = wrap(base_f.base, "transition", u0)
+        h = wrap(base_h.base, "measurement", None)
+        calibrated: StateSpaceModel = DriftModel(
+            StateSpaceModel(f, h),
+            drift.channels,
+            copy.deepcopy(base_f.tau),
+            copy.deepcopy(base_f.sd),
+            base_f.dt,
+        )
+    else:
+        f = wrap(base_f, "transition", u0)
+        h = wrap(base_h, "measurement", None)
+        calibrated = StateSpaceModel(f, h)
     params = [
         p
         for side in (f, h)
         if isinstance(side, CalibratedModel)
-        for p in side.parameters()
-        if p is side.log_scale or p is side.log_floor
+        for p in (side.log_scale, side.log_floor)
     ]
-    for p in calibrated.parameters():
-        if not any(p is q for q in params):
-            p.requires_grad_(False)
-    fit = fit_likelihood(
-        calibrated,
-        y,
-        u,
-        x0=x0,
-        P0=P0,
-        params=params,
-        window=window,
-        burn_in=burn_in,
-        validation=val,
-        patience=patience,
-        optimizer=optimizer,
-        lr=lr,
-        iterations=iterations,
-        callback=callback,
-        progress=progress,
-        dtype=dtype,
-        sqrt=sqrt,
-        compile=compile,
-        checkpoint=checkpoint,
-        checkpoint_every=checkpoint_every,
-        resume=resume,
-    )
+    if isinstance(calibrated, DriftModel):
+        params += calibrated.drift_parameters()
+    # the base models' own parameters (GP hyperparameters) stay fixed during the fit and get
+    # their requires_grad flags back afterwards
+    frozen = [
+        p for p in calibrated.parameters() if p.requires_grad and not any(p is q for q in params)
+    ]
+    for p in frozen:
+        p.requires_grad_(False)
+    wrapped = [side for side in (f, h) if isinstance(side, CalibratedModel)]
+
+    def project() -> None:
+        for side in wrapped:
+            side.project_()
+
+    try:
+        fit = fit_likelihood(
+            calibrated,
+            y,
+            u,
+            x0=x0,
+            P0=P0,
+            params=params,
+            window=window,
+            burn_in=burn_in,
+            validation=val,
+            patience=patience,
+            optimizer=optimizer,
+            lr=lr,
+            iterations=iterations,
+            callback=callback,
+            project=project,
+            progress=progress,
+            dtype=dtype,
+            sqrt=sqrt,
+            compile=compile,
+            checkpoint=checkpoint,
+            checkpoint_every=checkpoint_every,
+            resume=resume,
+        )
+    finally:
+        for p in frozen:
+            p.requires_grad_(True)
     return CalibrationResult(calibrated, fit, calibration_entry(calibrated))
 
 
-def calibration_entry(model: StateSpaceModel) -> dict[str, dict[str, list[float]]]:
+def calibration_entry(model: StateSpaceModel) -> dict[str, dict[str, Any]]:
     """The calibration parameters of a model's calibrated sides, as plain lists (for a bundle)."""
-    out = {}
+    out: dict[str, dict[str, Any]] = {}
     for name in ("transition", "measurement"):
         side = getattr(model, name)
+        side = getattr(side, "base", side) if isinstance(model, DriftModel) else side
         if isinstance(side, CalibratedModel):
             out[name] = side.summary()
+    if isinstance(model, DriftModel):
+        out["drift"] = {
+            "channels": model.channels,
+            "time_constant": model.time_constant.detach().tolist(),
+            "sd": model.drift_sd.detach().tolist(),
+        }
     return out
 
 

@@ -316,6 +316,7 @@ def fit_likelihood(
     iterations: int = 200,
     tol: float | None = None,
     callback: Callable[[LikelihoodState], bool | None] | None = None,
+    project: Callable[[], None] | None = None,
     progress: bool = False,
     dtype: torch.dtype = torch.float64,
     sqrt: bool = False,
@@ -360,6 +361,8 @@ def fit_likelihood(
             (default ``1e-10`` for L-BFGS, off for Adam).
         callback: called after every iteration with a :class:`LikelihoodState`; return ``True``
             to stop.
+        project: called after every optimiser step to project the parameters back onto their
+            feasible set in place (e.g. :meth:`~torchfilt.models.CalibratedModel.project_`).
         progress: show a progress bar on stderr.
         dtype: floating dtype of the fit (float64 by default).
         sqrt: use the square-root CKF.
@@ -527,9 +530,13 @@ def fit_likelihood(
             if finite:
                 good = snapshot()  # the parameters that loss_t scores
                 opt.step()  # type: ignore[call-arg]
+                if project is not None:
+                    project()
         else:
             good = snapshot()
             loss_t = opt.step(closure)  # type: ignore[assignment]
+            if project is not None:
+                project()
             finite = bool(torch.isfinite(loss_t))
         loss = float(loss_t)
         finite = finite and all(bool(torch.isfinite(p).all()) for p in plist)

@@ -88,6 +88,7 @@ CALIBRATE_DEFAULTS: dict[str, Any] = {
     "lr": 0.1,
     "optimizer": "adam",
     "patience": 15,
+    "inflate_only": True,
 }
 
 
@@ -111,7 +112,7 @@ class Recipe:
             turns it off): ``sides`` (``"learned"``, the GP sides, or a list of
             ``"transition"``/``"measurement"``), ``window``, ``burn_in``, ``iterations``, ``lr``,
             ``optimizer`` (``"adam"`` or ``"lbfgs"``), ``patience`` (early stopping on the
-            validation recordings).
+            validation recordings), ``inflate_only`` (scales >= 1, default ``true``).
         description: free text.
     """
 
@@ -226,8 +227,9 @@ def _calibrate(table: Any, path: Path | None) -> dict[str, Any]:
     """Validate ``[calibrate]`` and fill in its defaults."""
     t = _check_keys(table, set(CALIBRATE_DEFAULTS), "calibrate", path)
     out = {**CALIBRATE_DEFAULTS, **t}
-    if not isinstance(out["enabled"], bool):
-        raise RecipeError(f"{path}: [calibrate] enabled must be true or false")
+    for key in ("enabled", "inflate_only"):
+        if not isinstance(out[key], bool):
+            raise RecipeError(f"{path}: [calibrate] {key} must be true or false")
     sides = out["sides"]
     ok_sides = sides == "learned" or (
         isinstance(sides, list) and sides and set(sides) <= {"transition", "measurement"}

@@ -523,6 +523,7 @@ def _calibrate_stage(
             lr=float(c["lr"]),
             optimizer=c["optimizer"],
             patience=int(c["patience"]),
+            inflate_only=bool(c["inflate_only"]),
             callback=callback,
             checkpoint=ckpt,
             resume=resume,
