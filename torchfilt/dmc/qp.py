@@ -210,9 +210,8 @@ def _clarabel(G: Tensor, c: Tensor, A: Tensor, b: Tensor, *, tol: float, max_ite
         zs.append(z)
         ok.append(solved)
         its = max(its, it)
-    like = {"dtype": G.dtype, "device": G.device}
-    x_t = torch.as_tensor(np.stack(xs), **like).reshape(*batch, n)
-    z_t = torch.as_tensor(np.stack(zs), **like).reshape(*batch, m)
+    x_t = torch.as_tensor(np.stack(xs), dtype=G.dtype, device=G.device).reshape(*batch, n)
+    z_t = torch.as_tensor(np.stack(zs), dtype=G.dtype, device=G.device).reshape(*batch, m)
     obj = 0.5 * (x_t * (G @ x_t.unsqueeze(-1)).squeeze(-1)).sum(-1) + (c * x_t).sum(-1)
     conv = torch.as_tensor(ok, dtype=torch.bool, device=G.device).reshape(batch)
     return QPResult(x_t, z_t, obj.detach(), conv, its)
