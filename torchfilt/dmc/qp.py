@@ -171,7 +171,14 @@ def _settings(tol: float, max_iter: int) -> clarabel.DefaultSettings:
 
 
 def solve_one(
-    G: np.ndarray, c: np.ndarray, A: np.ndarray, b: np.ndarray, *, tol: float, max_iter: int
+    G: np.ndarray,
+    c: np.ndarray,
+    A: np.ndarray,
+    b: np.ndarray,
+    *,
+    tol: float,
+    max_iter: int,
+    accept_almost: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, bool, int]:
     """One QP ``min 1/2 x^T G x + c^T x  s.t.  A x <= b`` by Clarabel (float64 NumPy arrays).
 
@@ -179,7 +186,8 @@ def solve_one(
 
     Returns:
         ``(x, z, solved, iterations)``: the minimiser, the multipliers of ``A x <= b`` (``>= 0``),
-        whether Clarabel reported ``Solved``, and its iteration count.
+        whether Clarabel reported ``Solved`` (or ``AlmostSolved``, the reduced tolerances, with
+        ``accept_almost``), and its iteration count.
     """
     P = sp.triu(sp.csc_matrix(G), format="csc")
     cones = [clarabel.NonnegativeConeT(A.shape[0])] if A.shape[0] else []
@@ -192,7 +200,10 @@ def solve_one(
         _settings(tol, max_iter),
     )
     sol = solver.solve()
-    solved = sol.status == clarabel.SolverStatus.Solved
+    ok = [clarabel.SolverStatus.Solved]
+    if accept_almost:
+        ok.append(clarabel.SolverStatus.AlmostSolved)
+    solved = sol.status in ok
     return np.asarray(sol.x), np.asarray(sol.z), bool(solved), int(sol.iterations)
 
 
