@@ -179,8 +179,11 @@ def solve_one(
     tol: float,
     max_iter: int,
     accept_almost: bool = False,
+    n_eq: int = 0,
 ) -> tuple[np.ndarray, np.ndarray, bool, int]:
     """One QP ``min 1/2 x^T G x + c^T x  s.t.  A x <= b`` by Clarabel (float64 NumPy arrays).
+
+    The first ``n_eq`` rows of ``A x <= b`` are equalities ``A x = b`` instead.
 
     ``G`` may be positive semi-definite here (callers that need strict convexity check it).
 
@@ -190,7 +193,11 @@ def solve_one(
         ``accept_almost``), and its iteration count.
     """
     P = sp.triu(sp.csc_matrix(G), format="csc")
-    cones = [clarabel.NonnegativeConeT(A.shape[0])] if A.shape[0] else []
+    cones = []
+    if n_eq:
+        cones.append(clarabel.ZeroConeT(n_eq))
+    if A.shape[0] - n_eq:
+        cones.append(clarabel.NonnegativeConeT(A.shape[0] - n_eq))
     solver = clarabel.DefaultSolver(
         P,
         np.ascontiguousarray(c),

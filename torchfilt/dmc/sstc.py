@@ -20,11 +20,12 @@ where ``f_r`` is the row's CV, MV or linear combination of ``[y_ss; u_ss]``. Pri
 from 1 (highest) to the second lowest, stage ``p`` solves
 
     J*_p = min  sum_{r in p} eps_r / e_r      (e_r: the row's equal-concern error)
-           s.t. hard constraints, every row's relaxation inequality, and
-                sum_{r in q} eps_r / e_r <= J*_q   for every earlier stage q
+           s.t. hard constraints, the relaxation inequalities of the rows of priority p, and the
+                rows of every earlier priority with their limits moved by the relaxations found
+                there (an ideal value met exactly becomes an equality)
 
-so a lower priority is only ever relaxed to spare a higher one (preemptive, lexicographic order;
-the earlier stages' relaxations stay free variables within their optimal totals).
+so a lower priority is only ever relaxed to spare a higher one (preemptive order; as in industrial
+SSTC, the relaxed limits of a solved stage become hard constraints for the stages after it).
 
 **Economic stage** (a QP, by Clarabel). With MV costs ``h`` and the minimum-move MVs ``mm``,
 
@@ -62,12 +63,10 @@ from torchfilt.exceptions import InfeasibleError, InputError, RunError, ShapeErr
 
 __all__ = ["MultiPriorityTarget", "SSTCResult"]
 
-#: Relative (and absolute) slack granted to an earlier stage's optimal total in later stages, so
-#: that rounding in the LP solutions never makes a later stage infeasible.
+#: Relative (and absolute) margin granted to a relaxed limit in later stages, so that rounding in the
+#: LP solutions never makes a later stage infeasible; an ideal value relaxed by no more than this
+#: becomes an equality.
 STAGE_TOL = 1e-9
-#: The same slack in the economic QP, larger: an interior-point method needs the stage-total
-#: constraints to leave a (thin) interior.
-QP_STAGE_TOL = 1e-7
 #: Regularisation weight of the economic QP (makes its minimiser unique).
 SSTC_REGULARISATION = 1e-8
 #: A constraint whose slack is below this counts as active; a relaxation above it as relaxed.
@@ -262,10 +261,17 @@ class MultiPriorityTarget:
                 )
 
     def _rows_ub(
-        self, F: np.ndarray, g: np.ndarray, sel: np.ndarray, nz: int, col0: int
+        self,
+        F: np.ndarray,
+        g: np.ndarray,
+        sel: np.ndarray,
+        nz: int,
+        col0: int,
+        width: int | None = None,
     ) -> tuple[list[np.ndarray], list[float]]:
-        """Relaxation inequalities ``G z <= h`` of the selected rows (slack ``k`` at ``col0 + k``)."""
-        nu = self.nu
+        """Relaxation inequalities ``G z <= h`` of the selected rows (slack ``k`` at ``col0 + k``;
+        the rows are ``f = F z[:width] + g``)."""
+        nu = self.nu if width is None else width
         A: list[np.ndarray] = []
         b: list[float] = []
         for k, r in enumerate(sel):
@@ -279,6 +285,42 @@ class MultiPriorityTarget:
                 A.append(row)
                 b.append(sign * (v - g[r]))
         return A, b
+
+    def _fixed_rows(
+        self,
+        F: np.ndarray,
+        g: np.ndarray,
+        sel: np.ndarray,
+        eps: np.ndarray,
+        nz: int,
+        width: int | None = None,
+    ) -> tuple[list[np.ndarray], list[float], list[np.ndarray], list[float]]:
+        """Rows of solved stages, their limits moved by the fixed relaxations ``eps``.
+
+        Returns ``(A_ub, b_ub, A_eq, b_eq)``: an ideal value met exactly becomes an equality.
+        """
+        nw = self.nu if width is None else width
+        A: list[np.ndarray] = []
+        b: list[float] = []
+        Ae: list[np.ndarray] = []
+        be: list[float] = []
+        for r in sel:
+            kind, v, e = self._kinds[r], self._values[r], eps[r]
+            if kind == "ideal" and e <= STAGE_TOL:
+                row = np.zeros(nz)
+                row[:nw] = F[r]
+                Ae.append(row)
+                be.append(v - g[r])
+                continue
+            margin = e + STAGE_TOL * (1.0 + abs(v))
+            for sign in (
+                (-1.0, 1.0) if kind == "ideal" else ((-1.0,) if kind == "lower" else (1.0,))
+            ):
+                row = np.zeros(nz)
+                row[:nw] = sign * F[r]  # sign (f - v) <= eps
+                A.append(row)
+                b.append(sign * (v - g[r]) + margin)
+        return A, b, Ae, be
 
     def _hard_ub(
         self, y0: np.ndarray, nz: int, T: np.ndarray | None = None
@@ -324,31 +366,28 @@ class MultiPriorityTarget:
         self._check_hard(y0, up, lo, hi)
         F, g = self._affine(y0, up)
         R = len(self._kinds)
-        lp_levels = self.levels[:-1]
-        order = np.argsort(self._prio, kind="stable")  # slack columns grouped by priority
-        col = {int(r): k for k, r in enumerate(order)}
-        totals: list[tuple[np.ndarray, float]] = []  # (rows, J*) of solved stages
+        eps_fixed = np.zeros(R)  # relaxations fixed by the LP stages
         stage_costs: list[float] = []
-        for p in lp_levels:
-            active_rows = order[self._prio[order] <= p]
-            nz = nu + active_rows.size
+        for p in self.levels[:-1]:
+            this = np.nonzero(self._prio == p)[0]
+            fixed = np.nonzero(self._prio < p)[0]
+            nz = nu + this.size
             A, b = self._hard_ub(y0, nz)
-            Ar, br = self._rows_ub(F, g, active_rows, nz, nu)
-            A += Ar
-            b += br
-            for rows_q, Jq in totals:
-                row = np.zeros(nz)
-                row[[nu + col[int(r)] for r in rows_q]] = 1.0 / self._e[rows_q]
-                A.append(row)
-                b.append(Jq + STAGE_TOL * (1.0 + abs(Jq)))
+            Ar, br = self._rows_ub(F, g, this, nz, nu)
+            Af, bf, Ae, be = self._fixed_rows(F, g, fixed, eps_fixed, nz)
             c = np.zeros(nz)
-            this = order[self._prio[order] == p]
-            c[[nu + col[int(r)] for r in this]] = 1.0 / self._e[this]
+            c[nu:] = 1.0 / self._e[this]
             bounds = [(float(lo[i]), float(hi[i])) for i in range(nu)] + [(0.0, None)] * int(
-                active_rows.size
+                this.size
             )
             res = scipy.optimize.linprog(
-                c, A_ub=np.stack(A), b_ub=np.asarray(b), bounds=bounds, method="highs"
+                c,
+                A_ub=np.stack(A + Ar + Af),
+                b_ub=np.asarray(b + br + bf),
+                A_eq=np.stack(Ae) if Ae else None,
+                b_eq=np.asarray(be) if be else None,
+                bounds=bounds,
+                method="highs",
             )
             if res.status == 2:
                 raise InfeasibleError(
@@ -358,9 +397,9 @@ class MultiPriorityTarget:
                 )
             if res.status != 0:
                 raise RunError(f"the SSTC LP of priority {p} failed: {res.message}")
-            totals.append((this, float(res.fun)))
+            eps_fixed[this] = np.maximum(res.x[nu:], 0.0)
             stage_costs.append(float(res.fun))
-        # economic QP: z = [du (non-mm), p, n (mm), eps (all rows, priority order)]
+        # economic QP: z = [du (non-mm), p, n (mm), eps (lowest-priority rows)]
         free = [i for i in range(nu) if i not in self.mm]
         nd = len(free) + 2 * len(self.mm)
         T = np.zeros((nu, nd))  # du = T z[:nd]
@@ -369,60 +408,49 @@ class MultiPriorityTarget:
         for k, i in enumerate(self.mm):
             T[i, len(free) + 2 * k] = 1.0
             T[i, len(free) + 2 * k + 1] = -1.0
-        nz = nd + R
+        lowest = self.levels[-1]
+        low = np.nonzero(self._prio == lowest)[0]
+        nz = nd + low.size
         hcoef = np.zeros(nd)
         for k, i in enumerate(free):
             hcoef[k] = self.h[i]
         for k, i in enumerate(self.mm):
             hcoef[len(free) + 2 * k : len(free) + 2 * k + 2] = self.h[i]
-        A, b = self._hard_ub(y0, nz, T)
-        # relaxation rows, in the z coordinates (du = T z[:nd])
         FT = F @ T
-        for k, r in enumerate(order):
-            kind, v = self._kinds[r], self._values[r]
-            for sign in (
-                (-1.0, 1.0) if kind == "ideal" else ((-1.0,) if kind == "lower" else (1.0,))
-            ):
-                row = np.zeros(nz)
-                row[:nd] = sign * FT[r]
-                row[nd + k] = -1.0
-                A.append(row)
-                b.append(sign * (v - g[r]))
-        for rows_q, Jq in totals:
-            row = np.zeros(nz)
-            row[[nd + col[int(r)] for r in rows_q]] = 1.0 / self._e[rows_q]
-            A.append(row)
-            b.append(Jq + QP_STAGE_TOL * (1.0 + abs(Jq)))
-        # box on du (through T) and z bounds: p, n >= 0, eps >= 0
-        for i in range(nu):
+        A, b = self._hard_ub(y0, nz, T)
+        Ar, br = self._rows_ub(FT, g, low, nz, nd, width=nd)
+        fixed = np.nonzero(self._prio < lowest)[0]
+        Af, bf, Ae, be = self._fixed_rows(FT, g, fixed, eps_fixed, nz, width=nd)
+        A, b = A + Ar + Af, b + br + bf
+        for i in range(nu):  # the move box, through T
             for sign, bound in ((1.0, hi[i]), (-1.0, -lo[i])):
                 if np.isfinite(bound):
                     row = np.zeros(nz)
                     row[:nd] = sign * T[i]
                     A.append(row)
                     b.append(float(bound))
-        for k in range(len(free), nd):
+        for k in [*range(len(free), nd), *range(nd, nz)]:  # p, n, eps >= 0
             row = np.zeros(nz)
             row[k] = -1.0
             A.append(row)
             b.append(0.0)
-        for k in range(R):
-            row = np.zeros(nz)
-            row[nd + k] = -1.0
-            A.append(row)
-            b.append(0.0)
         # objective: w_J (hcoef z - J_min)^2 + sum_lowest (eps / e)^2 + rho ||z||^2
         Hq = 2.0 * SSTC_REGULARISATION * np.eye(nz)
-        q = np.zeros(nz)
-        hz = np.concatenate([hcoef, np.zeros(R)])
+        hz = np.concatenate([hcoef, np.zeros(low.size)])
         Hq += 2.0 * self.w_J * np.outer(hz, hz)
-        q += -2.0 * self.w_J * self.J_min * hz
-        lowest = self.levels[-1]
-        for k, r in enumerate(order):
-            if self._prio[r] == lowest:
-                Hq[nd + k, nd + k] += 2.0 / self._e[r] ** 2
+        q = -2.0 * self.w_J * self.J_min * hz
+        Hq[nd:, nd:] += np.diag(2.0 / self._e[low] ** 2)
+        Aall = np.stack(Ae + A)
+        ball = np.asarray(be + b)
         x, _, solved, _ = solve_one(
-            Hq, q, np.stack(A), np.asarray(b), tol=SSTC_QP_TOL, max_iter=200, accept_almost=True
+            Hq,
+            q,
+            Aall,
+            ball,
+            tol=SSTC_QP_TOL,
+            max_iter=200,
+            accept_almost=True,
+            n_eq=len(Ae),
         )
         if not solved:
             raise RunError(
@@ -431,9 +459,6 @@ class MultiPriorityTarget:
             )
         du = T @ x[:nd]
         du = np.clip(du, lo, hi)  # remove interior-point rounding outside the hard box
-        eps_sorted = np.maximum(x[nd:], 0.0)
-        eps = np.zeros(R)
-        eps[order] = eps_sorted
         # the relaxations implied by du (exact; the QP's slacks can exceed them only by rounding)
         f = F @ du + g
         viol = np.where(
