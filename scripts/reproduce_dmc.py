@@ -397,6 +397,12 @@ def section_31_double_layer(steps: int) -> dict:
                     "y_target": runs[n].y_target[k].tolist(),
                     "u_target": runs[n].u_target[k].tolist(),
                     "sstc_active": logs[n][k].active,
+                    "dynamic_soft_bounds_violated": [
+                        f"y{j + 1} {'above' if y > 0 else 'below'} {'+' if y > 0 else '-'}"
+                        f"{Z_SOFT} by {abs(y) - Z_SOFT:.3g}"
+                        for j, y in enumerate(runs[n].y[k].tolist())
+                        if abs(y) > Z_SOFT
+                    ],
                     "sstc_stage_costs": logs[n][k].stage_costs.tolist(),
                 }
                 for k in steady
@@ -696,6 +702,8 @@ def main_double_layer(args: argparse.Namespace, outdir: Path) -> dict:
                 f", u_t = {np.round(st['u_target'], 3).tolist()}"
             )
             print(f"  {'':>9} SSTC active: {'; '.join(st['sstc_active']) or 'none'}")
+            soft = "; ".join(st["dynamic_soft_bounds_violated"]) or "none"
+            print(f"  {'':>9} dynamic layer, soft CV bounds violated: {soft}")
     print(
         f"Runtimes ({args.threads} thread(s)): closed loops "
         f"{r['closed_loop_seconds']['kf']:.1f} s (KF) / {r['closed_loop_seconds']['classical']:.1f} s"

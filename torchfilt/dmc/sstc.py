@@ -87,8 +87,9 @@ class SSTCResult(NamedTuple):
         stage_costs: ``sum eps_r / e_r`` of each priority level, shape ``(levels,)`` (the last is the
             economic stage's lowest-priority rows).
         economic: ``J`` at the solution.
-        active: names of the active hard constraints, the soft limits held exactly at their bound,
-            and the relaxed soft rows (``"relaxed ..."``).
+        active: names of the active constraints: hard limits at their bound (``"hard ..."``), soft
+            limits held exactly at their bound (``"at ..."``), ideal values met (``"met ..."``) and
+            relaxed soft rows (``"relaxed ... by eps"``).
     """
 
     y: Tensor
@@ -506,7 +507,9 @@ class MultiPriorityTarget:
         for r, name in enumerate(self._names):
             if viol[r] > ACTIVE_TOL:
                 out.append(f"relaxed {name} by {_fmt(viol[r])}")
-            elif self._kinds[r] != "ideal" and abs(f[r] - self._values[r]) <= ACTIVE_TOL:
+            elif self._kinds[r] == "ideal":
+                out.append(f"met {name}")
+            elif abs(f[r] - self._values[r]) <= ACTIVE_TOL:
                 out.append(f"at {name}")
         return out
 
