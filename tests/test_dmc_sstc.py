@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchfilt.dmc import FOPDT, MultiPriorityTarget, StepResponseModel, TargetRow
-from torchfilt.exceptions import InfeasibleError, InputError, ShapeError
+from torchfilt.exceptions import ConvergenceWarning, InfeasibleError, InputError, ShapeError
 
 D = torch.float64
 R = TargetRow
@@ -226,3 +226,21 @@ def test_economic_stage_matches_brute_force(case):
     brute = brute_force_objective(G, y0, up, rows_p1, rows_low, h, mm, -1.0, box)
     assert ours <= brute + EXACT_TOL  # the exact optimum is never worse than a grid point
     assert brute - ours <= GRID_SLACK  # and the grid gets close to it
+
+
+@pytest.mark.parametrize("levels", [2, 1])
+def test_a_failed_economic_qp_falls_back_to_the_feasibility_answer(monkeypatch, levels):
+    import torchfilt.dmc.sstc as sstc_module
+
+    m = gain_model([[2.0]])
+    rows = [R(("y", 0), "upper", 0.2, 1.0, 1), R(("y", 0), "ideal", 0.5, 1.0, levels)]
+
+    def failing(G, c, A, b, **kw):
+        return np.zeros(G.shape[0]), np.zeros(A.shape[0]), False, 200
+
+    monkeypatch.setattr(sstc_module, "solve_one", failing)
+    with pytest.warns(ConvergenceWarning, match="economic QP did not converge"):
+        res = solve(m, rows, [0.0], [0.0], y_min=-0.7, y_max=0.7)
+    if levels == 2:  # the answer of the priority-1 LP: its row holds
+        assert float(res.y[0]) <= 0.2 + EXACT_TOL
+    assert -0.7 - EXACT_TOL <= float(res.y[0]) <= 0.7 + EXACT_TOL  # hard limits hold either way

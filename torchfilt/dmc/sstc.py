@@ -48,6 +48,7 @@ Only stable CVs are supported (an integrating CV has no steady-state level to ta
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -59,7 +60,13 @@ from torch import Tensor
 from torchfilt.dmc.qp import solve_one
 from torchfilt.dmc.step_response import StepResponseModel
 from torchfilt.dmc.target import Target, TargetRow
-from torchfilt.exceptions import InfeasibleError, InputError, RunError, ShapeError
+from torchfilt.exceptions import (
+    ConvergenceWarning,
+    InfeasibleError,
+    InputError,
+    RunError,
+    ShapeError,
+)
 
 __all__ = ["MultiPriorityTarget", "SSTCResult"]
 
@@ -368,6 +375,7 @@ class MultiPriorityTarget:
         F, g = self._affine(y0, up)
         R = len(self._kinds)
         eps_fixed = np.zeros(R)  # relaxations fixed by the LP stages
+        du_lp: np.ndarray | None = None  # the last LP stage's move (the fallback target)
         stage_costs: list[float] = []
         for p in self.levels[:-1]:
             this = np.nonzero(self._prio == p)[0]
@@ -400,6 +408,7 @@ class MultiPriorityTarget:
                 raise RunError(f"the SSTC LP of priority {p} failed: {res.message}")
             eps_fixed[this] = np.maximum(res.x[nu:], 0.0)
             stage_costs.append(float(res.fun))
+            du_lp = res.x[:nu]
         # economic QP: z = [du (non-mm), p, n (mm), eps (lowest-priority rows)]
         free = [i for i in range(nu) if i not in self.mm]
         nd = len(free) + 2 * len(self.mm)
@@ -453,12 +462,17 @@ class MultiPriorityTarget:
             accept_almost=True,
             n_eq=len(Ae),
         )
-        if not solved:
-            raise RunError(
-                "the SSTC economic QP did not converge (Clarabel); y_ol_ss = "
-                f"{np.round(y0, 6).tolist()}, u(k-1) = {np.round(up, 6).tolist()}"
+        if solved:
+            du = T @ x[:nd]
+        else:  # never crash: keep the feasibility stages' answer and say so
+            warnings.warn(
+                "the SSTC economic QP did not converge (Clarabel); the target of the last "
+                f"feasibility stage is used (y_ol_ss = {np.round(y0, 6).tolist()}, u(k-1) = "
+                f"{np.round(up, 6).tolist()})",
+                ConvergenceWarning,
+                stacklevel=2,
             )
-        du = T @ x[:nd]
+            du = du_lp if du_lp is not None else self._hard_point(y0, lo, hi)
         du = np.clip(du, lo, hi)  # remove interior-point rounding outside the hard box
         # the relaxations implied by du (exact; the QP's slacks can exceed them only by rounding)
         f = F @ du + g
@@ -487,6 +501,20 @@ class MultiPriorityTarget:
             J,
             active,
         )
+
+    def _hard_point(self, y0: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """A move that satisfies the hard constraints (LP with a zero objective)."""
+        A, b = self._hard_ub(y0, self.nu)
+        res = scipy.optimize.linprog(
+            np.zeros(self.nu),
+            A_ub=np.stack(A) if A else None,
+            b_ub=np.asarray(b) if b else None,
+            bounds=list(zip(lo.tolist(), hi.tolist(), strict=True)),
+            method="highs",
+        )
+        if res.status != 0:
+            raise RunError(f"the SSTC hard-constraint LP failed: {res.message}")
+        return np.asarray(res.x)
 
     def _active(
         self, y: np.ndarray, u: np.ndarray, du: np.ndarray, viol: np.ndarray, f: np.ndarray
