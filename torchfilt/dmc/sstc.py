@@ -43,6 +43,9 @@ rows of the lowest priority are only in this stage (the paper's "QP with the low
 constraints").
 
 The result ``(y_ss, u_ss)`` is handed to the dynamic layer as CV setpoints and MV ideal values.
+Soft stages always relax; should the economic QP fail to converge, the last feasibility stage's
+target is used with a :class:`~torchfilt.exceptions.ConvergenceWarning`, so the loop never stops
+on a numerical failure.
 Only stable CVs are supported (an integrating CV has no steady-state level to target).
 """
 
