@@ -8,7 +8,8 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor, nn
 
-from torchfilt.exceptions import ShapeError
+from torchfilt.exceptions import InputError, ShapeError
+from torchfilt.numerics.dtypes import check_real_tensor
 
 __all__ = ["ConditionalModel", "Prediction", "TimeVarying"]
 
@@ -52,7 +53,7 @@ class TimeVarying:
 
     def __call__(self, step: int) -> Tensor:
         if not 0 <= step < self.steps:
-            raise IndexError(f"TimeVarying noise has {self.steps} steps; step {step} requested")
+            raise InputError(f"TimeVarying noise has {self.steps} steps; step {step} requested")
         return self.values[..., step, :, :]
 
     def to(self, *args: Any, **kwargs: Any) -> TimeVarying:
@@ -112,7 +113,13 @@ def check_noise(value: Tensor | TimeVarying | None, name: str) -> Tensor | TimeV
         check_noise(value.values.flatten(0, -3), name)
         return value
     if not isinstance(value, Tensor):
-        value = torch.as_tensor(value, dtype=torch.get_default_dtype())
+        try:
+            value = torch.as_tensor(value, dtype=torch.get_default_dtype())
+        except (TypeError, ValueError, RuntimeError):
+            raise InputError(
+                f"{name}: expected a covariance tensor, got {type(value).__name__}"
+            ) from None
+    check_real_tensor(value, name, integers=True)
     if value.dim() == 0:
         value = value.reshape(1, 1)
     if value.dim() < 2 or value.shape[-1] != value.shape[-2]:
@@ -120,13 +127,13 @@ def check_noise(value: Tensor | TimeVarying | None, name: str) -> Tensor | TimeV
             f"{name}: expected a covariance of shape (..., d, d), got {tuple(value.shape)}"
         )
     if not bool(torch.isfinite(value).all()):
-        raise ValueError(f"{name} contains non-finite entries")
+        raise InputError(f"{name} contains non-finite entries")
     if not torch.allclose(value, value.mT, rtol=1e-6, atol=0.0):
-        raise ValueError(f"{name} is not symmetric")
+        raise InputError(f"{name} is not symmetric")
     evals = torch.linalg.eigvalsh(value.to(torch.float64))
     tol = evals.abs().amax(-1) * 1e-8
     if bool((evals[..., 0] < -tol).any()):
-        raise ValueError(
+        raise InputError(
             f"{name} is not positive semi-definite: smallest eigenvalue {float(evals[..., 0].min()):.3e}"
         )
     return value
