@@ -19,6 +19,7 @@ from torchfilt.numerics.lsq import (
     batched_jacobian,
     bounded_least_squares,
 )
+from torchfilt.numerics.missing import observed
 from torchfilt.numerics.riccati import (
     SteadyStateKalman,
     check_detectable,
@@ -43,6 +44,7 @@ __all__ = [
     "cholesky_ok",
     "cholesky_solve",
     "gaussian_log_prob",
+    "observed",
     "psd_solve",
     "safe_cholesky",
     "solve_dare",
