@@ -88,6 +88,26 @@ def check_predictor(data: st.DataObject) -> None:
     elif bad_x0 == "shape":
         x0 = np.zeros(x0.shape[0] + 1)
     t = lambda a: torch.tensor(a, dtype=D)  # noqa: E731
+    y_dtype = data.draw(
+        st.sampled_from(
+            [D, D, D, D, torch.float32, torch.float16, torch.bfloat16, torch.complex128]
+        ),
+        label="y dtype",
+    )
+    if y_dtype != D:
+        yd = torch.tensor(y, dtype=y_dtype)
+        out, _ = attempt("OpenLoopPredictor.run (dtype)", pred.run, yd, t(du), t(dv))
+        if y_dtype == torch.float32:
+            # converted to the model's dtype: the same recursion on the float32-rounded data
+            if not isinstance(out, Refused):
+                assert T > 0
+                xr, _ = _reference(pred, yd.double().numpy(), du, dv, pred.initial_state().numpy())
+                sc = max(1.0, np.abs(xr).max())
+                np.testing.assert_allclose(out.states.numpy(), xr, rtol=0, atol=EXACT_RTOL * sc)
+            else:
+                assert T == 0, out
+        else:
+            assert isinstance(out, Refused) and isinstance(out.error, InputError), out
     run, _ = attempt("OpenLoopPredictor.run", pred.run, t(y), t(du), t(dv), x0=t(x0))
     if isinstance(run, Refused):
         assert T == 0 or bad_x0 is not None, run

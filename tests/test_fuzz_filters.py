@@ -133,7 +133,7 @@ test_fuzz_ckf_linear, test_fuzz_ckf_linear_long = property_tests(
 
 
 # ------------------------------------------------------------------- CKF on callables
-_VARIANTS = ["correct", "first component", "first point", "first batch element", "sum"]
+_VARIANTS = ["correct", "first component", "first point", "first batch element", "sum", "int64"]
 
 
 def _transition(variant: str, A: torch.Tensor):
@@ -145,6 +145,8 @@ def _transition(variant: str, A: torch.Tensor):
         return lambda x: (x @ A.mT)[..., :1, :]
     if variant == "first batch element":
         return lambda x: (x @ A.mT)[:1]
+    if variant == "int64":
+        return lambda x: (x @ A.mT).round().long()
     return lambda x: (x @ A.mT).sum(-1)  # a scalar per point
 
 
@@ -159,6 +161,7 @@ def check_ckf_callables(data: st.DataObject) -> None:
         "first point": lambda x: (x @ H.mT)[..., :1, :],
         "first batch element": lambda x: (x @ H.mT)[:1],
         "sum": lambda x: (x @ H.mT).sum(-1),
+        "int64": lambda x: (x @ H.mT).round().long(),
     }
     model = StateSpaceModel(
         _transition(fv, A), h_fns[hv], Q=case.torch(case.Q), R=case.torch(case.R)
@@ -279,6 +282,80 @@ def check_metrics(data: st.DataObject) -> None:
 
 
 test_fuzz_metrics, test_fuzz_metrics_long = property_tests(check_metrics, short=5, long=300)
+
+
+# ------------------------------------------------------------------- model construction
+def _matrix(data: st.DataObject, rows: int, cols: int, label: str):
+    kind = data.draw(
+        st.sampled_from(["ok", "ok", "ok", "nan", "shape", "half", "int", "list", "asym", "neg"]),
+        label=f"{label} kind",
+    )
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1), label=f"{label} seed"))
+    if rows == cols:
+        M = _spd(rng, rows, 0.1, 1.0)
+    else:
+        M = rng.standard_normal((rows, cols))
+    if kind == "nan":
+        M[0, 0] = np.nan
+    elif kind == "shape":
+        M = rng.standard_normal((rows, cols + 1))
+    elif kind == "asym" and rows == cols and rows > 1:
+        M[0, 1] += 1.0
+    elif kind == "neg" and rows == cols:
+        M = -M
+    if kind == "half":
+        return torch.tensor(M, dtype=torch.float16), kind
+    if kind == "int":
+        return torch.tensor(np.round(M * 3), dtype=torch.int64), kind
+    if kind == "list":
+        return M.tolist(), kind
+    return torch.tensor(M, dtype=D), kind
+
+
+def check_model_construction(data: st.DataObject) -> None:
+    n = data.draw(st.integers(1, 3), label="n")
+    m = data.draw(st.integers(1, 2), label="m")
+    A, ka = _matrix(data, n, n, "A")
+    H, kh = _matrix(data, m, n, "H")
+    Q, kq = _matrix(data, n, n, "Q")
+    R, kr = _matrix(data, m, m, "R")
+    model, _ = attempt("LinearGaussianModel", LinearGaussianModel, A, H, Q, R)
+    kinds = {"A": ka, "H": kh, "Q": kq, "R": kr}
+    fatal = {"nan", "shape", "half"}
+    if isinstance(model, Refused):
+        assert any(
+            k in fatal or (name in "QR" and k in ("asym", "neg")) for name, k in kinds.items()
+        ), (
+            kinds,
+            model,
+        )
+        return
+    # accepted: nothing that the rules refuse slipped through (a 1x1 "asym" is symmetric; the
+    # rounded "int" matrices and lists are real numbers)
+    for name, k in kinds.items():
+        assert k not in fatal, f"{name}: a {k} matrix was accepted"
+        if name in "QR" and k == "neg":
+            raise AssertionError(f"{name}: a negative definite covariance was accepted")
+        if name in "QR" and k == "asym" and (n if name == "Q" else m) > 1:
+            raise AssertionError(f"{name}: a non-symmetric covariance was accepted")
+    y = torch.zeros(3, m, dtype=D)
+    res, warned = attempt(
+        "CKF.filter (constructed)",
+        CKF(model).filter,
+        y,
+        x0=torch.zeros(n, dtype=D),
+        P0=torch.eye(n, dtype=D),
+    )
+    if isinstance(res, Refused):
+        return
+    assert torch.isfinite(res.mean).all() or any(
+        issubclass(w.category, DivergenceWarning) for w in warned
+    )
+
+
+test_fuzz_model_construction, test_fuzz_model_construction_long = property_tests(
+    check_model_construction, short=8, long=400
+)
 
 
 def teardown_module() -> None:
