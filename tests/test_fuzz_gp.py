@@ -49,6 +49,7 @@ def _check_gp(data: st.DataObject) -> None:
         y = np.full((N, m), 0.7 * yscale)
     if fault == "missing":  # allowed for a measurement (dropped per output), not a transition
         y[rng.uniform(size=y.shape) < 0.2] = np.nan
+        y[1, 0] = np.nan
     elif fault == "inf":
         y[0, 0] = np.inf
     lr = data.draw(st.sampled_from([0.05, 0.5]))

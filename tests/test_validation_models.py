@@ -7,8 +7,7 @@ import torch
 
 from torchfilt import CKF, LinearGaussianModel, StateSpaceModel
 from torchfilt.exceptions import InputError, ModelError, ShapeError, TorchfiltError
-from torchfilt.models import FunctionModel
-from torchfilt.models.functional import check_output
+from torchfilt.models import FunctionModel, Prediction, check_output, check_prediction
 from torchfilt.numerics import check_compute_dtype, check_real_tensor
 
 D = torch.float64
@@ -159,3 +158,18 @@ def test_real_tensor_rule(dtype, integers, ok):
     else:
         with pytest.raises(TorchfiltError, match="v: "):
             check_real_tensor(t, "v", integers=integers)
+
+
+def test_check_prediction_covers_variance_and_covariance():
+    x = torch.randn(5, N, dtype=D)
+    mean = torch.zeros(5, 2, dtype=D)
+    ok = check_prediction(
+        Prediction(mean, torch.ones(5, 2), torch.eye(2).expand(5, 2, 2)), x, 2, "gp"
+    )
+    assert ok.var.dtype == D and ok.cov.dtype == D
+    with pytest.raises(ModelError, match=r"gp \(variance\) returned shape \(5, 1\)"):
+        check_prediction(Prediction(mean, torch.ones(5, 1, dtype=D)), x, 2, "gp")
+    with pytest.raises(ModelError, match=r"gp \(covariance\): shape \(5, 2\)"):
+        check_prediction(Prediction(mean, None, torch.ones(5, 2, dtype=D)), x, 2, "gp")
+    with pytest.raises(ModelError, match=r"gp\.predict returned tuple"):
+        check_prediction((mean,), x, 2, "gp")

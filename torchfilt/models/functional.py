@@ -9,8 +9,14 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import InputError, ModelError, ShapeError
-from torchfilt.models.base import ConditionalModel, Prediction, TimeVarying, check_noise
+from torchfilt.exceptions import InputError, ShapeError
+from torchfilt.models.base import (
+    ConditionalModel,
+    Prediction,
+    TimeVarying,
+    check_noise,
+    check_output,
+)
 
 __all__ = ["FunctionModel", "StateSpaceModel", "as_conditional", "check_output"]
 
@@ -101,55 +107,6 @@ class FunctionModel(_NoiseMixin, ConditionalModel):
     def predict(self, x: Tensor, u: Tensor | None = None) -> Prediction:
         out = self._fn(x, u) if self._two_args else self._fn(x)
         return Prediction(check_output(out, x, self.out_dim, self.name))
-
-
-def check_output(out: Any, x: Tensor, out_dim: int, name: str) -> Tensor:
-    """Check a model's output against its points and declared output dimension.
-
-    The rule: ``out`` is a floating tensor of shape ``(..., P, d)`` whose every dimension is at least
-    that of the points ``x (..., P, n)`` (leading dimensions may be *larger*, for a model with
-    batched parameters, but no dimension is ever broadcast up to fit: an output of shape
-    ``(..., 1)`` for ``d = 3`` or ``(1, d)`` for ``P`` points is an error, not ``P`` copies). A
-    floating output of another dtype is cast to ``x.dtype``; any other dtype is an error. Only
-    metadata is read: no host synchronisation, static under ``torch.compile`` and CUDA graphs.
-
-    Args:
-        out: what the model returned.
-        x: the points it was given, shape ``(..., P, n)``.
-        out_dim: the declared output dimension ``d``.
-        name: the model's name, for the message.
-
-    Returns:
-        ``out`` (cast to ``x.dtype`` if needed).
-
-    Raises:
-        ModelError: ``out`` is not a tensor, is not floating point, or has the wrong shape.
-    """
-    if not isinstance(out, Tensor):
-        raise ModelError(f"{name} returned {type(out).__name__}, expected a torch.Tensor")
-    want = (*x.shape[:-1], out_dim)
-    shape = tuple(out.shape)
-    if shape != want:
-        ok = len(shape) >= len(want) and shape[-1] == out_dim
-        if ok:
-            try:
-                ok = tuple(torch.broadcast_shapes(out.shape, want)) == shape
-            except RuntimeError:
-                ok = False
-        if not ok:
-            raise ModelError(
-                f"{name} returned shape {shape} for points of shape {tuple(x.shape)}; expected "
-                f"{want}, i.e. (..., P, d) with d = {out_dim} (an output is never broadcast to "
-                "fit: index components with x[..., i], not x[i])"
-            )
-    if out.dtype != x.dtype:
-        if not out.is_floating_point():
-            raise ModelError(
-                f"{name} returned dtype {out.dtype} for {x.dtype} points; a model must return "
-                "floating-point values"
-            )
-        out = out.to(x.dtype)
-    return out
 
 
 class WithNoise(_NoiseMixin, ConditionalModel):
