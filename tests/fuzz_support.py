@@ -10,7 +10,7 @@ Any other exception (a crash inside torch or gpytorch, a bare ``ValueError``) pr
 the test; so does a warning that is not a :class:`~torchfilt.exceptions.TorchfiltWarning`.
 
 Each property runs twice: a short derandomised run in the default suite (a few seconds in all) and a
-long one under ``@pytest.mark.slow`` (3000+ cases over all files). :data:`STATS` counts the
+long one under ``@pytest.mark.slow`` (over 5,000 cases over all files). :data:`STATS` counts the
 outcomes per entry point; ``pytest -m slow -s tests/test_fuzz_*.py`` prints them.
 """
 

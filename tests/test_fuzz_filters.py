@@ -19,7 +19,7 @@ from reference import kalman_filter, rts_smoother
 from scipy import stats
 
 from torchfilt import CKF, LinearGaussianModel, StateSpaceModel
-from torchfilt.exceptions import DivergenceWarning, ModelError
+from torchfilt.exceptions import DivergenceWarning, ModelError, ShapeError
 from torchfilt.filters import rts_smooth
 from torchfilt.filters.metrics import coverage, nees, nis, rmse
 
@@ -64,13 +64,26 @@ class Case:
         y[rng.uniform(size=shape) < missing] = fill
         self.y = y
         self.scale = scale
+        self.nu = data.draw(st.sampled_from([0, 0, 1, 2]), label="nu")
+        self.Bm = rng.uniform(-1.0, 1.0, (n, self.nu)) if self.nu else None
+        self.u = rng.standard_normal((T, self.nu)) * scale if self.nu else None
 
     def torch(self, a: np.ndarray) -> torch.Tensor:
         return torch.tensor(a, dtype=D)
 
     def reference(self, seq: int | None):
         y = self.y if seq is None else self.y[seq]
-        return kalman_filter(self.A, self.H, self.Q, self.R, y, self.x0, self.P0)
+        return kalman_filter(
+            self.A, self.H, self.Q, self.R, y, self.x0, self.P0, B=self.Bm, u=self.u
+        )
+
+    def model(self) -> LinearGaussianModel:
+        t = self.torch
+        B = None if self.Bm is None else t(self.Bm)
+        return LinearGaussianModel(t(self.A), t(self.H), t(self.Q), t(self.R), B=B)
+
+    def u_tensor(self) -> torch.Tensor | None:
+        return None if self.u is None else self.torch(self.u)
 
     def sequences(self) -> list[int | None]:
         return [None] if self.B is None else list(range(self.B))
@@ -111,19 +124,24 @@ def _check_filter_result(case: Case, res, warned: list) -> None:
 # ------------------------------------------------------------------- CKF on LinearGaussianModel
 def check_ckf_linear(data: st.DataObject) -> None:
     case = Case(data)
-    model = LinearGaussianModel(
-        case.torch(case.A), case.torch(case.H), case.torch(case.Q), case.torch(case.R)
-    )
+    model = case.model()
     sqrt = data.draw(st.booleans(), label="sqrt")
+    u = case.u_tensor()
+    wrong_u = u is not None and data.draw(st.booleans(), label="wrong u width")
+    if wrong_u:
+        u = torch.cat([u, u], -1)
     res, warned = attempt(
         "CKF.filter (linear)",
         CKF(model, sqrt=sqrt).filter,
         case.torch(case.y),
+        u,
         x0=case.torch(case.x0),
         P0=case.torch(case.P0),
     )
-    if isinstance(res, Refused):
+    if wrong_u:
+        assert isinstance(res, Refused) and isinstance(res.error, ShapeError), res
         return
+    assert not isinstance(res, Refused), f"a valid problem was refused: {res}"
     _check_filter_result(case, res, warned)
 
 
@@ -136,18 +154,22 @@ test_fuzz_ckf_linear, test_fuzz_ckf_linear_long = property_tests(
 _VARIANTS = ["correct", "first component", "first point", "first batch element", "sum", "int64"]
 
 
-def _transition(variant: str, A: torch.Tensor):
-    if variant == "correct":
-        return lambda x: x @ A.mT
-    if variant == "first component":  # (..., 1) instead of (..., n)
-        return lambda x: (x @ A.mT)[..., :1]
-    if variant == "first point":  # x[:1]: indexes the points, not the components
-        return lambda x: (x @ A.mT)[..., :1, :]
-    if variant == "first batch element":
-        return lambda x: (x @ A.mT)[:1]
-    if variant == "int64":
-        return lambda x: (x @ A.mT).round().long()
-    return lambda x: (x @ A.mT).sum(-1)  # a scalar per point
+def _transition(variant: str, A: torch.Tensor, B: torch.Tensor | None):
+    def f(x: torch.Tensor, u: torch.Tensor | None) -> torch.Tensor:
+        out = x @ A.mT if B is None else x @ A.mT + u @ B.mT
+        if variant == "first component":  # (..., 1) instead of (..., n)
+            return out[..., :1]
+        if variant == "first point":  # x[:1]: indexes the points, not the components
+            return out[..., :1, :]
+        if variant == "first batch element":
+            return out[:1]
+        if variant == "int64":
+            return out.round().long()
+        if variant == "sum":
+            return out.sum(-1)  # a scalar per point
+        return out
+
+    return f
 
 
 def check_ckf_callables(data: st.DataObject) -> None:
@@ -163,13 +185,15 @@ def check_ckf_callables(data: st.DataObject) -> None:
         "sum": lambda x: (x @ H.mT).sum(-1),
         "int64": lambda x: (x @ H.mT).round().long(),
     }
+    B = None if case.Bm is None else case.torch(case.Bm)
     model = StateSpaceModel(
-        _transition(fv, A), h_fns[hv], Q=case.torch(case.Q), R=case.torch(case.R)
+        _transition(fv, A, B), h_fns[hv], Q=case.torch(case.Q), R=case.torch(case.R)
     )
     res, warned = attempt(
         "CKF.filter (callables)",
         CKF(model).filter,
         case.torch(case.y),
+        case.u_tensor(),
         x0=case.torch(case.x0),
         P0=case.torch(case.P0),
     )
@@ -191,23 +215,20 @@ test_fuzz_ckf_callables, test_fuzz_ckf_callables_long = property_tests(
 # ------------------------------------------------------------------- smoother
 def check_smooth(data: st.DataObject) -> None:
     case = Case(data)
-    model = LinearGaussianModel(
-        case.torch(case.A), case.torch(case.H), case.torch(case.Q), case.torch(case.R)
-    )
+    model = case.model()
     via = data.draw(st.sampled_from(["CKF.smooth", "rts_smooth"]), label="via")
     ckf = CKF(model)
     kw = dict(x0=case.torch(case.x0), P0=case.torch(case.P0))
     y = case.torch(case.y)
+    u = case.u_tensor()
     if via == "CKF.smooth":
-        sm, warned = attempt("CKF.smooth", ckf.smooth, y, **kw)
+        sm, warned = attempt("CKF.smooth", ckf.smooth, y, u, **kw)
     else:
-        fr, warned = attempt("CKF.filter (for rts_smooth)", ckf.filter, y, **kw)
-        if isinstance(fr, Refused):
-            return
+        fr, warned = attempt("CKF.filter (for rts_smooth)", ckf.filter, y, u, **kw)
+        assert not isinstance(fr, Refused), fr
         sm, w2 = attempt("rts_smooth", rts_smooth, fr)
         warned = warned + w2
-    if isinstance(sm, Refused):
-        return
+    assert not isinstance(sm, Refused), sm
     if not bool(torch.isfinite(sm.mean).all()):
         assert any(issubclass(w.category, DivergenceWarning) for w in warned)
         return
@@ -226,17 +247,16 @@ test_fuzz_smooth, test_fuzz_smooth_long = property_tests(check_smooth, short=5, 
 # ------------------------------------------------------------------- metrics
 def check_metrics(data: st.DataObject) -> None:
     case = Case(data)
-    model = LinearGaussianModel(
-        case.torch(case.A), case.torch(case.H), case.torch(case.Q), case.torch(case.R)
-    )
     res, _ = attempt(
         "CKF.filter (for metrics)",
-        CKF(model).filter,
+        CKF(case.model()).filter,
         case.torch(case.y),
+        case.u_tensor(),
         x0=case.torch(case.x0),
         P0=case.torch(case.P0),
     )
-    if isinstance(res, Refused) or not bool(torch.isfinite(res.mean).all()):
+    assert not isinstance(res, Refused), res
+    if not bool(torch.isfinite(res.mean).all()):
         return
     rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1), label="truth seed"))
     x_true = torch.tensor(rng.standard_normal(tuple(res.mean.shape)) * case.scale, dtype=D)
