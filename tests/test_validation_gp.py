@@ -101,3 +101,11 @@ def test_recordings_of_different_state_dimensions(one_thread):
         GPTransition.fit([a, b], iterations=ITERS, progress=False)
     with pytest.raises(ShapeError, match=r"u\[1\]: 2 columns, expected 1 like u\[0\]"):
         GPTransition.fit([a, a], [ya[:-1], a[:-1]], iterations=ITERS, progress=False)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.int64])
+def test_predict_applies_the_dtype_rule(dtype, one_thread):
+    x, y = smooth_data(20)
+    h = GPMeasurement.fit(x, y, iterations=ITERS, progress=False)
+    with pytest.raises(InputError, match="x: "):
+        h.predict(x[:3].to(dtype))

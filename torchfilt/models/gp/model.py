@@ -44,6 +44,7 @@ from torchfilt.models.gp.predictor import (
     sparse_block,
 )
 from torchfilt.models.gp.standardize import Standardizer
+from torchfilt.numerics.dtypes import check_real_tensor
 
 __all__ = ["STATE_FORMAT", "GPModel"]
 
@@ -523,6 +524,7 @@ class GPModel(ConditionalModel):
         n, nu = self.config.state_dim, self.config.input_dim
         if not isinstance(x, Tensor):
             raise InputError(f"x must be a torch.Tensor, got {type(x).__name__}")
+        check_real_tensor(x, "x")
         if x.dim() < 1 or x.shape[-1] != n:
             raise ShapeError(f"x: expected shape (..., P, n) with n = {n}, got {tuple(x.shape)}")
         if nu == 0:
