@@ -109,3 +109,10 @@ def test_measurement_dtype_rule(dtype):
     pred = OpenLoopPredictor(model, Q_Y=0.3, Q_y=1.0)
     with pytest.raises(InputError, match="y: "):
         pred.run(torch.zeros(5, model.ny, dtype=dtype))
+
+
+def test_model_must_be_a_step_response_model():
+    with pytest.raises(InputError, match="model must be a StepResponseModel"):
+        OpenLoopPredictor(object(), Q_Y=0.3, Q_y=1.0)  # type: ignore[arg-type]
+    with pytest.raises(InputError, match="model must be a StepResponseModel"):
+        OpenLoopPredictor.classical("model")  # type: ignore[arg-type]

@@ -87,6 +87,14 @@ def _as_cov(value: Any, n: int, name: str, dtype: torch.dtype) -> Tensor:
     return t
 
 
+def _check_model(model: Any) -> None:
+    if not isinstance(model, StepResponseModel):
+        raise InputError(
+            f"model must be a StepResponseModel (e.g. StepResponseModel.from_transfer_functions), "
+            f"got {type(model).__name__}"
+        )
+
+
 def _block_diagonal(Q: Tensor, blocks: tuple[tuple[int, int], ...]) -> bool:
     mask = torch.zeros_like(Q, dtype=torch.bool)
     for s, L in blocks:
@@ -165,6 +173,7 @@ class OpenLoopPredictor:
         gain: Tensor | None = None,
         horizon: int | None = None,
     ) -> None:
+        _check_model(model)
         self.model = model
         self.realization = self._realizer(model, horizon)
         n, ny = self.realization.state_dim, model.ny
@@ -214,6 +223,7 @@ class OpenLoopPredictor:
                 (length ``N + 1`` or ``N + 2``; all CVs must then use the same layout).
             horizon: model horizon ``N``.
         """
+        _check_model(model)
         real = cls._realizer(model, horizon)
         K = torch.zeros(real.state_dim, model.ny, dtype=model.dtype)
         h_t = _as_tensor(h, "h", model.dtype)
