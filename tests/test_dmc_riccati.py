@@ -7,7 +7,7 @@ import torch
 from conftest import random_spd
 
 from torchfilt.dmc import FOPDT, IPDT, StepResponseModel, realize, steady_gain
-from torchfilt.exceptions import NotDetectableError, ShapeError
+from torchfilt.exceptions import InputError, NotDetectableError, ShapeError
 from torchfilt.numerics import check_detectable, solve_dare, steady_state_kalman
 
 D = torch.float64
@@ -190,5 +190,5 @@ def test_bad_inputs_name_the_argument():
         solve_dare(I2, torch.ones(1, 2, dtype=D), -I2, torch.eye(1, dtype=D))
     with pytest.raises(ValueError, match="A contains non-finite"):
         solve_dare(I2 * float("nan"), torch.ones(1, 2, dtype=D), I2, torch.eye(1, dtype=D))
-    with pytest.raises(TypeError, match=r"A must be a torch\.Tensor"):
+    with pytest.raises(InputError, match=r"A must be a torch\.Tensor"):
         solve_dare(np.eye(2), torch.ones(1, 2, dtype=D), I2, torch.eye(1, dtype=D))

@@ -33,7 +33,8 @@ import scipy.linalg
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import NotDetectableError, ShapeError
+from torchfilt.exceptions import InputError, NotDetectableError, ShapeError
+from torchfilt.numerics.dtypes import check_real_tensor
 from torchfilt.numerics.linalg import psd_solve, symmetrize
 
 __all__ = ["SteadyStateKalman", "check_detectable", "solve_dare", "steady_state_kalman"]
@@ -75,11 +76,10 @@ def _check_square(M: Tensor, name: str, n: int | None = None) -> None:
 def _check_inputs(A: Tensor, C: Tensor, Q: Tensor, R: Tensor) -> tuple[Tensor, ...]:
     for name, M in (("A", A), ("C", C), ("Q", Q), ("R", R)):
         if not isinstance(M, Tensor):
-            raise TypeError(f"{name} must be a torch.Tensor, got {type(M).__name__}")
-        if not M.is_floating_point():
-            raise TypeError(f"{name} must be floating point, got {M.dtype}")
+            raise InputError(f"{name} must be a torch.Tensor, got {type(M).__name__}")
+        check_real_tensor(M, name)
         if not bool(torch.isfinite(M).all()):
-            raise ValueError(f"{name} contains non-finite entries")
+            raise InputError(f"{name} contains non-finite entries")
     _check_square(A, "A")
     n = A.shape[-1]
     if C.dim() < 2 or C.shape[-1] != n:
@@ -90,21 +90,27 @@ def _check_inputs(A: Tensor, C: Tensor, Q: Tensor, R: Tensor) -> tuple[Tensor, .
     for name, M in (("Q", Q), ("R", R)):
         scale = M.abs().amax().clamp_min(1.0)
         if not torch.allclose(M, M.mT, rtol=0.0, atol=float(scale) * SYMMETRY_RTOL):
-            raise ValueError(f"{name} is not symmetric")
+            raise InputError(f"{name} is not symmetric")
     ev_r = torch.linalg.eigvalsh(symmetrize(R))
     if bool((ev_r[..., 0] <= 0).any()):
-        raise ValueError(
+        raise InputError(
             f"R must be positive definite; smallest eigenvalue {float(ev_r[..., 0].min()):.3e}"
         )
     ev_q = torch.linalg.eigvalsh(symmetrize(Q))
     qscale = ev_q[..., -1].abs().clamp_min(torch.finfo(Q.dtype).tiny)
     if bool((ev_q[..., 0] < -math.sqrt(torch.finfo(Q.dtype).eps) * qscale).any()):
-        raise ValueError(
+        raise InputError(
             f"Q must be positive semi-definite; smallest eigenvalue {float(ev_q[..., 0].min()):.3e}"
         )
     dtype = torch.promote_types(torch.promote_types(A.dtype, C.dtype), Q.dtype)
     dtype = torch.promote_types(dtype, R.dtype)
-    batch = torch.broadcast_shapes(A.shape[:-2], C.shape[:-2], Q.shape[:-2], R.shape[:-2])
+    try:
+        batch = torch.broadcast_shapes(A.shape[:-2], C.shape[:-2], Q.shape[:-2], R.shape[:-2])
+    except RuntimeError:
+        desc = ", ".join(
+            f"{k} {tuple(M.shape[:-2])}" for k, M in zip("ACQR", (A, C, Q, R), strict=True)
+        )
+        raise ShapeError(f"batch shapes do not broadcast: {desc}") from None
     return tuple(M.to(dtype).expand(*batch, *M.shape[-2:]) for M in (A, C, Q, R))
 
 
