@@ -46,6 +46,7 @@ reproduce: $(STAMP)
 	$(BIN)/python scripts/reproduce_reentry.py --out $(OUT)/reentry
 	$(BIN)/python scripts/reproduce_cckf.py --out $(OUT)/cckf --mfckf-dir $(OUT)/reentry
 	$(BIN)/python scripts/reproduce_dmc.py --out $(OUT)/dmc
+	$(BIN)/python scripts/reproduce_dmc.py --double-layer --out $(OUT)/dmc-double-layer
 
 plaza: $(STAMP)
 	$(BIN)/python scripts/plaza_example.py --out $(OUT)/plaza

@@ -13,15 +13,25 @@ Section 3.1 (stable CVs, closed loop):
   T = 4 min, N = 100, P = 15, M = 8, Lambda = diag(3, 5, 3), Q_Y = 0.5 I, Q_y = I, plant output x 0.9,
   disturbance [0.2; 0.1] for k in [64, 78] and [1; -1] from k = 122, |u| <= 0.5, |du| <= 0.1. The same
   controller and target layer run once with the Kalman-filter prediction and once with the classical
-  DMC prediction (constant output correction, h = 1); the largest differences are reported. The paper's
-  multi-priority target calculation (its Table 1) is replaced by the single weighted QP of
-  torchfilt.dmc.WeightedTarget over the same rows (priorities -> weights); see README / the report.
+  DMC prediction (constant output correction, h = 1); the largest differences are reported. This default
+  run uses the single weighted QP of torchfilt.dmc.WeightedTarget over the Table-1 rows (priorities ->
+  weights), which isolates the prediction module.
+
+Section 3.1 as the paper runs it (--double-layer): the double-layered DMC of Li & Ding (2015). The
+  steady-state target calculation torchfilt.dmc.MultiPriorityTarget (hard limits, then the Table-1
+  priorities stage by stage by LP, then the economic QP with h = [-2, 1, 2], u2 minimum-move,
+  J_min = -0.4 and the priority-6 rows) feeds the dynamic layer DMCController (P = 15, M = 8,
+  Lambda = diag(3, 5, 3), soft CV bounds +/-0.4 with the q weights, hard CV limits +/-0.7, input and
+  move limits). Run with the KF prediction and with the classical correction; reports the largest
+  differences, the hard limits over the run and the active SSTC constraints at each steady state.
 
 Usage:
   PYTHONPATH=. python scripts/reproduce_dmc.py [--out out/dmc] [--steps-31 250] [--steps-32 1000]
+  PYTHONPATH=. python scripts/reproduce_dmc.py --double-layer [--out out/dmc] [--steps-31 250]
 
 Writes results.json and fig_32_observer.png, fig_32_filter.png, fig_32_error.png, fig_31_cv.png,
-fig_31_mv.png into --out, and prints a table.
+fig_31_mv.png into --out, and prints a table; with --double-layer, results_double_layer.json,
+fig_31dl_cv.png and fig_31dl_mv.png.
 """
 
 from __future__ import annotations
@@ -42,9 +52,12 @@ import torch
 from torchfilt.dmc import (
     DMCController,
     LMGPredictor,
+    MultiPriorityTarget,
     OpenLoopPredictor,
     SampledPlant,
+    SSTCResult,
     StepResponseModel,
+    Target,
     TargetRow,
     WeightedTarget,
     integrating_fractionator,
@@ -241,6 +254,167 @@ def table1_rows() -> list[TargetRow]:
     return rows
 
 
+#: Table 1 as (priority, kind, variable, value, equal-concern error).
+def table1() -> list[tuple[int, str, tuple[str, int], float, float]]:
+    et_lo = {v: x - ET_HALF_RANGE for v, x in ET.items()}
+    et_hi = {v: x + ET_HALF_RANGE for v, x in ET.items()}
+    return [
+        (1, "lower", ("y", 1), -CV_SOFT, 0.20),
+        (1, "upper", ("y", 2), CV_SOFT, 0.20),
+        (1, "upper", ("u", 2), et_hi[("u", 2)], 0.25),
+        (2, "ideal", ("y", 1), -0.3, 0.25),
+        (3, "lower", ("u", 2), et_lo[("u", 2)], 0.25),
+        (3, "lower", ("y", 0), et_lo[("y", 0)], 0.25),
+        (3, "upper", ("y", 1), et_hi[("y", 1)], 0.25),
+        (4, "upper", ("y", 0), et_hi[("y", 0)], 0.25),
+        (4, "upper", ("y", 1), CV_SOFT, 0.20),
+        (4, "lower", ("y", 2), -CV_SOFT, 0.20),
+        (5, "ideal", ("u", 2), 0.3, 0.25),
+        (5, "ideal", ("y", 0), 0.6, 0.25),
+        (6, "lower", ("y", 0), -CV_SOFT, 0.20),
+        (6, "upper", ("y", 0), CV_SOFT, 0.20),
+        (6, "lower", ("y", 1), et_lo[("y", 1)], 0.25),
+    ]
+
+
+#: Dynamic layer (spec 3.1; the reading of the garbled source): per CV (q^1, q^0, q^2) = weight of a
+#: soft lower-bound violation, tracking weight, weight of a soft upper-bound violation.
+Q_WEIGHTS = ((2.0, 0.5, 2.0), (1.0, 0.8, 1.0), (2.5, 1.0, 4.0))
+Z_SOFT = 0.4
+#: Steady states reported: the last sample before each disturbance change, and the end of the run.
+STEADY_KS = (63, 121)
+
+
+def double_layer(model: StepResponseModel) -> tuple[MultiPriorityTarget, DMCController]:
+    """The SSTC and dynamic layer of section 3.1 (spec 3.1, Table 1)."""
+    rows = [TargetRow(var, kind, val, ecr, p) for p, kind, var, val, ecr in table1()]
+    sstc = MultiPriorityTarget(
+        model,
+        rows,
+        u_min=-0.5,
+        u_max=0.5,
+        du_ss_max=0.1,
+        y_min=-CV_HARD,
+        y_max=CV_HARD,
+        cost=[-2.0, 1.0, 2.0],
+        minimum_move=[1],
+        J_min=-0.4,
+    )
+    q = torch.tensor(Q_WEIGHTS, dtype=D)
+    ctrl = DMCController(
+        model,
+        P=15,
+        M=8,
+        Q=q[:, 1],
+        Lambda=torch.tensor([3.0, 5.0, 3.0]),
+        W=1.0,  # the Omega weights (I) on the MV ideal values
+        u_min=-0.5,
+        u_max=0.5,
+        du_max=0.1,
+        y_min=-CV_HARD,
+        y_max=CV_HARD,
+        z_min=-Z_SOFT,
+        z_max=Z_SOFT,
+        q_lower=q[:, 0],
+        q_upper=q[:, 2],
+    )
+    return sstc, ctrl
+
+
+class RecordingTarget:
+    """Wraps the SSTC and keeps every :class:`SSTCResult` (for the active-constraint report)."""
+
+    def __init__(self, sstc: MultiPriorityTarget) -> None:
+        self.sstc = sstc
+        self.log: list[SSTCResult] = []
+
+    def __call__(self, y_ss: torch.Tensor, u_prev: torch.Tensor) -> Target:
+        res = self.sstc.solve(y_ss, u_prev)
+        self.log.append(res)
+        return Target(res.y, res.u)
+
+
+def section_31_double_layer(steps: int) -> dict:
+    Gu, Gv = shell_fractionator()
+    model = StepResponseModel.from_transfer_functions(Gu, Gv, dt=4.0, horizon=100)
+    plant = SampledPlant(Gu, Gv, dt=4.0, steps=steps, output_scale=0.9)
+    v = torch.zeros(steps, 2, dtype=D)
+    v[64:79] = torch.tensor([0.2, 0.1], dtype=D)
+    v[122:] = torch.tensor([1.0, -1.0], dtype=D)
+    sstc, ctrl = double_layer(model)
+    predictors = {
+        "kf": OpenLoopPredictor(model, Q_Y=0.5, Q_y=1.0),
+        "classical": OpenLoopPredictor.classical(model, h=1.0),
+    }
+    runs, logs, secs = {}, {}, {}
+    for name, p in predictors.items():
+        rec = RecordingTarget(sstc)
+        t0 = time.perf_counter()
+        runs[name] = run_closed_loop(plant, p, ctrl, rec, v)
+        secs[name] = time.perf_counter() - t0
+        logs[name] = rec.log
+    a, b = runs["kf"], runs["classical"]
+    dy, du_ = (a.y - b.y).abs(), (a.u - b.u).abs()
+    steady = [k for k in (*STEADY_KS, steps - 1) if k < steps]
+    res = {
+        "settings": {
+            "T": 4.0,
+            "N": 100,
+            "P": 15,
+            "M": 8,
+            "Lambda": [3, 5, 3],
+            "Q_Y": 0.5,
+            "Q_y": 1.0,
+            "mismatch": 0.9,
+            "steps": steps,
+            "classical_h": 1.0,
+            "table1": [list(r) for r in table1()],
+            "ET": {f"{k[0]}{k[1] + 1}": x for k, x in ET.items()},
+            "ET_range": 2 * ET_HALF_RANGE,
+            "economics": {"h": [-2.0, 1.0, 2.0], "minimum_move": ["u2"], "J_min": -0.4},
+            "dynamic": {
+                "z": [-Z_SOFT, Z_SOFT],
+                "q_lower_tracking_upper": Q_WEIGHTS,
+                "Omega": 1.0,
+                "hard_cv": [-CV_HARD, CV_HARD],
+            },
+        },
+        "max_abs_cv_difference": float(dy.max()),
+        "max_abs_cv_difference_at_k": int(dy.amax(1).argmax()),
+        "max_abs_mv_difference": float(du_.max()),
+        "max_abs_mv_difference_at_k": int(du_.amax(1).argmax()),
+        "rms_cv_difference": float((a.y - b.y).pow(2).mean().sqrt()),
+        "cv_range": float(a.y.abs().max()),
+        "max_abs_y": {n: float(r.y.abs().max()) for n, r in runs.items()},
+        "max_abs_u": {n: float(r.u.abs().max()) for n, r in runs.items()},
+        "max_abs_du": {n: float(r.du.abs().max()) for n, r in runs.items()},
+        "steady_states": {
+            n: [
+                {
+                    "k": k,
+                    "y": runs[n].y[k].tolist(),
+                    "u": runs[n].u[k].tolist(),
+                    "y_target": runs[n].y_target[k].tolist(),
+                    "u_target": runs[n].u_target[k].tolist(),
+                    "sstc_active": logs[n][k].active,
+                    "dynamic_soft_bounds_violated": [
+                        f"y{j + 1} {'above' if y > 0 else 'below'} {'+' if y > 0 else '-'}"
+                        f"{Z_SOFT} by {abs(y) - Z_SOFT:.3g}"
+                        for j, y in enumerate(runs[n].y[k].tolist())
+                        if abs(y) > Z_SOFT
+                    ],
+                    "sstc_stage_costs": logs[n][k].stage_costs.tolist(),
+                }
+                for k in steady
+            ]
+            for n in runs
+        },
+        "closed_loop_seconds": secs,
+        "_runs": runs,
+    }
+    return res
+
+
 def section_31(steps: int) -> dict:
     Gu, Gv = shell_fractionator()
     model = StepResponseModel.from_transfer_functions(Gu, Gv, dt=4.0, horizon=100)
@@ -310,12 +484,14 @@ def section_31(steps: int) -> dict:
     return res
 
 
-def plot_31(res: dict, outdir: Path) -> list[str]:
+def plot_31(
+    res: dict, outdir: Path, prefix: str = "fig_31", title: str = "", zone: float | None = None
+) -> list[str]:
     a, b = res["_runs"]["kf"], res["_runs"]["classical"]
     K = a.y.shape[0]
     t = 4.0 * np.arange(K)
     files = []
-    for what, fname in (("cv", "fig_31_cv.png"), ("mv", "fig_31_mv.png")):
+    for what, fname in (("cv", f"{prefix}_cv.png"), ("mv", f"{prefix}_mv.png")):
         fig, axes = plt.subplots(3, 1, figsize=(9, 7.5), sharex=True)
         for j in range(3):
             ax = axes[j]
@@ -333,6 +509,9 @@ def plot_31(res: dict, outdir: Path) -> list[str]:
                 for bound, style in ((CV_SOFT, (0, (4, 3))), (CV_HARD, (0, (1, 2)))):
                     ax.axhline(bound, color="red", ls=style, lw=0.8)
                     ax.axhline(-bound, color="red", ls=style, lw=0.8)
+                if zone is not None:  # the dynamic layer's soft CV bounds
+                    ax.axhline(zone, color="tab:green", ls=(0, (2, 2)), lw=0.8)
+                    ax.axhline(-zone, color="tab:green", ls=(0, (2, 2)), lw=0.8)
                 ax.set_ylabel(f"CV y{j + 1}\n[dimensionless]")
             else:
                 ax.step(
@@ -362,7 +541,7 @@ def plot_31(res: dict, outdir: Path) -> list[str]:
         axes[-1].set_xlabel("time (min; T = 4 min); shaded: measured disturbance active")
         name = "controlled variables" if what == "cv" else "manipulated variables"
         fig.suptitle(
-            f"Section 3.1, fractionator closed loop (plant gain x 0.9): {name}\n"
+            f"Section 3.1{title}, fractionator closed loop (plant gain x 0.9): {name}\n"
             f"largest KF-vs-classical difference: CV {res['max_abs_cv_difference']:.3g}, "
             f"MV {res['max_abs_mv_difference']:.3g}"
         )
@@ -386,10 +565,17 @@ def main(argv: list[str] | None = None) -> dict:
         help="torch CPU threads (1 is fastest for these small matrices)",
     )
     ap.add_argument("--no-plots", action="store_true", help="skip the figures")
+    ap.add_argument(
+        "--double-layer",
+        action="store_true",
+        help="run section 3.1 as the paper does: multi-priority SSTC + dynamic layer (only)",
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     outdir = Path(args.out)
     outdir.mkdir(parents=True, exist_ok=True)
+    if args.double_layer:
+        return main_double_layer(args, outdir)
     t_all = time.perf_counter()
     r32 = section_32(args.steps_32, args.seed)
     r31 = section_31(args.steps_31)
@@ -465,6 +651,65 @@ def main(argv: list[str] | None = None) -> dict:
         f"{r31['closed_loop_seconds']['classical']:.1f} s; total {total:.1f} s"
     )
     print(f"Wrote {outdir / 'results.json'} and {len(files)} figures.")
+    return clean
+
+
+def main_double_layer(args: argparse.Namespace, outdir: Path) -> dict:
+    t_all = time.perf_counter()
+    r = section_31_double_layer(args.steps_31)
+    files: list[str] = []
+    if not args.no_plots:
+        with style():
+            files = plot_31(r, outdir, "fig_31dl", " (double-layered DMC)", zone=Z_SOFT)
+    total = time.perf_counter() - t_all
+    clean = {
+        "section_3_1_double_layer": {k: v for k, v in r.items() if not k.startswith("_")},
+        "figures": files,
+        "total_seconds": total,
+        "environment": {
+            "python": platform.python_version(),
+            "torch": torch.__version__,
+            "threads": args.threads,
+            "machine": platform.machine(),
+        },
+        "command": "PYTHONPATH=. python scripts/reproduce_dmc.py --double-layer "
+        f"--out {args.out} --steps-31 {args.steps_31}",
+    }
+    tmp = outdir / "results_double_layer.json.tmp"
+    tmp.write_text(json.dumps(clean, indent=2))
+    tmp.replace(outdir / "results_double_layer.json")
+
+    print("Section 3.1, double-layered DMC (multi-priority SSTC + dynamic layer; T = 4, N = 100,")
+    print("P = 15, M = 8, Lambda = diag(3, 5, 3), plant output x 0.9)")
+    print(f"  {'':<34} {'KF prediction':>14} {'classical':>10}")
+    for key, label in (
+        ("max_abs_y", "max |y(k)| (hard limit 0.7)"),
+        ("max_abs_u", "max |u(k)| (limit 0.5)"),
+        ("max_abs_du", "max |du(k)| (limit 0.1)"),
+    ):
+        print(f"  {label:<34} {r[key]['kf']:14.4f} {r[key]['classical']:10.4f}")
+    print(
+        f"  max |y_KF - y_classical| = {r['max_abs_cv_difference']:.4f} at k = "
+        f"{r['max_abs_cv_difference_at_k']} (CV range {r['cv_range']:.3f}; RMS "
+        f"{r['rms_cv_difference']:.4f}); max |u_KF - u_classical| = "
+        f"{r['max_abs_mv_difference']:.4f} at k = {r['max_abs_mv_difference_at_k']}"
+    )
+    for name in ("kf", "classical"):
+        for st in r["steady_states"][name]:
+            print(
+                f"  {name:>9} k = {st['k']:>3}: y = {np.round(st['y'], 3).tolist()}, "
+                f"u = {np.round(st['u'], 3).tolist()}, y_t = {np.round(st['y_target'], 3).tolist()}"
+                f", u_t = {np.round(st['u_target'], 3).tolist()}"
+            )
+            print(f"  {'':>9} SSTC active: {'; '.join(st['sstc_active']) or 'none'}")
+            soft = "; ".join(st["dynamic_soft_bounds_violated"]) or "none"
+            print(f"  {'':>9} dynamic layer, soft CV bounds violated: {soft}")
+    print(
+        f"Runtimes ({args.threads} thread(s)): closed loops "
+        f"{r['closed_loop_seconds']['kf']:.1f} s (KF) / {r['closed_loop_seconds']['classical']:.1f} s"
+        f" (classical); total {total:.1f} s"
+    )
+    print(f"Wrote {outdir / 'results_double_layer.json'} and {len(files)} figures.")
     return clean
 
 

@@ -8,7 +8,7 @@ import scipy.optimize as so
 import torch
 from conftest import BATCH_SHAPES
 
-from torchfilt.exceptions import ConvergenceWarning, ShapeError
+from torchfilt.exceptions import ConvergenceWarning, InputError, ShapeError
 from torchfilt.numerics import Box, SolverStatus, batched_jacobian, bounded_least_squares
 
 D = torch.float64
@@ -309,7 +309,7 @@ def test_gradient_nonlinear_equals_implicit_function_theorem():
 def test_argument_errors():
     with pytest.raises(ShapeError, match="bounds: dimension 2"):
         bounded_least_squares(lambda x: x, torch.zeros(3, dtype=D), Box(0.0, 1.0, n=2))
-    with pytest.raises(TypeError, match="x0 must be a floating-point"):
+    with pytest.raises(InputError, match="x0: expected real numbers"):
         bounded_least_squares(lambda x: x, torch.zeros(3, dtype=torch.long))
     with pytest.raises(ShapeError, match="do not broadcast"):
         bounded_least_squares(

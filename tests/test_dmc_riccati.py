@@ -7,17 +7,18 @@ import torch
 from conftest import random_spd
 
 from torchfilt.dmc import FOPDT, IPDT, StepResponseModel, realize, steady_gain
-from torchfilt.exceptions import NotDetectableError, ShapeError
+from torchfilt.exceptions import InputError, NotDetectableError, ShapeError
 from torchfilt.numerics import check_detectable, solve_dare, steady_state_kalman
 
 D = torch.float64
-#: Relative agreement with scipy's solve_discrete_are (a QZ method; its own residual on these
-#: problems is ~1e-12, ours ~1e-14).
+#: Relative agreement with scipy's solve_discrete_are called directly on the dual pair (the library
+#: wraps the same solver: this checks the dual-form transposition, symmetrisation and gain formula).
 SCIPY_RTOL = 1e-9
 #: Relative residual of our solution in the Riccati equation.
 RESIDUAL_TOL = 1e-12
-#: Agreement between two exact computations of the same gain (decoupled vs full DARE).
-GAIN_ATOL = 1e-10
+#: Agreement between two computations of the same gain (per-CV decoupled vs full DARE): scipy's QZ
+#: method is accurate to ~1e-10 on the 40-state full problem.
+GAIN_ATOL = 1e-9
 
 
 def t(a):
@@ -189,5 +190,5 @@ def test_bad_inputs_name_the_argument():
         solve_dare(I2, torch.ones(1, 2, dtype=D), -I2, torch.eye(1, dtype=D))
     with pytest.raises(ValueError, match="A contains non-finite"):
         solve_dare(I2 * float("nan"), torch.ones(1, 2, dtype=D), I2, torch.eye(1, dtype=D))
-    with pytest.raises(TypeError, match=r"A must be a torch\.Tensor"):
+    with pytest.raises(InputError, match=r"A must be a torch\.Tensor"):
         solve_dare(np.eye(2), torch.ones(1, 2, dtype=D), I2, torch.eye(1, dtype=D))

@@ -128,7 +128,7 @@ def test_model_returning_wrong_shape(kw):
         Q=torch.eye(2, dtype=D),
         R=torch.eye(1, dtype=D),
     )
-    with pytest.raises(ShapeError, match=r"transition returned shape \(4, 4\)"):
+    with pytest.raises(torchfilt.ModelError, match=r"transition returned shape \(4, 4\)"):
         CKF(m).filter(torch.zeros(3, 1, dtype=D), **kw)
 
 
@@ -136,7 +136,7 @@ def test_model_returning_non_tensor(kw):
     m = StateSpaceModel(
         lambda x: x.numpy(), lambda x: x[..., :1], Q=torch.eye(2, dtype=D), R=torch.eye(1, dtype=D)
     )
-    with pytest.raises(TypeError, match="transition returned ndarray"):
+    with pytest.raises(torchfilt.ModelError, match="transition returned ndarray"):
         CKF(m).filter(torch.zeros(3, 1, dtype=D), **kw)
 
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 from gp_support import DT, one_thread, query_points, smooth_data
 
-from torchfilt.exceptions import ShapeError
+from torchfilt.exceptions import InputError, ModelError, ShapeError
 from torchfilt.models.gp import FitState, GPMeasurement, GPModel, GPTransition
 from torchfilt.models.gp.noise import GPYTORCH_FLOOR
 
@@ -146,9 +146,9 @@ def test_bad_input_errors_name_the_argument():
         GPMeasurement.fit(x, y.masked_fill(y > 1, float("inf")))
     with pytest.raises(ValueError, match="inputs"):
         GPMeasurement.fit(x, y, inputs=[5])
-    with pytest.raises(TypeError, match="unexpected keyword"):
+    with pytest.raises(InputError, match="unexpected keyword"):
         GPMeasurement.fit(x, y, iterationz=3)
-    with pytest.raises(ShapeError, match="prior_mean"):
+    with pytest.raises(ModelError, match="prior_mean"):
         GPTransition.fit(x, None, x, prior_mean=lambda x: x[..., :1].repeat(1, 3), progress=False)
     with pytest.raises(ShapeError, match="u"):
         GPTransition.fit([x], [x[:5]])

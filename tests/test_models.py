@@ -8,6 +8,7 @@ from torchfilt import (
     StateSpaceModel,
     TimeVarying,
 )
+from torchfilt.exceptions import InputError
 from torchfilt.models import FunctionModel
 
 
@@ -28,7 +29,7 @@ def test_one_and_two_argument_callables():
 def test_time_varying_noise_indexing():
     tv = TimeVarying(torch.stack([torch.eye(2) * k for k in range(1, 4)]))
     assert tv.steps == 3 and torch.equal(tv(2), 3 * torch.eye(2))
-    with pytest.raises(IndexError, match="3 steps"):
+    with pytest.raises(InputError, match="3 steps"):
         tv(3)
     with pytest.raises(ValueError, match="TimeVarying values"):
         TimeVarying(torch.eye(2))

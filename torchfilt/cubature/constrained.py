@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from torchfilt.cubature.rules import SphericalRadialRule
-from torchfilt.exceptions import ShapeError
+from torchfilt.exceptions import InputError, ShapeError
 from torchfilt.numerics import Box
 
 __all__ = ["ConstrainedPoints", "ThetaReading", "constrained_points"]
@@ -74,7 +74,7 @@ def constrained_points(
         :class:`ConstrainedPoints` with points ``(..., 2n, n)`` and weights ``(..., 2n)``.
     """
     if theta not in ("paper", "std"):
-        raise ValueError(f"theta must be 'paper' or 'std', got {theta!r}")
+        raise InputError(f"theta must be 'paper' or 'std', got {theta!r}")
     n = mean.shape[-1]
     if sqrt.shape[-2:] != (n, n):
         raise ShapeError(f"sqrt: expected shape (..., {n}, {n}), got {tuple(sqrt.shape)}")

@@ -19,6 +19,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchfilt.exceptions import InputError
+
 __all__ = [
     "CubatureRule",
     "GaussHermiteRule",
@@ -69,7 +71,7 @@ class CubatureRule(ABC):
             ``xi (P, n)``, mean weights ``wm (P,)`` and covariance weights ``wc (P,)``.
         """
         if n < 1:
-            raise ValueError(f"n must be >= 1, got {n}")
+            raise InputError(f"n must be >= 1, got {n}")
         device = torch.device(device)
         key = (n, dtype, device)
         hit = self._cache.get(key)
@@ -115,7 +117,7 @@ class SphericalRadialRule(CubatureRule):
     def __init__(self, degree: int = 3) -> None:
         super().__init__()
         if degree not in (3, 5):
-            raise ValueError(f"degree must be 3 or 5, got {degree}")
+            raise InputError(f"degree must be 3 or 5, got {degree}")
         self.degree = degree
 
     def _unit(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -165,14 +167,14 @@ class UnscentedRule(CubatureRule):
     def __init__(self, alpha: float = 1.0, beta: float = 0.0, kappa: float | None = None) -> None:
         super().__init__()
         if alpha <= 0:
-            raise ValueError(f"alpha must be positive, got {alpha}")
+            raise InputError(f"alpha must be positive, got {alpha}")
         self.alpha, self.beta, self.kappa = float(alpha), float(beta), kappa
 
     def _unit(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         kappa = 3.0 - n if self.kappa is None else float(self.kappa)
         lam = self.alpha**2 * (n + kappa) - n
         if n + lam <= 0:
-            raise ValueError(f"unscented rule needs n + lambda > 0; got {n + lam} for n={n}")
+            raise InputError(f"unscented rule needs n + lambda > 0; got {n + lam} for n={n}")
         eye = np.eye(n)
         c = math.sqrt(n + lam)
         xi = np.concatenate([np.zeros((1, n)), c * eye, -c * eye])
@@ -198,13 +200,13 @@ class GaussHermiteRule(CubatureRule):
     def __init__(self, order: int = 3) -> None:
         super().__init__()
         if order < 1:
-            raise ValueError(f"order must be >= 1, got {order}")
+            raise InputError(f"order must be >= 1, got {order}")
         self.order = order
         self.degree = 2 * order - 1
 
     def _unit(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if self.order**n > 10**7:
-            raise ValueError(
+            raise InputError(
                 f"GaussHermiteRule(order={self.order}) in {n} dims needs too many points"
             )
         x1, w1 = np.polynomial.hermite_e.hermegauss(self.order)

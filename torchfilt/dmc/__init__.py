@@ -1,6 +1,7 @@
 """DMC: step-response models, their state-space realisations, the open-loop prediction module as a
 steady-state Kalman filter (Xie, Ding & Chen, Control and Decision 2016), and a DMC controller that
-consumes the predictions.
+consumes the predictions, with the multi-priority steady-state target calculation of double-layered
+DMC (Li & Ding 2015) above it.
 
 Layer 5: imports numerics, models, filters and exceptions only.
 """
@@ -11,6 +12,7 @@ from torchfilt.dmc.controller import ControlPlan, DMCController, InfeasibleError
 from torchfilt.dmc.predictor import LMGPredictor, OpenLoopPredictor, PredictorRun, steady_gain
 from torchfilt.dmc.qp import QPResult, solve_qp
 from torchfilt.dmc.realization import Realization, lmg_realization, realize
+from torchfilt.dmc.sstc import MultiPriorityTarget, SSTCResult
 from torchfilt.dmc.step_response import DiscreteModel, StepResponseModel
 from torchfilt.dmc.target import FixedTarget, SteadyStateTarget, Target, TargetRow, WeightedTarget
 from torchfilt.dmc.transfer import FOPDT, IPDT
@@ -25,10 +27,12 @@ __all__ = [
     "FixedTarget",
     "InfeasibleError",
     "LMGPredictor",
+    "MultiPriorityTarget",
     "OpenLoopPredictor",
     "PredictorRun",
     "QPResult",
     "Realization",
+    "SSTCResult",
     "SampledPlant",
     "SteadyStateTarget",
     "StepResponseModel",

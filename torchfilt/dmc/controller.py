@@ -8,7 +8,17 @@ steady-state target ``(y_t, u_t)``, choose the moves ``du(k), ..., du(k+M-1)`` (
     with       y(k+i|k) = y^ol(k+i|k) + sum_{j=0}^{min(i,M)-1} S^u_{i-j} du(k+j)
     subject to u_min <= u(k+j) <= u_max,   -du_max <= du(k+j) <= du_max,   j = 0..M-1
 
-(``||e||^2_Q = e^T Q e`` with diagonal weights). Stacking ``dU = [du(k); ...; du(k+M-1)]`` and the
+(``||e||^2_Q = e^T Q e`` with diagonal weights).
+
+Optional CV constraints on the predictions (the dynamic layer of double-layered DMC, Li & Ding
+2015), each with a non-negative slack per prediction step and CV:
+
+    soft:  z_min - s_lo <= y(k+i|k) <= z_max + s_hi,   cost sum_i q_lo s_lo^2 + q_hi s_hi^2
+    hard:  y_min - t_lo <= y(k+i|k) <= y_max + t_hi,   cost HARD_CV_LINEAR t + HARD_CV_QUADRATIC t^2
+
+The hard CV limits are an exact penalty: ``t = 0`` (the limit holds) whenever some plan keeps the
+prediction inside, and the smallest violation otherwise (e.g. within a dead time no move can act
+on), so the QP never becomes infeasible. Stacking ``dU = [du(k); ...; du(k+M-1)]`` and the
 dynamic matrix ``D`` (block ``(i, j)`` is ``S_{i-j+1}`` for ``i >= j``) this is the QP
 
     minimise 1/2 dU^T Hq dU + f^T dU,   Hq = 2 (D^T Q D + Lambda + C^T W C),
@@ -36,6 +46,12 @@ from torchfilt.exceptions import InfeasibleError, ShapeError
 from torchfilt.numerics import psd_solve
 
 __all__ = ["ControlPlan", "DMCController", "InfeasibleError"]
+
+#: Linear weight of the exact penalty on hard CV limit violations (larger than any multiplier the
+#: tracking costs produce, so the limit holds whenever it can).
+HARD_CV_LINEAR = 1e4
+#: Quadratic weight of the hard CV limit violations (keeps the QP strictly convex).
+HARD_CV_QUADRATIC = 1e4
 
 
 class ControlPlan(NamedTuple):
@@ -78,6 +94,12 @@ class DMCController:
         u_min: lower input bounds, scalar or ``(nu,)``; ``None`` (or ``-inf``) for none.
         u_max: upper input bounds, likewise.
         du_max: move bounds ``|du| <= du_max``, scalar or ``(nu,)`` (``> 0``); ``None`` for none.
+        y_min: hard lower CV limits on ``y(k+i|k)``, scalar or ``(ny,)``; ``None`` for none.
+        y_max: hard upper CV limits, likewise.
+        z_min: soft lower CV bounds, scalar or ``(ny,)``; ``None`` for none.
+        z_max: soft upper CV bounds, likewise.
+        q_lower: weights of the soft lower-bound violations, scalar or ``(ny,)`` (``> 0``).
+        q_upper: weights of the soft upper-bound violations, likewise.
         tol: QP tolerance.
     """
 
@@ -93,6 +115,12 @@ class DMCController:
         u_min: float | Tensor | None = None,
         u_max: float | Tensor | None = None,
         du_max: float | Tensor | None = None,
+        y_min: float | Tensor | None = None,
+        y_max: float | Tensor | None = None,
+        z_min: float | Tensor | None = None,
+        z_max: float | Tensor | None = None,
+        q_lower: float | Tensor = 1.0,
+        q_upper: float | Tensor = 1.0,
         tol: float = QP_TOL,
     ) -> None:
         if not isinstance(model, StepResponseModel):
@@ -118,6 +146,17 @@ class DMCController:
             raise ValueError(f"u_min must not exceed u_max (got {self.u_min} > {self.u_max})")
         if bool((self.du_max <= 0).any()):
             raise ValueError("du_max must be positive")
+        self.y_min = _vector(-inf if y_min is None else y_min, ny, "y_min", dt)
+        self.y_max = _vector(inf if y_max is None else y_max, ny, "y_max", dt)
+        self.z_min = _vector(-inf if z_min is None else z_min, ny, "z_min", dt)
+        self.z_max = _vector(inf if z_max is None else z_max, ny, "z_max", dt)
+        self.q_lower = _vector(q_lower, ny, "q_lower", dt)
+        self.q_upper = _vector(q_upper, ny, "q_upper", dt)
+        for lo, hi, name in ((self.y_min, self.y_max, "y"), (self.z_min, self.z_max, "z")):
+            if bool((lo > hi).any()):
+                raise ValueError(f"{name}_min must not exceed {name}_max (got {lo} > {hi})")
+        if bool((self.q_lower <= 0).any()) or bool((self.q_upper <= 0).any()):
+            raise ValueError("q_lower and q_upper (soft CV bound weights) must be positive")
         # dynamic matrix D (P ny x M nu), time-major blocks
         S = model.coefficients(self.P, "u")  # (P, ny, nu)
         D = S.new_zeros(self.P, ny, self.M, nu)
@@ -140,6 +179,19 @@ class DMCController:
             | torch.isfinite(self.u_max).any()
             | torch.isfinite(self.du_max).any()
         )
+        # CV constraint groups: (bound, +1 upper / -1 lower, quadratic weight, linear weight)
+        groups = []
+        for bound, sign, wq, wl in (
+            (self.z_min, -1.0, 2.0 * self.q_lower, 0.0 * self.q_lower),
+            (self.z_max, 1.0, 2.0 * self.q_upper, 0.0 * self.q_upper),
+            (self.y_min, -1.0, torch.full_like(self.Q, 2.0 * HARD_CV_QUADRATIC), None),
+            (self.y_max, 1.0, torch.full_like(self.Q, 2.0 * HARD_CV_QUADRATIC), None),
+        ):
+            fin = torch.isfinite(bound)
+            if bool(fin.any()):
+                lin = torch.full_like(self.Q, HARD_CV_LINEAR) if wl is None else wl
+                groups.append((bound, sign, fin, wq, lin))
+        self._cv_groups = groups
 
     def plan(
         self,
@@ -189,41 +241,77 @@ class DMCController:
         Yol = free[..., : self.P, :]
         err = (Yol - yt.unsqueeze(-2)).flatten(-2)  # (..., P ny)
         f = 2.0 * (err @ self._DtQ.mT + (u_prev - ut) @ self._CtW.mT)
-        if not self.constrained:
+        if not self.constrained and not self._cv_groups:
             dU = -psd_solve(self.Hq, f.unsqueeze(-1), name="DMC Hessian").squeeze(-1)
+            extra = torch.zeros_like(f[..., 0])
         else:
-            batch = f.shape[:-1]
-            reach_lo, reach_hi = self.u_min - self.du_max, self.u_max + self.du_max
-            if bool(((u_prev < reach_lo) | (u_prev > reach_hi)).any()):
-                raise InfeasibleError(
-                    "the DMC problem has no feasible plan: u(k-1) = "
-                    f"{u_prev.tolist()} is further than du_max = {self.du_max.tolist()} outside "
-                    f"[u_min, u_max] = [{self.u_min.tolist()}, {self.u_max.tolist()}]"
-                )
-            up_rep = torch.cat([u_prev.expand(*batch, m.nu)] * self.M, dim=-1)  # (..., M nu)
-            rows, rhs = [], []
-            fin_hi = torch.isfinite(self.u_max.repeat(self.M))
-            fin_lo = torch.isfinite(self.u_min.repeat(self.M))
-            if bool(fin_hi.any()):
-                rows.append(self.Lcum[fin_hi])
-                rhs.append((self.u_max.repeat(self.M) - up_rep)[..., fin_hi])
-            if bool(fin_lo.any()):
-                rows.append(-self.Lcum[fin_lo])
-                rhs.append((up_rep - self.u_min.repeat(self.M))[..., fin_lo])
-            A = torch.cat(rows, dim=0) if rows else None
-            b = torch.cat(rhs, dim=-1) if rhs else None
-            dmax = self.du_max.repeat(self.M)
-            res = solve_qp(self.Hq, f, A, b, lb=-dmax, ub=dmax, tol=self.tol, max_iter=QP_MAX_ITER)
-            if not bool(res.converged.all()):
-                raise InfeasibleError(
-                    f"the DMC QP did not converge in {QP_MAX_ITER} iterations (tolerance {self.tol})"
-                )
-            dU = res.x
+            dU, extra = self._solve_constrained(f, u_prev, Yol)
         du = dU.unflatten(-1, (self.M, m.nu))
         u = u_prev.unsqueeze(-2) + du.cumsum(-2)
         y = Yol + (dU @ self.D.mT).unflatten(-1, (self.P, m.ny))
-        cost = 0.5 * (dU * (dU @ self.Hq)).sum(-1) + (f * dU).sum(-1)
+        cost = 0.5 * (dU * (dU @ self.Hq)).sum(-1) + (f * dU).sum(-1) + extra
         return ControlPlan(du, u, y, cost)
+
+    def _solve_constrained(self, f: Tensor, u_prev: Tensor, Yol: Tensor) -> tuple[Tensor, Tensor]:
+        """The QP with input/move limits and CV constraints: ``dU`` and the slacks' cost."""
+        m, dt = self.model, self.model.dtype
+        batch = f.shape[:-1]
+        reach_lo, reach_hi = self.u_min - self.du_max, self.u_max + self.du_max
+        if bool(((u_prev < reach_lo) | (u_prev > reach_hi)).any()):
+            raise InfeasibleError(
+                "the DMC problem has no feasible plan: u(k-1) = "
+                f"{u_prev.tolist()} is further than du_max = {self.du_max.tolist()} outside "
+                f"[u_min, u_max] = [{self.u_min.tolist()}, {self.u_max.tolist()}]"
+            )
+        nd = self.M * m.nu
+        # slacks: one per (prediction step, CV) of each finite CV bound
+        Yflat = Yol.flatten(-2)  # (..., P ny)
+        fin_rows = [g[2].repeat(self.P) for g in self._cv_groups]
+        ns = sum(int(r.sum()) for r in fin_rows)
+        nz = nd + ns
+        H = torch.zeros(nz, nz, dtype=dt)
+        H[:nd, :nd] = self.Hq
+        fz = torch.cat([f, f.new_zeros(*batch, ns)], dim=-1)
+        rows, rhs = [], []
+        up_rep = torch.cat([u_prev.expand(*batch, m.nu)] * self.M, dim=-1)  # (..., M nu)
+        fin_hi = torch.isfinite(self.u_max.repeat(self.M))
+        fin_lo = torch.isfinite(self.u_min.repeat(self.M))
+        pad = torch.zeros(self.Lcum.shape[0], ns, dtype=dt)
+        if bool(fin_hi.any()):
+            rows.append(torch.cat([self.Lcum, pad], dim=-1)[fin_hi])
+            rhs.append((self.u_max.repeat(self.M) - up_rep)[..., fin_hi])
+        if bool(fin_lo.any()):
+            rows.append(torch.cat([-self.Lcum, pad], dim=-1)[fin_lo])
+            rhs.append((up_rep - self.u_min.repeat(self.M))[..., fin_lo])
+        col = nd
+        for (bound, sign, _, wq, wl), fin in zip(self._cv_groups, fin_rows, strict=True):
+            k = int(fin.sum())
+            Dk = self.D[fin]  # (k, nd)
+            S = torch.zeros(k, nz, dtype=dt)
+            S[:, :nd] = sign * Dk
+            S[:, col : col + k] = -torch.eye(k, dtype=dt)
+            rows.append(S)
+            # sign (Yol + D dU - bound) <= s
+            rhs.append(sign * (bound.repeat(self.P)[fin] - Yflat[..., fin]))
+            idx = torch.arange(col, col + k)
+            H[idx, idx] = wq.repeat(self.P)[fin]
+            fz[..., col : col + k] = wl.repeat(self.P)[fin]
+            col += k
+        A = torch.cat(rows, dim=0)
+        b = torch.cat([r.expand(*batch, r.shape[-1]) for r in rhs], dim=-1)
+        inf = float("inf")
+        dmax = self.du_max.repeat(self.M)
+        lb = torch.cat([-dmax, torch.zeros(ns, dtype=dt)])
+        ub = torch.cat([dmax, torch.full((ns,), inf, dtype=dt)])
+        res = solve_qp(H, fz, A, b, lb=lb, ub=ub, tol=self.tol, max_iter=QP_MAX_ITER)
+        if not bool(res.converged.all()):
+            raise InfeasibleError(
+                f"the DMC QP did not converge in {QP_MAX_ITER} iterations (tolerance {self.tol})"
+            )
+        z = res.x
+        sl = z[..., nd:]
+        extra = 0.5 * (sl * (sl @ H[nd:, nd:])).sum(-1) + (fz[..., nd:] * sl).sum(-1)
+        return z[..., :nd], extra
 
     def move(
         self,

@@ -16,6 +16,10 @@ the controller ``Y^ol_N(k|k) = [y^ol(k+1|k); ...; y^ol(k+N|k)]``, shape ``(N, ny
 prediction with constant output correction is the same recursion with a fixed gain ``K = h``
 (:meth:`OpenLoopPredictor.classical`).
 
+Missing measurements follow the library's one rule (:mod:`torchfilt.numerics.missing`, the same as
+the CKF's): a non-finite ``y`` component (NaN or +-inf) is missing, that CV is not corrected at that
+sample, and its innovation is NaN. Moves, disturbances, states, ``x0`` and the gain must be finite.
+
 Time convention of one step: at sample ``k`` the inputs are the measurement ``y(k)``, the move applied
 at the previous sample ``du(k-1) = u(k-1) - u(k-2)``, and the measured disturbance change
 ``dv(k) = v(k) - v(k-1)``.
@@ -30,8 +34,8 @@ from torch import Tensor
 
 from torchfilt.dmc.realization import Realization, lmg_realization, realize
 from torchfilt.dmc.step_response import StepResponseModel
-from torchfilt.exceptions import ShapeError
-from torchfilt.numerics import steady_state_kalman
+from torchfilt.exceptions import InputError, ShapeError
+from torchfilt.numerics import check_real_tensor, observed, steady_state_kalman
 
 __all__ = ["LMGPredictor", "OpenLoopPredictor", "PredictorRun"]
 
@@ -50,8 +54,23 @@ class PredictorRun(NamedTuple):
     innovations: Tensor
 
 
+def _as_tensor(value: Any, name: str, dtype: torch.dtype) -> Tensor:
+    """``value`` as a tensor of ``dtype`` under the dtype rule (:mod:`torchfilt.numerics.dtypes`)."""
+    if isinstance(value, Tensor):
+        check_real_tensor(value, name, integers=True)
+    try:
+        return torch.as_tensor(value, dtype=dtype)
+    except (TypeError, ValueError, RuntimeError):
+        raise InputError(f"{name}: expected real numbers, got {type(value).__name__}") from None
+
+
+def _finite(t: Tensor, name: str, why: str = "") -> None:
+    if not bool(torch.isfinite(t).all()):
+        raise InputError(f"{name} contains non-finite entries{why}")
+
+
 def _as_cov(value: Any, n: int, name: str, dtype: torch.dtype) -> Tensor:
-    t = torch.as_tensor(value, dtype=dtype)
+    t = _as_tensor(value, name, dtype)
     if t.dim() == 0:
         t = t * torch.eye(n, dtype=dtype)
     elif t.dim() == 1:
@@ -62,11 +81,18 @@ def _as_cov(value: Any, n: int, name: str, dtype: torch.dtype) -> Tensor:
         t = torch.diag(t)
     elif t.shape != (n, n):
         raise ShapeError(f"{name}: expected a scalar, ({n},) or ({n}, {n}), got {tuple(t.shape)}")
-    if not bool(torch.isfinite(t).all()):
-        raise ValueError(f"{name} contains non-finite entries")
+    _finite(t, name)
     if not torch.allclose(t, t.mT):
-        raise ValueError(f"{name} is not symmetric")
+        raise InputError(f"{name} is not symmetric")
     return t
+
+
+def _check_model(model: Any) -> None:
+    if not isinstance(model, StepResponseModel):
+        raise InputError(
+            f"model must be a StepResponseModel (e.g. StepResponseModel.from_transfer_functions), "
+            f"got {type(model).__name__}"
+        )
 
 
 def _block_diagonal(Q: Tensor, blocks: tuple[tuple[int, int], ...]) -> bool:
@@ -110,6 +136,11 @@ def steady_gain(real: Realization, Q_Y: Tensor, Q_y: Tensor) -> Tensor:
 class OpenLoopPredictor:
     """DMC open-loop prediction by a steady-state Kalman filter (ours: Xie, Ding & Chen 2016).
 
+    Missing data: a non-finite measurement component (NaN, +-inf) is missing, as in the CKF
+    (:mod:`torchfilt.numerics.missing`); that CV is not corrected at that sample. Non-finite moves,
+    disturbances, states, ``x0``, gains or covariances are an
+    :class:`~torchfilt.exceptions.InputError`.
+
     Args:
         model: the step-response model; its ``integrating`` flags choose each CV's layout.
         Q_Y: state (process) noise covariance, a scalar (``q I``), the diagonal ``(n,)`` or the
@@ -142,6 +173,7 @@ class OpenLoopPredictor:
         gain: Tensor | None = None,
         horizon: int | None = None,
     ) -> None:
+        _check_model(model)
         self.model = model
         self.realization = self._realizer(model, horizon)
         n, ny = self.realization.state_dim, model.ny
@@ -150,14 +182,15 @@ class OpenLoopPredictor:
         self.Q_y: Tensor | None = None
         if gain is not None:
             if Q_Y is not None or Q_y is not None:
-                raise ValueError("give either gain or the covariances Q_Y and Q_y, not both")
-            K = torch.as_tensor(gain, dtype=dtype)
+                raise InputError("give either gain or the covariances Q_Y and Q_y, not both")
+            K = _as_tensor(gain, "gain", dtype)
             if K.shape != (n, ny):
                 raise ShapeError(f"gain: expected shape ({n}, {ny}), got {tuple(K.shape)}")
+            _finite(K, "gain")
             self.gain = K
         else:
             if Q_Y is None or Q_y is None:
-                raise ValueError("give the covariances Q_Y and Q_y (or a fixed gain)")
+                raise InputError("give the covariances Q_Y and Q_y (or a fixed gain)")
             self.Q_Y = self._state_cov(_as_cov(Q_Y, self._cov_dim, "Q_Y", dtype))
             self.Q_y = _as_cov(Q_y, ny, "Q_y", dtype)
             self.gain = steady_gain(self.realization, self.Q_Y, self.Q_y)
@@ -190,9 +223,11 @@ class OpenLoopPredictor:
                 (length ``N + 1`` or ``N + 2``; all CVs must then use the same layout).
             horizon: model horizon ``N``.
         """
+        _check_model(model)
         real = cls._realizer(model, horizon)
         K = torch.zeros(real.state_dim, model.ny, dtype=model.dtype)
-        h_t = torch.as_tensor(h, dtype=model.dtype)
+        h_t = _as_tensor(h, "h", model.dtype)
+        _finite(h_t, "h")
         for j, (s, L) in enumerate(real.blocks):
             if h_t.dim() == 0:
                 K[s : s + L, j] = h_t
@@ -232,7 +267,9 @@ class OpenLoopPredictor:
         Returns:
             Shape ``(n,)``.
         """
-        lv = torch.as_tensor(level, dtype=self.model.dtype).expand(self.model.ny)
+        lv = _as_tensor(level, "level", self.model.dtype)
+        _finite(lv, "level")
+        lv = lv.expand(self.model.ny)
         x = torch.zeros(self.state_dim, dtype=self.model.dtype)
         for j, (s, L) in enumerate(self.realization.blocks):
             x[s : s + L] = lv[j]
@@ -256,7 +293,7 @@ class OpenLoopPredictor:
         m = self.model
         dtype = m.dtype
         t = "T, " if time else ""
-        y = torch.as_tensor(y, dtype=dtype)
+        y = _as_tensor(y, "y", dtype)
         need = 2 if time else 1
         if y.dim() < need or y.shape[-1] != m.ny:
             raise ShapeError(
@@ -266,7 +303,7 @@ class OpenLoopPredictor:
         if du is None:
             du_t = y.new_zeros(*lead, m.nu)
         else:
-            du_t = torch.as_tensor(du, dtype=dtype)
+            du_t = _as_tensor(du, "du", dtype)
             if du_t.dim() < need or du_t.shape[-1] != m.nu:
                 raise ShapeError(
                     f"du: expected shape (..., {t}nu) with nu = {m.nu}, got {tuple(du_t.shape)}"
@@ -274,27 +311,48 @@ class OpenLoopPredictor:
         if dv is None:
             dv_t = y.new_zeros(*lead, m.nv)
         else:
-            dv_t = torch.as_tensor(dv, dtype=dtype)
+            dv_t = _as_tensor(dv, "dv", dtype)
             if dv_t.dim() < need or dv_t.shape[-1] != m.nv:
                 raise ShapeError(
                     f"dv: expected shape (..., {t}nv) with nv = {m.nv}, got {tuple(dv_t.shape)}"
                 )
         if time:
             T = y.shape[-2]
+            if T == 0:
+                raise ShapeError(
+                    f"y: the time dimension T must be at least 1, got {tuple(y.shape)}"
+                )
             for name, a in (("du", du_t), ("dv", dv_t)):
                 if a.shape[-2] != T:
                     raise ShapeError(f"{name}: has {a.shape[-2]} samples but y has {T}")
         for name, a in (("du", du_t), ("dv", dv_t)):
-            if not bool(torch.isfinite(a).all()):
-                raise ValueError(f"{name} contains non-finite entries; inputs cannot be missing")
+            _finite(a, name, "; inputs cannot be missing")
         return y, du_t, dv_t
+
+    def _state_arg(self, value: Any, name: str, lead: tuple[torch.Size, ...]) -> Tensor:
+        """A state argument ``(..., n)``: finite, and its batch broadcasting with ``lead``."""
+        x = _as_tensor(value, name, self.model.dtype)
+        if x.dim() < 1 or x.shape[-1] != self.state_dim:
+            raise ShapeError(
+                f"{name}: expected shape (..., n) with n = {self.state_dim}, got {tuple(x.shape)}"
+            )
+        _finite(x, name)
+        try:
+            torch.broadcast_shapes(x.shape[:-1], *lead)
+        except RuntimeError:
+            raise ShapeError(
+                f"{name}: batch shape {tuple(x.shape[:-1])} does not broadcast with the data's "
+                f"{', '.join(str(tuple(s)) for s in lead)}"
+            ) from None
+        return x
 
     def _advance(self, x: Tensor, y: Tensor, du: Tensor, dv: Tensor) -> tuple[Tensor, Tensor]:
         r = self.realization
         xp = x @ r.A.mT + du @ r.B.mT + dv @ r.Bv.mT
         eps = y - xp @ r.H.mT
-        correction = torch.where(torch.isnan(eps), torch.zeros_like(eps), eps)
-        return xp + correction @ self.gain.mT, eps
+        obs = observed(y)  # the missing-data rule: non-finite = missing
+        correction = torch.where(obs, eps, torch.zeros_like(eps))
+        return xp + correction @ self.gain.mT, torch.where(obs, eps, torch.nan)
 
     def step(
         self, state: Tensor, y: Tensor, du: Tensor | None = None, dv: Tensor | None = None
@@ -303,7 +361,8 @@ class OpenLoopPredictor:
 
         Args:
             state: ``X(k-1|k-1)``, shape ``(..., n)``.
-            y: measurement ``y(k)``, shape ``(..., ny)``; NaN entries skip that CV's correction.
+            y: measurement ``y(k)``, shape ``(..., ny)``; a non-finite entry (NaN, +-inf) is
+                missing and skips that CV's correction.
             du: last move ``du(k-1)``, shape ``(..., nu)``; ``None`` for no move.
             dv: disturbance change ``dv(k)``, shape ``(..., nv)``; ``None`` for none.
 
@@ -311,11 +370,7 @@ class OpenLoopPredictor:
             ``X(k|k)``, shape ``(..., n)``.
         """
         y, du_t, dv_t = self._inputs(y, du, dv, time=False)
-        state = torch.as_tensor(state, dtype=self.model.dtype)
-        if state.shape[-1] != self.state_dim:
-            raise ShapeError(
-                f"state: expected shape (..., n) with n = {self.state_dim}, got {tuple(state.shape)}"
-            )
+        state = self._state_arg(state, "state", (y.shape[:-1], du_t.shape[:-1], dv_t.shape[:-1]))
         return self._advance(state, y, du_t, dv_t)[0]
 
     def run(
@@ -333,7 +388,8 @@ class OpenLoopPredictor:
         ``dv[..., k, :] = dv(k)``.
 
         Args:
-            y: measurements, shape ``(..., T, ny)`` (NaN = missing; that CV is not corrected).
+            y: measurements, shape ``(..., T, ny)``, ``T >= 1``; a non-finite entry (NaN, +-inf) is
+                missing: that CV is not corrected at that sample and its innovation is NaN.
             du: moves, shape ``(..., T, nu)``, or ``None`` (no moves).
             dv: disturbance changes, shape ``(..., T, nv)``, or ``None``.
             x0: state ``X(-1|-1)`` before the first sample, shape ``(..., n)``; default at rest at 0.
@@ -343,11 +399,15 @@ class OpenLoopPredictor:
             innovations ``(..., T, ny)``.
         """
         y, du_t, dv_t = self._inputs(y, du, dv, time=True)
-        x = self.initial_state() if x0 is None else torch.as_tensor(x0, dtype=self.model.dtype)
-        if x.shape[-1] != self.state_dim:
-            raise ShapeError(
-                f"x0: expected shape (..., n) with n = {self.state_dim}, got {tuple(x.shape)}"
+        lead = (y.shape[:-2], du_t.shape[:-2], dv_t.shape[:-2])
+        x = self.initial_state() if x0 is None else self._state_arg(x0, "x0", lead)
+        try:
+            torch.broadcast_shapes(*lead)
+        except RuntimeError:
+            desc = ", ".join(
+                f"{k} {tuple(v)}" for k, v in zip(("y", "du", "dv"), lead, strict=True)
             )
+            raise ShapeError(f"batch shapes do not broadcast: {desc}") from None
         batch = torch.broadcast_shapes(y.shape[:-2], du_t.shape[:-2], dv_t.shape[:-2], x.shape[:-1])
         T = y.shape[-2]
         x = x.expand(*batch, self.state_dim)
@@ -370,23 +430,25 @@ class OpenLoopPredictor:
         if state is None:
             self._state = self.initial_state(level)
             return
-        s = torch.as_tensor(state, dtype=self.model.dtype)
+        s = _as_tensor(state, "state", self.model.dtype)
         if s.shape != (self.state_dim,):
             raise ShapeError(f"state: expected shape ({self.state_dim},), got {tuple(s.shape)}")
+        _finite(s, "state")
         self._state = s.clone()
 
     def update(self, y: Tensor, du: Tensor | None = None, dv: Tensor | None = None) -> Tensor:
         """Online step: consume ``y(k)``, ``du(k-1)``, ``dv(k)``; return the predictions.
 
         Args:
-            y: measurement ``y(k)``, shape ``(ny,)``.
+            y: measurement ``y(k)``, shape ``(ny,)``; a non-finite entry is missing (no correction
+                of that CV).
             du: the move applied at the previous sample, shape ``(nu,)``; ``None`` for none.
             dv: disturbance change ``dv(k)``, shape ``(nv,)``; ``None`` for none.
 
         Returns:
             ``Y^ol_N(k|k)``, shape ``(N, ny)``: row ``i - 1`` is ``y^ol(k+i|k)``.
         """
-        y_t = torch.as_tensor(y, dtype=self.model.dtype)
+        y_t = _as_tensor(y, "y", self.model.dtype)
         if y_t.shape != (self.model.ny,):
             raise ShapeError(f"y: expected shape ({self.model.ny},), got {tuple(y_t.shape)}")
         self._state = self.step(self._state, y_t, du, dv)

@@ -1,49 +1,37 @@
-"""A small batched solver for strictly convex quadratic programs (the DMC optimisations).
+"""Strictly convex quadratic programs of the DMC layers, solved by Clarabel.
 
     minimise    1/2 x^T G x + c^T x
     subject to  A x <= b,   lb <= x <= ub
 
-``G`` must be symmetric positive definite. The method is Mehrotra's predictor-corrector primal-dual
-interior-point method (Nocedal & Wright, *Numerical Optimization*, 2nd ed., sec. 16.6) with slacks
-``s = b - A x >= 0`` and multipliers ``z >= 0``. Each iteration solves the condensed Newton system
-
-    (G + A^T diag(z / s) A) dx = -r_d - A^T (diag(z / s) r_p - r_sz / s)
-
-by Cholesky (``r_d = G x + c + A^T z``, ``r_p = A x + s - b``, ``r_sz`` the complementarity residual),
-so the cost per iteration is one ``n x n`` factorisation whatever the number of constraints. Every
-batch element runs its own iterations; converged elements are frozen. The DMC problems are small
-(tens of variables, ~100 constraints), where an interior-point method needs 10-20 iterations and
-batches naturally, unlike an active-set method.
-
-After convergence the solution is *polished* (as OSQP does): the constraints with ``s_i < z_i`` are
-guessed active, the equality-constrained KKT system on them is solved exactly, and the result replaces
-the interior-point iterate when it is primal feasible with non-negative multipliers. This removes the
-``O(sqrt(mu))`` error an interior-point method leaves on weakly active constraints.
+``G`` must be symmetric positive definite. The solver is Clarabel (Goulart & Chen, "Clarabel: an
+interior-point solver for conic programs with quadratic objectives", 2024; the ``clarabel`` package
+on PyPI), a well-kept primal-dual interior-point method with iterative refinement: the DMC problems
+are small (tens to a few hundred variables) and solved one at a time, so a library solver serves
+better than a hand-written one. A batch is solved problem by problem (the result equals the looped
+one by construction); the solve is not differentiable (results are detached).
 """
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
+import clarabel
+import numpy as np
+import scipy.sparse as sp
 import torch
 from torch import Tensor
 
 from torchfilt.exceptions import ShapeError
-from torchfilt.numerics import psd_solve, symmetrize
+from torchfilt.numerics import psd_solve
 
 __all__ = ["QPResult", "solve_qp"]
 
-#: Default stopping tolerance on the scaled primal/dual residuals and the complementarity gap.
+#: Default tolerance (Clarabel's absolute/relative duality gap and feasibility tolerances).
 QP_TOL = 1e-10
 #: Default cap on interior-point iterations.
 QP_MAX_ITER = 100
-#: Fraction of the step to the boundary taken (keeps iterates strictly interior).
-STEP_FRACTION = 0.995
 #: Relative asymmetry of ``G`` tolerated (rounding from forming ``D^T Q D`` and the like).
 SYMMETRY_RTOL = 1e-10
-#: A polished solution is accepted if it violates no constraint and no multiplier sign by more than
-#: this (relative to the problem scale).
-POLISH_TOL = 1e-9
 
 
 class QPResult(NamedTuple):
@@ -56,7 +44,7 @@ class QPResult(NamedTuple):
         objective: ``1/2 x^T G x + c^T x``, shape ``(...)``.
         converged: whether each problem met the tolerance, shape ``(...)`` bool. A problem with no
             feasible point does not converge.
-        iterations: iterations used (largest over the batch).
+        iterations: interior-point iterations used (largest over the batch).
     """
 
     x: Tensor
@@ -110,7 +98,7 @@ def solve_qp(
         lb: lower bounds, a scalar or shape ``(..., n)``; ``-inf`` entries are dropped (the same
             entries in every batch element).
         ub: upper bounds, likewise.
-        tol: tolerance on the scaled residuals and the mean complementarity.
+        tol: Clarabel's duality-gap and feasibility tolerances.
         max_iter: iteration cap.
 
     Returns:
@@ -169,100 +157,79 @@ def solve_qp(
         return QPResult(x, x.new_zeros(*batch, 0), obj, torch.ones(batch, dtype=torch.bool), 0)
     Am = torch.cat([r.expand(*batch, *r.shape[-2:]) for r in rows], dim=-2)
     bm = torch.cat([h.expand(*batch, h.shape[-1]) for h in rhs], dim=-1)
-    return _ipm(G, c, Am, bm, tol=tol, max_iter=max_iter)
+    return _clarabel(G, c, Am, bm, tol=tol, max_iter=max_iter)
 
 
-def _max_step(v: Tensor, dv: Tensor) -> Tensor:
-    """Largest ``alpha in [0, 1]`` with ``v + alpha dv >= 0`` (per batch element)."""
-    ratio = torch.where(dv < 0, -v / dv, torch.full_like(v, float("inf")))
-    return ratio.amin(-1).clamp(max=1.0)
+def _settings(tol: float, max_iter: int) -> clarabel.DefaultSettings:
+    s = clarabel.DefaultSettings()
+    s.verbose = False
+    s.max_iter = int(max_iter)
+    s.tol_gap_abs = s.tol_gap_rel = s.tol_feas = float(tol)
+    s.tol_ktratio = min(s.tol_ktratio, float(tol))
+    s.max_threads = 1
+    return s
 
 
-def _ipm(G: Tensor, c: Tensor, A: Tensor, b: Tensor, *, tol: float, max_iter: int) -> QPResult:
-    m = A.shape[-2]
-    At = A.mT
+def solve_one(
+    G: np.ndarray,
+    c: np.ndarray,
+    A: np.ndarray,
+    b: np.ndarray,
+    *,
+    tol: float,
+    max_iter: int,
+    accept_almost: bool = False,
+    n_eq: int = 0,
+) -> tuple[np.ndarray, np.ndarray, bool, int]:
+    """One QP ``min 1/2 x^T G x + c^T x  s.t.  A x <= b`` by Clarabel (float64 NumPy arrays).
 
-    def mv(M: Tensor, v: Tensor) -> Tensor:
-        return (M @ v.unsqueeze(-1)).squeeze(-1)
+    The first ``n_eq`` rows of ``A x <= b`` are equalities ``A x = b`` instead.
 
-    x = -psd_solve(G, c.unsqueeze(-1), name="G").squeeze(-1)
-    s = (b - mv(A, x)).abs().clamp_min(1.0)
-    z = torch.ones_like(s)
-    scale_d = 1.0 + c.abs().amax(-1) + G.abs().amax((-2, -1))
-    scale_p = 1.0 + b.abs().amax(-1)
-    done = torch.zeros(x.shape[:-1], dtype=torch.bool, device=x.device)
-    it = 0
-    for it in range(max_iter + 1):
-        r_d = mv(G, x) + c + mv(At, z)
-        r_p = mv(A, x) + s - b
-        mu = (s * z).sum(-1) / m
-        ok = (
-            (r_d.abs().amax(-1) <= tol * scale_d)
-            & (r_p.abs().amax(-1) <= tol * scale_p)
-            & (mu <= tol * (1.0 + (0.5 * (x * mv(G, x)).sum(-1) + (c * x).sum(-1)).abs()))
-        )
-        done = done | (ok & torch.isfinite(x).all(-1))
-        if bool(done.all()) or it == max_iter:
-            break
-        w = z / s
-        K = symmetrize(G + At @ (w.unsqueeze(-1) * A))
-        L, info = torch.linalg.cholesky_ex(K)
-        bad = info > 0
-        if bool(bad.any()):  # rank-deficient normal matrix: regularise those elements slightly
-            eye = torch.eye(K.shape[-1], dtype=K.dtype, device=K.device)
-            reg = torch.finfo(K.dtype).eps * K.diagonal(dim1=-2, dim2=-1).abs().amax(-1)
-            L = torch.where(
-                bad[..., None, None],
-                torch.linalg.cholesky_ex(K + reg[..., None, None] * eye)[0],
-                L,
-            )
+    ``G`` may be positive semi-definite here (callers that need strict convexity check it).
 
-        def direction(r_sz: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-            rhs = -r_d - mv(At, w * r_p - r_sz / s)  # noqa: B023 (same iteration)
-            dx = torch.cholesky_solve(rhs.unsqueeze(-1), L).squeeze(-1)  # noqa: B023
-            dz = w * (mv(A, dx) + r_p) - r_sz / s  # noqa: B023
-            ds = -r_p - mv(A, dx)  # noqa: B023
-            return dx, ds, dz
-
-        dx, ds, dz = direction(s * z)
-        a_aff = torch.minimum(_max_step(s, ds), _max_step(z, dz))
-        mu_aff = ((s + a_aff[..., None] * ds) * (z + a_aff[..., None] * dz)).sum(-1) / m
-        sigma = (mu_aff / mu).clamp(0.0, 1.0) ** 3
-        dx, ds, dz = direction(s * z + ds * dz - (sigma * mu)[..., None])
-        alpha = STEP_FRACTION * torch.minimum(_max_step(s, ds), _max_step(z, dz))
-        alpha = torch.where(done, torch.zeros_like(alpha), alpha)[..., None]
-        x = x + alpha * dx
-        s = s + alpha * ds
-        z = z + alpha * dz
-    x, z = _polish(G, c, A, b, x, s, z, done)
-    obj = 0.5 * (x * mv(G, x)).sum(-1) + (c * x).sum(-1)
-    return QPResult(x, z, obj, done, it)
-
-
-def _polish(
-    G: Tensor, c: Tensor, A: Tensor, b: Tensor, x: Tensor, s: Tensor, z: Tensor, done: Tensor
-) -> tuple[Tensor, Tensor]:
-    """Solve the KKT system on the guessed active set; keep it where it is feasible and optimal."""
-    n, m = G.shape[-1], A.shape[-2]
-    active = s < z  # (..., m)
-    act = active.to(G.dtype)
-    # rows of active constraints: A_i x = b_i; rows of inactive ones: z_i = 0
-    top = torch.cat([G, A.mT * act.unsqueeze(-2)], dim=-1)
-    bottom = torch.cat([A * act.unsqueeze(-1), torch.diag_embed(1.0 - act)], dim=-1)
-    K = torch.cat([top, bottom], dim=-2)
-    rhs = torch.cat([-c, b * act], dim=-1)
-    sol, info = torch.linalg.solve_ex(K, rhs.unsqueeze(-1))
-    sol = sol.squeeze(-1)
-    xp, zp = sol[..., :n], sol[..., n:]
-    scale = 1.0 + b.abs().amax(-1) + c.abs().amax(-1)
-    viol = ((A @ xp.unsqueeze(-1)).squeeze(-1) - b).amax(-1) if m else torch.zeros_like(scale)
-    ok = (
-        done
-        & (info == 0)
-        & torch.isfinite(sol).all(-1)
-        & (viol <= POLISH_TOL * scale)
-        & (zp.amin(-1) >= -POLISH_TOL * scale)
+    Returns:
+        ``(x, z, solved, iterations)``: the minimiser, the multipliers of ``A x <= b`` (``>= 0``),
+        whether Clarabel reported ``Solved`` (or ``AlmostSolved``, the reduced tolerances, with
+        ``accept_almost``), and its iteration count.
+    """
+    P = sp.triu(sp.csc_matrix(G), format="csc")
+    cones = []
+    if n_eq:
+        cones.append(clarabel.ZeroConeT(n_eq))
+    if A.shape[0] - n_eq:
+        cones.append(clarabel.NonnegativeConeT(A.shape[0] - n_eq))
+    solver = clarabel.DefaultSolver(
+        P,
+        np.ascontiguousarray(c),
+        sp.csc_matrix(A),
+        np.ascontiguousarray(b),
+        cones,
+        _settings(tol, max_iter),
     )
-    x = torch.where(ok[..., None], xp, x)
-    z = torch.where(ok[..., None], zp.clamp_min(0.0), z)
-    return x, z
+    sol = solver.solve()
+    ok = [clarabel.SolverStatus.Solved]
+    if accept_almost:
+        ok.append(clarabel.SolverStatus.AlmostSolved)
+    solved = sol.status in ok
+    return np.asarray(sol.x), np.asarray(sol.z), bool(solved), int(sol.iterations)
+
+
+def _clarabel(G: Tensor, c: Tensor, A: Tensor, b: Tensor, *, tol: float, max_iter: int) -> QPResult:
+    batch = G.shape[:-2]
+    n, m = G.shape[-1], A.shape[-2]
+    Gf = G.detach().reshape(-1, n, n).cpu().double().numpy()
+    cf = c.detach().reshape(-1, n).cpu().double().numpy()
+    Af = A.detach().reshape(-1, m, n).cpu().double().numpy()
+    bf = b.detach().reshape(-1, m).cpu().double().numpy()
+    xs, zs, ok, its = [], [], [], 0
+    for i in range(Gf.shape[0]):
+        x, z, solved, it = solve_one(Gf[i], cf[i], Af[i], bf[i], tol=tol, max_iter=max_iter)
+        xs.append(x)
+        zs.append(z)
+        ok.append(solved)
+        its = max(its, it)
+    x_t = torch.as_tensor(np.stack(xs), dtype=G.dtype, device=G.device).reshape(*batch, n)
+    z_t = torch.as_tensor(np.stack(zs), dtype=G.dtype, device=G.device).reshape(*batch, m)
+    obj = 0.5 * (x_t * (G @ x_t.unsqueeze(-1)).squeeze(-1)).sum(-1) + (c * x_t).sum(-1)
+    conv = torch.as_tensor(ok, dtype=torch.bool, device=G.device).reshape(batch)
+    return QPResult(x_t, z_t, obj.detach(), conv, its)

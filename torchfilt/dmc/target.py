@@ -3,10 +3,11 @@
 A target layer maps the open-loop *steady-state* prediction ``y^ol_ss(k)`` (for stable CVs the last
 free prediction ``y^ol(k+N|k)``) and the last input ``u(k-1)`` to a consistent target ``(y_t, u_t)``
 for the dynamic layer (:class:`~torchfilt.dmc.DMCController`). Any callable with the
-:class:`SteadyStateTarget` signature plugs in; the multi-priority (lexicographic) target calculation of
-Li & Ding (2015) used in the paper's section 3.1 (its Table 1) is a follow-up that slots in here.
+:class:`SteadyStateTarget` signature plugs in; the multi-priority target calculation of Li & Ding
+(2015) used in the paper's section 3.1 (its Table 1) is :class:`~torchfilt.dmc.MultiPriorityTarget`
+(:mod:`torchfilt.dmc.sstc`).
 
-:class:`WeightedTarget` is the simplest faithful stand-in. With the steady-state model
+:class:`WeightedTarget` is a simpler, single-QP alternative. With the steady-state model
 
     y_ss = y^ol_ss + G (u_ss - u(k-1)),       G = S^u_N (steady-state gains)
 

@@ -5,7 +5,13 @@ The contract (:class:`ConditionalModel`) maps points ``(..., P, n)`` and inputs 
 or covariance ``(..., P, d, d)`` (how a GP supplies Q and R), plus an additive noise covariance.
 """
 
-from torchfilt.models.base import ConditionalModel, Prediction, TimeVarying
+from torchfilt.models.base import (
+    ConditionalModel,
+    Prediction,
+    TimeVarying,
+    check_output,
+    check_prediction,
+)
 from torchfilt.models.calibrated import CalibratedModel
 from torchfilt.models.functional import FunctionModel, StateSpaceModel, as_conditional
 from torchfilt.models.integrate import rk4
@@ -35,5 +41,7 @@ __all__ = [
     "StateSpaceModel",
     "TimeVarying",
     "as_conditional",
+    "check_output",
+    "check_prediction",
     "rk4",
 ]

@@ -9,11 +9,17 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import ShapeError
-from torchfilt.models.base import ConditionalModel, Prediction, TimeVarying, check_noise
+from torchfilt.exceptions import InputError, ShapeError
+from torchfilt.models.base import (
+    ConditionalModel,
+    Prediction,
+    TimeVarying,
+    check_noise,
+    check_output,
+)
 from torchfilt.models.params import CovarianceParameter
 
-__all__ = ["FunctionModel", "StateSpaceModel", "as_conditional"]
+__all__ = ["FunctionModel", "StateSpaceModel", "as_conditional", "check_output"]
 
 Fn = Callable[..., Tensor]
 
@@ -55,7 +61,7 @@ class _NoiseMixin:
         if noise is None or not self._tv:
             return noise
         if step is None:
-            raise ValueError("this model's noise is time-varying; a step index is required")
+            raise InputError("this model's noise is time-varying; a step index is required")
         return TimeVarying(noise)(step)
 
     @property
@@ -96,7 +102,7 @@ class FunctionModel(_NoiseMixin, ConditionalModel):
     ) -> None:
         super().__init__()
         if not callable(fn):
-            raise TypeError(
+            raise InputError(
                 f"{name} must be callable or a ConditionalModel, got {type(fn).__name__}"
             )
         self.name = name
@@ -104,7 +110,7 @@ class FunctionModel(_NoiseMixin, ConditionalModel):
         nd = self._noise_dim()
         if out_dim is None:
             if nd is None:
-                raise ValueError(
+                raise InputError(
                     f"{name}: give out_dim or a noise covariance to fix the output size"
                 )
             out_dim = nd
@@ -117,18 +123,7 @@ class FunctionModel(_NoiseMixin, ConditionalModel):
 
     def predict(self, x: Tensor, u: Tensor | None = None) -> Prediction:
         out = self._fn(x, u) if self._two_args else self._fn(x)
-        if not isinstance(out, Tensor):
-            raise TypeError(f"{self.name} returned {type(out).__name__}, expected a torch.Tensor")
-        want = (*x.shape[:-1], self.out_dim)
-        if tuple(out.shape) != want:
-            try:
-                out = out.expand(want)
-            except RuntimeError:
-                raise ShapeError(
-                    f"{self.name} returned shape {tuple(out.shape)} for points of shape "
-                    f"{tuple(x.shape)}; expected {want} (..., P, d) with d = {self.out_dim}"
-                ) from None
-        return Prediction(out)
+        return Prediction(check_output(out, x, self.out_dim, self.name))
 
 
 class WithNoise(_NoiseMixin, ConditionalModel):
@@ -172,7 +167,7 @@ def as_conditional(
     if isinstance(obj, ConditionalModel):
         return obj if noise is None else WithNoise(obj, noise, noise_name)
     if noise is None:
-        raise ValueError(
+        raise InputError(
             f"{noise_name} is required when {name} is a callable (pass a zero matrix for a "
             "noise-free map)"
         )

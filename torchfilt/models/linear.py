@@ -5,19 +5,26 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import ShapeError
+from torchfilt.exceptions import InputError, ShapeError
 from torchfilt.models.base import Prediction, TimeVarying
 from torchfilt.models.functional import FunctionModel, StateSpaceModel
+from torchfilt.numerics.dtypes import check_real_tensor
 
 __all__ = ["LinearGaussianModel", "LinearModel"]
 
 
 def _as_tensor(value: Tensor | object, name: str) -> Tensor:
-    t = (
-        value
-        if isinstance(value, Tensor)
-        else torch.as_tensor(value, dtype=torch.get_default_dtype())
-    )
+    try:
+        t = (
+            value
+            if isinstance(value, Tensor)
+            else torch.as_tensor(value, dtype=torch.get_default_dtype())
+        )
+    except (TypeError, ValueError, RuntimeError):
+        raise InputError(f"{name}: expected a matrix, got {type(value).__name__}") from None
+    check_real_tensor(t, name, integers=True)
+    if not bool(torch.isfinite(t).all()):
+        raise InputError(f"{name} contains non-finite entries")
     if t.dim() < 2:
         raise ShapeError(
             f"{name}: expected a matrix of shape (..., rows, cols), got {tuple(t.shape)}"
@@ -68,7 +75,12 @@ class LinearModel(FunctionModel):
         out = (C.unsqueeze(-3) @ x.unsqueeze(-1)).squeeze(-1) if C.dim() > 2 else x @ C.mT
         if self.D is not None:
             if u is None:
-                raise ValueError(f"{self.name} has an input matrix; pass the inputs u")
+                raise InputError(f"{self.name} has an input matrix; pass the inputs u")
+            if u.shape[-1] != self.D.shape[-1]:
+                raise ShapeError(
+                    f"u: expected shape (..., nu) with nu = {self.D.shape[-1]} for the "
+                    f"{self.name}'s input matrix, got {tuple(u.shape)}"
+                )
             D = self.D.to(x.dtype)
             out = out + (
                 (D.unsqueeze(-3) @ u.unsqueeze(-1)).squeeze(-1) if D.dim() > 2 else u @ D.mT

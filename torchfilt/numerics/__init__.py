@@ -5,6 +5,7 @@ number of leading batch dimensions.
 """
 
 from torchfilt.numerics.box import Box
+from torchfilt.numerics.dtypes import COMPUTE_DTYPES, check_compute_dtype, check_real_tensor
 from torchfilt.numerics.linalg import (
     cholesky_ok,
     psd_solve,
@@ -18,6 +19,7 @@ from torchfilt.numerics.lsq import (
     batched_jacobian,
     bounded_least_squares,
 )
+from torchfilt.numerics.missing import observed
 from torchfilt.numerics.riccati import (
     SteadyStateKalman,
     check_detectable,
@@ -28,17 +30,21 @@ from torchfilt.numerics.small import cholesky_solve, solve_tril
 from torchfilt.numerics.stats import chi2_quantile, gaussian_log_prob
 
 __all__ = [
+    "COMPUTE_DTYPES",
     "Box",
     "LeastSquaresResult",
     "SolverStatus",
     "SteadyStateKalman",
     "batched_jacobian",
     "bounded_least_squares",
+    "check_compute_dtype",
     "check_detectable",
+    "check_real_tensor",
     "chi2_quantile",
     "cholesky_ok",
     "cholesky_solve",
     "gaussian_log_prob",
+    "observed",
     "psd_solve",
     "safe_cholesky",
     "solve_dare",

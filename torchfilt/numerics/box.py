@@ -12,7 +12,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import ShapeError
+from torchfilt.exceptions import InputError, ShapeError
 
 __all__ = ["Box"]
 
@@ -29,16 +29,16 @@ def _to_tensor(value: BoundLike) -> Tensor | None:
 def _as_bound(t: Tensor | None, fill: float, n: int | None, name: str) -> Tensor:
     if t is None:
         if n is None:
-            raise ValueError(f"{name}: give the bound or the dimension n")
+            raise InputError(f"{name}: give the bound or the dimension n")
         return torch.full((n,), fill, dtype=torch.float64)
     if t.dim() == 0:
         if n is None:
-            raise ValueError(f"{name}: a scalar bound needs the dimension n")
+            raise InputError(f"{name}: a scalar bound needs the dimension n")
         t = t.expand(n)
     if n is not None and t.shape[-1] != n:
         raise ShapeError(f"{name}: expected shape (..., n) with n = {n}, got {tuple(t.shape)}")
     if bool(torch.isnan(t).any()):
-        raise ValueError(f"{name} contains NaN; use -inf / +inf for an absent bound")
+        raise InputError(f"{name} contains NaN; use -inf / +inf for an absent bound")
     return t
 
 
@@ -85,12 +85,12 @@ class Box:
         bad = lo > hi
         if bool(bad.any()):
             idx = bad.nonzero()[0].tolist()
-            raise ValueError(
+            raise InputError(
                 f"lower > upper at index {idx}: {float(lo.expand_as(bad)[tuple(idx)])} > "
                 f"{float(hi.expand_as(bad)[tuple(idx)])}"
             )
         if bool((lo == float("inf")).any()) or bool((hi == float("-inf")).any()):
-            raise ValueError("the box is empty: a lower bound is +inf or an upper bound is -inf")
+            raise InputError("the box is empty: a lower bound is +inf or an upper bound is -inf")
         self.lower: Tensor = lo
         self.upper: Tensor = hi
 
@@ -119,7 +119,7 @@ class Box:
     def unsqueeze(self, dim: int) -> Box:
         """A box whose bounds gain a size-1 batch dimension at ``dim`` (counted in ``(..., n)``)."""
         if dim >= 0 or dim == -1:
-            raise ValueError("unsqueeze: give a negative dim before the last (state) dimension")
+            raise InputError("unsqueeze: give a negative dim before the last (state) dimension")
         out = Box.__new__(Box)
         out.lower = self.lower.unsqueeze(dim)
         out.upper = self.upper.unsqueeze(dim)

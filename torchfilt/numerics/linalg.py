@@ -15,7 +15,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import CholeskyJitterWarning
+from torchfilt.exceptions import CholeskyJitterWarning, InputError
 from torchfilt.numerics import small
 
 __all__ = ["cholesky_ok", "psd_solve", "safe_cholesky", "symmetrize", "tria"]
@@ -130,7 +130,7 @@ def safe_cholesky(
     if bool(failed.any()):
         if on_failure == "raise":
             idx = failed.nonzero().tolist()
-            raise ValueError(
+            raise InputError(
                 f"{name} is not positive definite (or not finite) at batch index "
                 f"{idx[:5]}{'...' if len(idx) > 5 else ''}, even with jitter"
             )

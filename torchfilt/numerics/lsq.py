@@ -41,9 +41,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import ConvergenceWarning, ShapeError
+from torchfilt.exceptions import ConvergenceWarning, InputError, ShapeError
 from torchfilt.numerics import small
 from torchfilt.numerics.box import Box
+from torchfilt.numerics.dtypes import check_real_tensor
 
 __all__ = [
     "LeastSquaresResult",
@@ -147,6 +148,41 @@ def batched_jacobian(
             rows.append(torch.zeros_like(x) if gi is None else gi)
     J = torch.stack(rows, dim=-2)
     return (r, J) if create_graph else (r.detach(), J.detach())
+
+
+def _check_residual(r: object, x: Tensor, name: str) -> Tensor:
+    """The residual's value must be a real tensor ``(..., k)`` of ``x``'s dtype."""
+    if not isinstance(r, Tensor):
+        raise InputError(
+            f"{name} returned {type(r).__name__}; expected a torch.Tensor of shape (..., k) "
+            "computed with torch operations (autograd differentiates it)"
+        )
+    if r.dim() < 1:
+        raise ShapeError(
+            f"{name} returned a scalar (shape ()); expected the residual vector (..., k), "
+            "not the cost (return r, not (r**2).sum())"
+        )
+    if not r.is_floating_point():
+        raise InputError(f"{name} returned dtype {r.dtype}; expected {x.dtype}")
+    return r
+
+
+def _first_residual(residual: Residual, x: Tensor, *, differentiable: bool) -> Tensor:
+    """The residual at the start point, checked: a real tensor ``(..., k)`` and, when autograd
+    is to give the Jacobian (``differentiable``), one that depends differentiably on ``x``
+    (otherwise the Jacobian reads as zero and the start point passes as optimal)."""
+    if not differentiable:
+        return _check_residual(residual(x), x, "residual")
+    with torch.enable_grad():
+        r = _check_residual(residual(x.detach().requires_grad_(True)), x, "residual")
+    if not r.requires_grad:
+        raise InputError(
+            "residual: its output does not depend differentiably on x (it ends in .detach(), "
+            "goes through numpy or Python floats, or ignores x), so autograd would give a zero "
+            "Jacobian and the start point would pass as optimal; write it with torch operations "
+            "or pass jacobian="
+        )
+    return r.detach()
 
 
 def _evaluate(
@@ -268,27 +304,41 @@ def bounded_least_squares(
         ``status`` (each ``(...)``).
 
     Raises:
-        ShapeError: ``x0`` or ``bounds`` have the wrong shape, or the residual's batch shape does
-            not broadcast with theirs.
+        ShapeError: ``x0`` or ``bounds`` have the wrong shape (the bounds' batch shape must
+            broadcast with ``x0``'s), the residual returns a scalar, or its batch shape does not
+            broadcast with theirs.
+        InputError: ``x0`` is not a float32/float64 tensor; the residual returns something other
+            than a floating tensor, or (without ``jacobian``) an output autograd cannot
+            differentiate with respect to ``x`` (``.detach()``, numpy, Python floats).
     """
-    if not isinstance(x0, Tensor) or not x0.is_floating_point() or x0.dim() < 1:
-        raise TypeError("x0 must be a floating-point tensor of shape (..., n)")
+    if not isinstance(x0, Tensor) or x0.dim() < 1:
+        raise InputError("x0 must be a floating-point tensor of shape (..., n)")
+    check_real_tensor(x0, "x0")
+    if bounds is not None and not isinstance(bounds, Box):
+        raise InputError(f"bounds must be a Box or None, got {type(bounds).__name__}")
     n = x0.shape[-1]
     box = Box(n=n) if bounds is None else bounds
     if box.dim != n:
         raise ShapeError(f"bounds: dimension {box.dim} does not match x0's n = {n}")
+    try:
+        torch.broadcast_shapes(x0.shape[:-1], box.batch_shape)
+    except RuntimeError:
+        raise ShapeError(
+            f"bounds: batch shape {tuple(box.batch_shape)} does not broadcast with x0's "
+            f"{tuple(x0.shape[:-1])}"
+        ) from None
     if max_iter < 0 or max_backtracks < 1:
-        raise ValueError("max_iter must be >= 0 and max_backtracks >= 1")
+        raise InputError("max_iter must be >= 0 and max_backtracks >= 1")
     dtype = x0.dtype
     eps = torch.finfo(dtype).eps
     tol = math.sqrt(eps) if tol is None else float(tol)
-    if not tol > 0:
-        raise ValueError(f"tol must be positive, got {tol}")
+    if not tol > 0 or not math.isfinite(tol):
+        raise InputError(f"tol must be positive and finite, got {tol}")
     lo_in, hi_in = box.lower.to(x0), box.upper.to(x0)
 
     with torch.no_grad():
         x = torch.clamp(x0.detach(), lo_in, hi_in)
-        r = residual(x)
+        r = _first_residual(residual, x, differentiable=jacobian is None)
         try:
             batch = torch.broadcast_shapes(x.shape[:-1], r.shape[:-1], box.batch_shape)
         except RuntimeError:

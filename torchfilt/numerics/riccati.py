@@ -15,19 +15,12 @@ and the steady-state (filter) gain is ``K = Sigma C^T (C Sigma C^T + R)^{-1}``. 
 rank test on every eigenvalue of ``A`` on or outside the unit circle. A failure raises
 :class:`~torchfilt.exceptions.NotDetectableError` naming the mode; garbage is never returned.
 
-The solver is the structure-preserving doubling algorithm (SDA) of Chu, Fan, Lin & Wang (Int. J.
-Control 77(8), 2004), applied to the dual (filter) equation. By the matrix-inversion lemma the equation
-reads ``Sigma = A Sigma (I + G Sigma)^{-1} A^T + Q`` with ``G = C^T R^{-1} C``. Start from
-``A_0 = A^T, G_0 = G, H_0 = Q`` and iterate
-
-    W_k     = I + G_k H_k
-    A_{k+1} = A_k W_k^{-1} A_k
-    G_{k+1} = G_k + A_k W_k^{-1} G_k A_k^T
-    H_{k+1} = H_k + A_k^T H_k W_k^{-1} A_k
-
-``H_k`` converges to ``Sigma`` quadratically, with error ``O(rho^(2^k))`` where ``rho`` is the spectral
-radius of the closed loop (Lin & Xu, SIAM J. Matrix Anal. Appl. 28(1), 2006). Each step is two LU
-solves and a few products, so it batches over leading dimensions; no explicit inverse is formed.
+The equation is solved by ``scipy.linalg.solve_discrete_are`` (Laub's generalised Schur method) on
+the dual pair ``(A^T, C^T)``, one problem at a time over a batch. Its only caller in the library
+computes one gain per predictor on small float64 CPU problems, so a batched hand-written solver bought
+nothing there; the result is detached (not differentiable). Around it this module keeps what scipy
+does not do: the PBH checks that turn a non-detectable or non-stabilisable pair into a clear error
+before solving, and a check of the Riccati residual and of closed-loop stability after.
 """
 
 from __future__ import annotations
@@ -35,10 +28,13 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import numpy as np
+import scipy.linalg
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import NotDetectableError, ShapeError
+from torchfilt.exceptions import InputError, NotDetectableError, ShapeError
+from torchfilt.numerics.dtypes import check_real_tensor
 from torchfilt.numerics.linalg import psd_solve, symmetrize
 
 __all__ = ["SteadyStateKalman", "check_detectable", "solve_dare", "steady_state_kalman"]
@@ -49,11 +45,7 @@ __all__ = ["SteadyStateKalman", "check_detectable", "solve_dare", "steady_state_
 UNIT_CIRCLE_MARGIN = 1e-6
 #: A PBH matrix whose smallest singular value is below ``PBH_RTOL * scale`` is rank deficient.
 PBH_RTOL = 1e-9
-#: Default relative change of ``Sigma`` between doubling steps at which SDA stops.
-SDA_RTOL = 1e-13
-#: Default cap on doubling steps (each step doubles the horizon: 60 steps is 2^60 Riccati steps).
-SDA_MAX_ITER = 60
-#: Relative residual of the Riccati equation accepted after SDA stops.
+#: Relative residual of the Riccati equation accepted from the solver.
 RESIDUAL_RTOL = 1e-8
 #: Relative asymmetry tolerated in ``Q`` and ``R``.
 SYMMETRY_RTOL = 1e-10
@@ -67,14 +59,12 @@ class SteadyStateKalman(NamedTuple):
         pred_cov: steady-state predicted covariance ``Sigma``, shape ``(..., n, n)``.
         filt_cov: steady-state filtered covariance ``(I - K C) Sigma``, shape ``(..., n, n)``.
         innov_cov: innovation covariance ``C Sigma C^T + R``, shape ``(..., m, m)``.
-        iterations: number of doubling steps SDA took (the largest over the batch).
     """
 
     gain: Tensor
     pred_cov: Tensor
     filt_cov: Tensor
     innov_cov: Tensor
-    iterations: int
 
 
 def _check_square(M: Tensor, name: str, n: int | None = None) -> None:
@@ -86,11 +76,10 @@ def _check_square(M: Tensor, name: str, n: int | None = None) -> None:
 def _check_inputs(A: Tensor, C: Tensor, Q: Tensor, R: Tensor) -> tuple[Tensor, ...]:
     for name, M in (("A", A), ("C", C), ("Q", Q), ("R", R)):
         if not isinstance(M, Tensor):
-            raise TypeError(f"{name} must be a torch.Tensor, got {type(M).__name__}")
-        if not M.is_floating_point():
-            raise TypeError(f"{name} must be floating point, got {M.dtype}")
+            raise InputError(f"{name} must be a torch.Tensor, got {type(M).__name__}")
+        check_real_tensor(M, name)
         if not bool(torch.isfinite(M).all()):
-            raise ValueError(f"{name} contains non-finite entries")
+            raise InputError(f"{name} contains non-finite entries")
     _check_square(A, "A")
     n = A.shape[-1]
     if C.dim() < 2 or C.shape[-1] != n:
@@ -101,21 +90,27 @@ def _check_inputs(A: Tensor, C: Tensor, Q: Tensor, R: Tensor) -> tuple[Tensor, .
     for name, M in (("Q", Q), ("R", R)):
         scale = M.abs().amax().clamp_min(1.0)
         if not torch.allclose(M, M.mT, rtol=0.0, atol=float(scale) * SYMMETRY_RTOL):
-            raise ValueError(f"{name} is not symmetric")
+            raise InputError(f"{name} is not symmetric")
     ev_r = torch.linalg.eigvalsh(symmetrize(R))
     if bool((ev_r[..., 0] <= 0).any()):
-        raise ValueError(
+        raise InputError(
             f"R must be positive definite; smallest eigenvalue {float(ev_r[..., 0].min()):.3e}"
         )
     ev_q = torch.linalg.eigvalsh(symmetrize(Q))
     qscale = ev_q[..., -1].abs().clamp_min(torch.finfo(Q.dtype).tiny)
     if bool((ev_q[..., 0] < -math.sqrt(torch.finfo(Q.dtype).eps) * qscale).any()):
-        raise ValueError(
+        raise InputError(
             f"Q must be positive semi-definite; smallest eigenvalue {float(ev_q[..., 0].min()):.3e}"
         )
     dtype = torch.promote_types(torch.promote_types(A.dtype, C.dtype), Q.dtype)
     dtype = torch.promote_types(dtype, R.dtype)
-    batch = torch.broadcast_shapes(A.shape[:-2], C.shape[:-2], Q.shape[:-2], R.shape[:-2])
+    try:
+        batch = torch.broadcast_shapes(A.shape[:-2], C.shape[:-2], Q.shape[:-2], R.shape[:-2])
+    except RuntimeError:
+        desc = ", ".join(
+            f"{k} {tuple(M.shape[:-2])}" for k, M in zip("ACQR", (A, C, Q, R), strict=True)
+        )
+        raise ShapeError(f"batch shapes do not broadcast: {desc}") from None
     return tuple(M.to(dtype).expand(*batch, *M.shape[-2:]) for M in (A, C, Q, R))
 
 
@@ -206,11 +201,9 @@ def solve_dare(
     Q: Tensor,
     R: Tensor,
     *,
-    rtol: float = SDA_RTOL,
-    max_iter: int = SDA_MAX_ITER,
     check: bool = True,
 ) -> Tensor:
-    """Stabilising solution of the filter-form DARE, by structure-preserving doubling.
+    """Stabilising solution of the filter-form DARE (by ``scipy.linalg.solve_discrete_are``).
 
         Sigma = A [Sigma - Sigma C^T (C Sigma C^T + R)^{-1} C Sigma] A^T + Q
 
@@ -221,8 +214,6 @@ def solve_dare(
         C: measurement matrices, shape ``(..., m, n)``.
         Q: process-noise covariances (PSD), shape ``(..., n, n)``.
         R: measurement-noise covariances (PD), shape ``(..., m, m)``.
-        rtol: stop when the relative Frobenius change of ``Sigma`` in one doubling step is below this.
-        max_iter: cap on doubling steps.
         check: run the PBH detectability/stabilisability test first and verify the result
             (residual and closed-loop stability) afterwards.
 
@@ -230,52 +221,39 @@ def solve_dare(
         ``Sigma``, symmetric PSD, shape ``(..., n, n)`` (leading shapes broadcast).
 
     Raises:
-        NotDetectableError: ``(A, C)`` not detectable or ``(A, Q^{1/2})`` not stabilisable, or SDA
-            did not converge to a stabilising solution.
+        NotDetectableError: ``(A, C)`` not detectable or ``(A, Q^{1/2})`` not stabilisable, or the
+            solver found no stabilising solution.
         ShapeError: inconsistent shapes (the message names the argument).
     """
     A, C, Q, R = _check_inputs(A, C, Q, R)
     if check:
         check_detectable(A, C, Q)
-    Sigma, _ = _sda(A, C, Q, R, rtol=rtol, max_iter=max_iter)
+    Sigma = _scipy_dare(A, C, Q, R)
     if check:
         _verify(A, C, Q, R, Sigma)
     return Sigma
 
 
-def _sda(A: Tensor, C: Tensor, Q: Tensor, R: Tensor, *, rtol: float, max_iter: int):
-    n = A.shape[-1]
-    eye = torch.eye(n, dtype=A.dtype, device=A.device)
-    Ak = A.mT.clone()
-    Gk = symmetrize(C.mT @ psd_solve(R, C, name="R"))
-    Hk = symmetrize(Q.clone())
+def _scipy_dare(A: Tensor, C: Tensor, Q: Tensor, R: Tensor) -> Tensor:
+    n, m = A.shape[-1], C.shape[-2]
     batch = A.shape[:-2]
-    done = torch.zeros(batch, dtype=torch.bool, device=A.device)
-    it = 0
-    for it in range(1, max_iter + 1):  # noqa: B007 (it is reported)
-        W = eye + Gk @ Hk
-        WA = torch.linalg.solve(W, Ak)
-        WG = torch.linalg.solve(W, Gk)
-        H_new = symmetrize(Hk + Ak.mT @ Hk @ WA)
-        G_new = symmetrize(Gk + Ak @ WG @ Ak.mT)
-        A_new = Ak @ WA
-        change = torch.linalg.matrix_norm(H_new - Hk) <= rtol * torch.linalg.matrix_norm(
-            H_new
-        ).clamp_min(torch.finfo(A.dtype).tiny)
-        keep = done[..., None, None]
-        Hk = torch.where(keep, Hk, H_new)
-        Gk = torch.where(keep, Gk, G_new)
-        Ak = torch.where(keep, Ak, A_new)
-        done = done | change
-        if bool(done.all()):
-            break
-    if not bool(done.all()) or not bool(torch.isfinite(Hk).all()):
-        raise NotDetectableError(
-            f"the doubling algorithm did not converge in {max_iter} steps: the Riccati equation has "
-            "no stabilising solution (a mode on the unit circle is undetectable or receives no "
-            "process noise, within numerical precision)"
-        )
-    return Hk, it
+    As = A.detach().reshape(-1, n, n).cpu().double().numpy()
+    Cs = C.detach().reshape(-1, m, n).cpu().double().numpy()
+    Qs = symmetrize(Q.detach()).reshape(-1, n, n).cpu().double().numpy()
+    Rs = symmetrize(R.detach()).reshape(-1, m, m).cpu().double().numpy()
+    out = []
+    for i in range(As.shape[0]):
+        try:
+            X = scipy.linalg.solve_discrete_are(As[i].T, Cs[i].T, Qs[i], Rs[i])
+        except (np.linalg.LinAlgError, ValueError) as err:
+            where = f" (batch index {i})" if As.shape[0] > 1 else ""
+            raise NotDetectableError(
+                f"the Riccati equation has no stabilising solution{where}: {err} (a mode on the "
+                "unit circle is undetectable or receives no process noise, within numerical "
+                "precision)"
+            ) from None
+        out.append(0.5 * (X + X.T))
+    return torch.as_tensor(np.stack(out), dtype=A.dtype, device=A.device).reshape(*batch, n, n)
 
 
 def _gain(Sigma: Tensor, C: Tensor, R: Tensor) -> tuple[Tensor, Tensor]:
@@ -309,8 +287,6 @@ def steady_state_kalman(
     Q: Tensor,
     R: Tensor,
     *,
-    rtol: float = SDA_RTOL,
-    max_iter: int = SDA_MAX_ITER,
     check: bool = True,
 ) -> SteadyStateKalman:
     """Steady-state Kalman filter: DARE solution, gain and covariances.
@@ -324,8 +300,6 @@ def steady_state_kalman(
         C: measurement matrices, shape ``(..., m, n)``.
         Q: process-noise covariances (PSD), shape ``(..., n, n)``.
         R: measurement-noise covariances (PD), shape ``(..., m, m)``.
-        rtol: SDA stopping tolerance (see :func:`solve_dare`).
-        max_iter: cap on doubling steps.
         check: PBH test before and verification after (see :func:`solve_dare`).
 
     Returns:
@@ -337,11 +311,11 @@ def steady_state_kalman(
     A, C, Q, R = _check_inputs(A, C, Q, R)
     if check:
         check_detectable(A, C, Q)
-    Sigma, it = _sda(A, C, Q, R, rtol=rtol, max_iter=max_iter)
+    Sigma = _scipy_dare(A, C, Q, R)
     if check:
         _verify(A, C, Q, R, Sigma)
     K, S = _gain(Sigma, C, R)
     n = A.shape[-1]
     eye = torch.eye(n, dtype=A.dtype, device=A.device)
     P = symmetrize((eye - K @ C) @ Sigma)
-    return SteadyStateKalman(K, Sigma, P, S, it)
+    return SteadyStateKalman(K, Sigma, P, S)

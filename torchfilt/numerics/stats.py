@@ -7,6 +7,7 @@ import math
 import torch
 from torch import Tensor
 
+from torchfilt.exceptions import InputError
 from torchfilt.numerics.small import solve_tril
 
 __all__ = ["chi2_quantile", "gaussian_log_prob"]
@@ -49,9 +50,9 @@ def chi2_quantile(p: float | Tensor, dof: float | Tensor, *, iters: int = 200) -
     p_t = torch.as_tensor(p, dtype=torch.float64)
     k = torch.as_tensor(dof, dtype=torch.float64)
     if bool((p_t <= 0).any() | (p_t >= 1).any()):
-        raise ValueError(f"p must lie in (0, 1), got {p}")
+        raise InputError(f"p must lie in (0, 1), got {p}")
     if bool((k <= 0).any()):
-        raise ValueError(f"dof must be positive, got {dof}")
+        raise InputError(f"dof must be positive, got {dof}")
     p_t, k = torch.broadcast_tensors(p_t, k)
     lo = torch.zeros_like(k)
     hi = k + 20.0 * torch.sqrt(2.0 * k) + 100.0

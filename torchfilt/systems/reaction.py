@@ -24,6 +24,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from torchfilt.exceptions import InputError
 from torchfilt.models import StateSpaceModel
 from torchfilt.systems.simulate import Simulation, simulate
 
@@ -66,7 +67,7 @@ STARTS: dict[str, tuple[tuple[float, float], tuple[float, float]]] = {
 
 def _start(start: str) -> tuple[tuple[float, float], tuple[float, float]]:
     if start not in STARTS:
-        raise ValueError(f"start must be one of {sorted(STARTS)}, got {start!r}")
+        raise InputError(f"start must be one of {sorted(STARTS)}, got {start!r}")
     return STARTS[start]
 
 

@@ -18,6 +18,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchfilt.exceptions import InputError
 from torchfilt.models import StateSpaceModel
 from torchfilt.systems.simulate import Simulation, simulate
 
@@ -220,7 +221,7 @@ def record_training_data(
         A :class:`TrainingRecord` with ``samples`` pairs.
     """
     if samples < 1 or horizon < 1 or batch < 1:
-        raise ValueError("samples, horizon and batch must be positive")
+        raise InputError("samples, horizon and batch must be positive")
     gen = torch.Generator().manual_seed(seed)
     mean = torch.tensor(PRIOR_MEAN, dtype=dtype) if x0_mean is None else x0_mean.to(dtype)
     cov = prior_cov(dtype) if x0_cov is None else x0_cov.to(dtype)

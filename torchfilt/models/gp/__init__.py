@@ -16,7 +16,7 @@ with warnings.catch_warnings():
 from torchfilt.models.gp.config import GPConfig, GroupSpec
 from torchfilt.models.gp.measurement import GPMeasurement
 from torchfilt.models.gp.model import STATE_FORMAT, GPModel
-from torchfilt.models.gp.optimize import FitState
+from torchfilt.models.gp.optimize import FitDivergedError, FitState
 from torchfilt.models.gp.predictor import FrozenGP, FrozenOutput
 from torchfilt.models.gp.settings import exact_settings, gpytorch_default_settings
 from torchfilt.models.gp.standardize import Standardizer
@@ -24,6 +24,7 @@ from torchfilt.models.gp.transition import GPTransition
 
 __all__ = [
     "STATE_FORMAT",
+    "FitDivergedError",
     "FitState",
     "FrozenGP",
     "FrozenOutput",

@@ -6,6 +6,7 @@ import gpytorch
 import torch
 from torch import Tensor
 
+from torchfilt.exceptions import InputError
 from torchfilt.models.gp.kernels import KERNELS
 
 __all__ = ["base_kernel", "bound_arg", "gaussian_likelihood", "lengthscale_of"]
@@ -28,7 +29,7 @@ def base_kernel(
         The kernel, lengthscales initialised to :data:`INIT_LENGTHSCALE`.
     """
     if kind not in KERNELS:
-        raise ValueError(f"kernel must be one of {sorted(KERNELS)}, got {kind!r}")
+        raise InputError(f"kernel must be one of {sorted(KERNELS)}, got {kind!r}")
     nu = KERNELS[kind]
     batch_shape = torch.Size() if batch_shape is None else batch_shape
     batch_shape = torch.Size() if batch_shape is None else batch_shape

@@ -6,6 +6,7 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
+from torchfilt.exceptions import InputError
 from torchfilt.models.gp.kernels import KERNELS
 
 __all__ = ["GPConfig", "GroupSpec", "resolve_inputs"]
@@ -73,22 +74,22 @@ class GPConfig:
 
     def __post_init__(self) -> None:
         if self.role not in ("transition", "measurement"):
-            raise ValueError(f"role must be 'transition' or 'measurement', got {self.role!r}")
+            raise InputError(f"role must be 'transition' or 'measurement', got {self.role!r}")
         if self.kernel not in KERNELS:
-            raise ValueError(f"kernel must be one of {sorted(KERNELS)}, got {self.kernel!r}")
+            raise InputError(f"kernel must be one of {sorted(KERNELS)}, got {self.kernel!r}")
         if self.structure not in ("independent", "multitask", "sparse"):
-            raise ValueError(
+            raise InputError(
                 f"structure must be 'independent', 'multitask' or 'sparse', got {self.structure!r}"
             )
         if self.increment and self.prior_mean:
-            raise ValueError(
+            raise InputError(
                 "increment and prior_mean are exclusive: a prior mean already predicts the "
                 "target; the GP learns target - prior_mean(x, u)"
             )
         if self.increment and self.role != "transition":
-            raise ValueError("increment=True is for transitions (it learns x_{k+1} - x_k)")
+            raise InputError("increment=True is for transitions (it learns x_{k+1} - x_k)")
         if self.num_latents < 1 or self.task_rank < 1 or self.num_inducing < 1:
-            raise ValueError("num_latents, task_rank and num_inducing must be positive")
+            raise InputError("num_latents, task_rank and num_inducing must be positive")
 
     @property
     def features(self) -> int:
@@ -137,29 +138,29 @@ def resolve_inputs(
         return [tuple(range(features))] * out_dim
     items = list(inputs)
     if not items:
-        raise ValueError(f"{name}: must not be empty")
+        raise InputError(f"{name}: must not be empty")
     per_output = all(isinstance(i, Sequence) and not isinstance(i, str) for i in items)
     shared = all(isinstance(i, int) and not isinstance(i, bool) for i in items)
     if not (per_output or shared):
-        raise TypeError(
+        raise InputError(
             f"{name}: expected a list of feature indices or one list per output, got {inputs!r}"
         )
     lists: list[list[Any]] = (
         [list(i) for i in items] if per_output else [list(items)] * out_dim  # type: ignore[call-overload]
     )
     if len(lists) != out_dim:
-        raise ValueError(f"{name}: {len(lists)} selections given for {out_dim} outputs")
+        raise InputError(f"{name}: {len(lists)} selections given for {out_dim} outputs")
     out = []
     for j, sel in enumerate(lists):
         if not sel:
-            raise ValueError(f"{name}[{j}]: output {j} must see at least one input")
+            raise InputError(f"{name}[{j}]: output {j} must see at least one input")
         for i in sel:
             if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < features:
-                raise ValueError(
+                raise InputError(
                     f"{name}[{j}]: feature index {i!r} out of range; features are 0..{features - 1} "
                     "(state components first, then inputs u)"
                 )
         if len(set(sel)) != len(sel):
-            raise ValueError(f"{name}[{j}]: repeated feature index in {sel}")
+            raise InputError(f"{name}[{j}]: repeated feature index in {sel}")
         out.append(tuple(sorted(int(i) for i in sel)))
     return out

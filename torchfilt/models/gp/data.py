@@ -13,12 +13,24 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import ShapeError
+from torchfilt.exceptions import InputError, ShapeError
+from torchfilt.numerics.dtypes import check_compute_dtype, check_real_tensor
 
 __all__ = ["PairData", "as_float", "measurement_pairs", "transition_pairs"]
 
 #: Fewest training points a GP output may be fitted on.
 MIN_POINTS = 5
+#: Training values may not exceed ``sqrt(finfo(dtype).max) / MAGNITUDE_MARGIN`` in magnitude
+#: (1.3e150 in float64, 1.8e15 in float32): the model's variances are squares of the data's
+#: scale and must stay finite (at |y| ~ 1e154 the standard deviation overflowed and the model
+#: predicted NaN).
+MAGNITUDE_MARGIN = 1e4
+
+
+def max_magnitude(dtype: torch.dtype) -> float:
+    """The largest training value magnitude accepted in ``dtype`` (see ``MAGNITUDE_MARGIN``)."""
+    return float(torch.finfo(dtype).max) ** 0.5 / MAGNITUDE_MARGIN
+
 
 Recordings = Tensor | Sequence[Tensor]
 
@@ -47,10 +59,10 @@ def as_float(value: Any, name: str, dtype: torch.dtype | None = None) -> Tensor:
     try:
         t = value if isinstance(value, Tensor) else torch.as_tensor(value)
     except (TypeError, ValueError, RuntimeError) as exc:
-        raise TypeError(f"{name}: cannot convert {type(value).__name__} to a tensor") from exc
-    if not (t.is_floating_point() or t.dtype in (torch.int32, torch.int64)):
-        raise TypeError(f"{name}: expected real numbers, got dtype {t.dtype}")
+        raise InputError(f"{name}: cannot convert {type(value).__name__} to a tensor") from exc
+    check_real_tensor(t, name, integers=True)
     if dtype is not None:
+        check_compute_dtype(dtype)
         t = t.to(dtype)
     elif not t.is_floating_point():
         t = t.to(torch.get_default_dtype())
@@ -61,10 +73,35 @@ def _finite(t: Tensor, name: str) -> None:
     bad = ~torch.isfinite(t)
     if bool(bad.any()):
         rows = bad.reshape(-1, t.shape[-1]).any(-1).nonzero().flatten()[:5].tolist()
-        raise ValueError(
+        raise InputError(
             f"{name} contains {int(bad.sum())} non-finite entries (first rows: {rows}); "
             "states and inputs cannot be missing"
         )
+    _magnitude(t, name)
+
+
+def _magnitude(t: Tensor, name: str) -> None:
+    """Refuse values too large for the model's variances (NaN entries are ignored)."""
+    if t.numel() == 0:
+        return
+    big = float(torch.nan_to_num(t, nan=0.0).abs().max())
+    limit = max_magnitude(t.dtype)
+    if big > limit:
+        raise InputError(
+            f"{name}: values up to {big:.3g} in magnitude; a GP in {t.dtype} accepts at most "
+            f"{limit:.3g} (its variances are squares of the data's scale): rescale the data"
+        )
+
+
+def _same_width(items: Sequence[Tensor], name: str) -> None:
+    """All recordings of one argument must have the same number of columns."""
+    widths = [int(t.shape[-1]) for t in items]
+    for i, w in enumerate(widths):
+        if w != widths[0]:
+            raise ShapeError(
+                f"{name}[{i}]: {w} columns, expected {widths[0]} like {name}[0] (every recording "
+                "must have the same dimension)"
+            )
 
 
 def _is_list(v: Any) -> bool:
@@ -100,14 +137,14 @@ def transition_pairs(
         u: inputs aligned with ``x``: ``(..., N, nu)`` for pairs; for recordings ``(..., T, nu)``
             or ``(..., T+1, nu)`` (the last row is unused), or a list; ``None`` for none.
         x_next: successor states ``(..., N, n)``, or ``None`` for recordings.
-        dtype: dtype of the result (default: that of ``x``).
+        dtype: dtype of the result, float32 or float64 (default: that of ``x``).
 
     Returns:
         The flattened :class:`PairData`.
     """
     if x_next is not None:
         if _is_list(x):
-            raise TypeError("x: pass a tensor of states (N, n) with x_next, or recordings alone")
+            raise InputError("x: pass a tensor of states (N, n) with x_next, or recordings alone")
         xs = as_float(x, "x", dtype)
         dtype = xs.dtype
         xs = _matrix(xs, "x")
@@ -120,7 +157,7 @@ def transition_pairs(
         us = None
         if u is not None:
             if _is_list(u):
-                raise TypeError("u: pass a tensor (N, nu) aligned with x")
+                raise InputError("u: pass a tensor (N, nu) aligned with x")
             ut = as_float(u, "u", dtype)
             us = _matrix(ut, "u", what=f"(N, nu) with N = {xs.shape[0]}")
             if us.shape[0] != xs.shape[0]:
@@ -133,6 +170,7 @@ def transition_pairs(
         urecs: list[Tensor | None] = [None] * len(recs)
         if u is not None:
             urecs = list(_recordings(u, "u", dtype, count=len(recs)))
+            _same_width([t for t in urecs if t is not None], "u")
         xs_l, us_l, xn_l = [], [], []
         for i, (r, ur) in enumerate(zip(recs, urecs, strict=True)):
             if r.shape[-1] != n:
@@ -150,7 +188,7 @@ def transition_pairs(
                     )
                 us_l.append(ur[:T])
         if not xs_l:
-            raise ValueError("x: the recordings hold no transition (each needs two states)")
+            raise InputError("x: the recordings hold no transition (each needs two states)")
         pairs = PairData(
             torch.cat(xs_l), torch.cat(us_l) if u is not None else None, torch.cat(xn_l)
         )
@@ -159,7 +197,7 @@ def transition_pairs(
     if pairs.inputs is not None:
         _finite(pairs.inputs, "u")
     if pairs.states.shape[0] < MIN_POINTS:
-        raise ValueError(
+        raise InputError(
             f"x: {pairs.states.shape[0]} transition pairs; at least {MIN_POINTS} are needed"
         )
     return pairs
@@ -178,17 +216,19 @@ def measurement_pairs(
         x: states ``(..., N, n)`` or a list of ``(T_i, n)``.
         y: measurements ``(..., N, m)`` or a list of ``(T_i, m)``; NaN marks a missing value.
         u: inputs ``(..., N, nu)``, a list, or ``None``.
-        dtype: dtype of the result (default: that of ``x``).
+        dtype: dtype of the result, float32 or float64 (default: that of ``x``).
 
     Returns:
         The flattened :class:`PairData`.
     """
     if _is_list(x) != _is_list(y):
-        raise TypeError("x and y: pass both as tensors or both as lists of recordings")
+        raise InputError("x and y: pass both as tensors or both as lists of recordings")
     if _is_list(x):
         xs = _recordings(x, "x", dtype)
         dtype = xs[0].dtype
         ys = _recordings(y, "y", dtype, count=len(xs))
+        _same_width(xs, "x")
+        _same_width(ys, "y")
         for i, (a, b) in enumerate(zip(xs, ys, strict=True)):
             if a.shape[0] != b.shape[0]:
                 raise ShapeError(f"y[{i}]: {b.shape[0]} rows, expected {a.shape[0]} like x[{i}]")
@@ -196,6 +236,7 @@ def measurement_pairs(
         ut = None
         if u is not None:
             us = _recordings(u, "u", dtype, count=len(xs))
+            _same_width(us, "u")
             for i, (a, b) in enumerate(zip(xs, us, strict=True)):
                 if a.shape[0] != b.shape[0]:
                     raise ShapeError(
@@ -217,7 +258,8 @@ def measurement_pairs(
     if ut is not None:
         _finite(ut, "u")
     if bool(torch.isinf(yt).any()):
-        raise ValueError("y contains infinite entries (use NaN for a missing measurement)")
+        raise InputError("y contains infinite entries (use NaN for a missing measurement)")
+    _magnitude(yt, "y")
     return PairData(xt, ut, yt)
 
 
@@ -227,7 +269,7 @@ def _recordings(
     if _is_list(v):
         items = _list(v, name, count)
         if not items:
-            raise ValueError(f"{name}: the list of recordings is empty")
+            raise InputError(f"{name}: the list of recordings is empty")
         out = []
         for i, r in enumerate(items):
             t = as_float(r, f"{name}[{i}]", dtype)

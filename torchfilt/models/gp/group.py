@@ -9,6 +9,7 @@ import gpytorch
 import torch
 from torch import Tensor, nn
 
+from torchfilt.exceptions import InputError
 from torchfilt.models.gp.components import gaussian_likelihood, lengthscale_of
 from torchfilt.models.gp.exact import ExactIndependentGP
 from torchfilt.models.gp.multitask import ExactMultitaskGP, multitask_likelihood
@@ -97,7 +98,7 @@ class GPGroup(nn.Module):
             self.gp = SparseIndependentGP(inducing, kernel)
             self.gp.init_prior()
         else:
-            raise ValueError(f"unknown structure {structure!r}")
+            raise InputError(f"unknown structure {structure!r}")
 
     # ------------------------------------------------------------------ sizes
     @property

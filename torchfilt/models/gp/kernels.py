@@ -19,6 +19,8 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from torchfilt.exceptions import InputError
+
 __all__ = ["KERNELS", "KernelName", "correlation", "scaled_sq_dist"]
 
 KernelName = Literal["rbf", "matern12", "matern32", "matern52"]
@@ -60,7 +62,7 @@ def correlation(d2: Tensor, kind: str) -> Tensor:
     if kind == "rbf":
         return torch.exp(-0.5 * d2)
     if kind not in KERNELS:
-        raise ValueError(f"kernel must be one of {sorted(KERNELS)}, got {kind!r}")
+        raise InputError(f"kernel must be one of {sorted(KERNELS)}, got {kind!r}")
     r = d2.clamp_min(_TINY_SQ).sqrt()
     if kind == "matern12":
         return torch.exp(-r)

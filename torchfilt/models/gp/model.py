@@ -16,13 +16,15 @@ uses; before freezing, :meth:`predict` calls GPyTorch (exact settings).
 
 from __future__ import annotations
 
+import inspect
+import numbers
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, Literal
 
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import ShapeError
+from torchfilt.exceptions import InputError, ShapeError
 from torchfilt.models.base import ConditionalModel, Prediction
 from torchfilt.models.functional import FunctionModel
 from torchfilt.models.gp.config import GPConfig, GroupSpec, resolve_inputs
@@ -42,6 +44,7 @@ from torchfilt.models.gp.predictor import (
     sparse_block,
 )
 from torchfilt.models.gp.standardize import Standardizer
+from torchfilt.numerics.dtypes import check_real_tensor
 
 __all__ = ["STATE_FORMAT", "GPModel"]
 
@@ -51,6 +54,8 @@ STATE_FORMAT = "torchfilt.gp/1"
 DEFAULT_SUBSET = 1000
 #: The initial noise (standardised) is the neighbour estimate, capped at this value.
 INIT_NOISE_MAX = 0.1
+#: Largest accepted learning rate (Adam on log-hyperparameters, natural-gradient step).
+MAX_LR = 1.0
 
 
 class GPModel(ConditionalModel):
@@ -77,7 +82,7 @@ class GPModel(ConditionalModel):
     ) -> None:
         super().__init__()
         if len(groups) != len(config.groups):
-            raise ValueError("one GPGroup per config group is required")
+            raise InputError("one GPGroup per config group is required")
         self.config = config
         self.groups = torch.nn.ModuleList(groups)
         self.input_std = input_std
@@ -101,16 +106,16 @@ class GPModel(ConditionalModel):
         """
         if prior_mean is None:
             if self.config.prior_mean:
-                raise ValueError(
+                raise InputError(
                     "prior_mean: this model was trained with a prior mean; pass the same "
                     "callable (prior_mean=fn) - callables are not serialised"
                 )
             self._prior = None
             return
         if not self.config.prior_mean:
-            raise ValueError("prior_mean: this model was trained without a prior mean")
+            raise InputError("prior_mean: this model was trained without a prior mean")
         if not callable(prior_mean):
-            raise TypeError(f"prior_mean must be callable, got {type(prior_mean).__name__}")
+            raise InputError(f"prior_mean must be callable, got {type(prior_mean).__name__}")
         # Kept outside the module tree: the GP's state dict never holds the nominal model.
         object.__setattr__(
             self,
@@ -172,12 +177,12 @@ class GPModel(ConditionalModel):
         base = None
         if prior_mean is not None:
             if not callable(prior_mean):
-                raise TypeError(f"prior_mean must be callable, got {type(prior_mean).__name__}")
+                raise InputError(f"prior_mean must be callable, got {type(prior_mean).__name__}")
             nominal = FunctionModel(prior_mean, out_dim=d, in_dim=n, name="prior_mean")
             with torch.no_grad():
                 base = nominal.predict(pairs.states, pairs.inputs).mean
             if not bool(torch.isfinite(base).all()):
-                raise ValueError("prior_mean returned non-finite values on the training states")
+                raise InputError("prior_mean returned non-finite values on the training states")
         elif increment:
             base = pairs.states
         resid = pairs.targets if base is None else pairs.targets - base.to(dtype)
@@ -185,7 +190,7 @@ class GPModel(ConditionalModel):
         for j in range(d):
             cnt = int(valid[:, j].sum())
             if cnt < MIN_POINTS:
-                raise ValueError(
+                raise InputError(
                     f"{target_name}[:, {j}]: {cnt} observed values; at least {MIN_POINTS} are needed"
                 )
         input_std = Standardizer.fit(feats)
@@ -202,7 +207,7 @@ class GPModel(ConditionalModel):
         specs: list[GroupSpec] = []
         if structure == "multitask":
             if len({sel[j] for j in modelled}) > 1:
-                raise ValueError("inputs: a multitask GP needs one input selection for all outputs")
+                raise InputError("inputs: a multitask GP needs one input selection for all outputs")
             if modelled:
                 specs.append(GroupSpec(tuple(modelled), sel[modelled[0]]))
         else:
@@ -228,7 +233,7 @@ class GPModel(ConditionalModel):
         else:
             if isinstance(noise_floor, str):
                 if noise_floor != "auto":
-                    raise ValueError(
+                    raise InputError(
                         f"noise_floor must be 'auto' or a variance, got {noise_floor!r}"
                     )
                 floor = auto_floor(est, dtype)
@@ -251,7 +256,7 @@ class GPModel(ConditionalModel):
             outs = list(spec.outputs)
             rows = valid[:, outs].all(-1)
             if int(rows.sum()) < MIN_POINTS:  # a multitask GP needs every output at a row
-                raise ValueError(
+                raise InputError(
                     f"{target_name}: only {int(rows.sum())} rows observe all of outputs {outs}; "
                     f"a multitask GP needs at least {MIN_POINTS}"
                 )
@@ -282,6 +287,13 @@ class GPModel(ConditionalModel):
         freeze = {k: options.pop(k) for k in freeze_keys if k in options}
         seed = options.get("seed", 0)
         device = options.pop("device", None)
+        known = set(inspect.signature(cls._from_pairs).parameters) - {"pairs"}
+        unknown = sorted(set(options) - known)
+        if unknown:
+            valid = sorted(known | set(train_keys) | set(freeze_keys) | {"device", "dtype"})
+            raise InputError(
+                f"{cls.__name__}.fit: unexpected keyword argument(s) {unknown}; valid: {valid}"
+            )
         model = cls._from_pairs(pairs, **options)
         if device is not None:
             model.to(device)
@@ -324,14 +336,22 @@ class GPModel(ConditionalModel):
         Returns:
             The loss per iteration run (also appended to :attr:`history`).
         """
-        if iterations < 0:
-            raise ValueError(f"iterations must be non-negative, got {iterations}")
-        if lr <= 0:
-            raise ValueError(f"lr must be positive, got {lr}")
+        if (
+            isinstance(iterations, bool)
+            or not isinstance(iterations, numbers.Integral)
+            or iterations < 0
+        ):
+            raise InputError(f"iterations must be a non-negative integer, got {iterations!r}")
+        for name, rate in (("lr", lr), ("natural_lr", natural_lr)):
+            if not isinstance(rate, numbers.Real) or not 0.0 < float(rate) <= MAX_LR:
+                raise InputError(
+                    f"{name} must be a number in (0, {MAX_LR:g}], got {rate!r} (a step above "
+                    f"{MAX_LR:g} on the log-hyperparameters diverges)"
+                )
         if subset is not None and subset < MIN_POINTS:
-            raise ValueError(f"subset must be at least {MIN_POINTS}, got {subset}")
+            raise InputError(f"subset must be at least {MIN_POINTS}, got {subset}")
         if batch_size < 1:
-            raise ValueError(f"batch_size must be positive, got {batch_size}")
+            raise InputError(f"batch_size must be positive, got {batch_size}")
         start, opt_state = 0, None
         if resume is not None:
             start, opt_state = self._load_checkpoint(resume)
@@ -391,17 +411,17 @@ class GPModel(ConditionalModel):
 
     def _load_checkpoint(self, ckpt: dict[str, Any]) -> tuple[int, dict[str, Any]]:
         if not isinstance(ckpt, dict) or not {"model", "optimizer", "iteration"} <= set(ckpt):
-            raise ValueError("resume: expected a checkpoint from FitState.checkpoint()")
+            raise InputError("resume: expected a checkpoint from FitState.checkpoint()")
         state = ckpt["model"]
         if state.get("config") != self.config.to_dict():
             mine, theirs = self.config.to_dict(), state.get("config") or {}
             diff = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
-            raise ValueError(f"resume: the checkpoint's model options differ in {diff}")
+            raise InputError(f"resume: the checkpoint's model options differ in {diff}")
         sd = state["state_dict"]
         own = self.state_dict()
         for k, v in own.items():
             if k.endswith(("train_x", "train_y")) and (k not in sd or not torch.equal(sd[k], v)):
-                raise ValueError("resume: the checkpoint was trained on different data")
+                raise InputError("resume: the checkpoint was trained on different data")
         self.load_state_dict(sd)
         return int(ckpt["iteration"]), ckpt["optimizer"]
 
@@ -430,13 +450,13 @@ class GPModel(ConditionalModel):
             ``self``. :attr:`variance_forms` tells which form each group got.
         """
         if variance not in ("exact", "lowrank", "auto"):
-            raise ValueError(f"variance must be 'auto', 'exact' or 'lowrank', got {variance!r}")
+            raise InputError(f"variance must be 'auto', 'exact' or 'lowrank', got {variance!r}")
         if variance == "lowrank" and (rank is None or rank < 1):
-            raise ValueError("rank: a positive rank is required for variance='lowrank'")
+            raise InputError("rank: a positive rank is required for variance='lowrank'")
         if not tol > 0:
-            raise ValueError(f"tol must be positive, got {tol}")
+            raise InputError(f"tol must be positive, got {tol}")
         if chunk_size < 1:
-            raise ValueError(f"chunk_size must be positive, got {chunk_size}")
+            raise InputError(f"chunk_size must be positive, got {chunk_size}")
         blocks: list[torch.nn.Module] = []
         ist, tst = self.input_std, self.target_std
         with torch.no_grad():
@@ -503,13 +523,14 @@ class GPModel(ConditionalModel):
     def _features(self, x: Tensor, u: Tensor | None) -> Tensor:
         n, nu = self.config.state_dim, self.config.input_dim
         if not isinstance(x, Tensor):
-            raise TypeError(f"x must be a torch.Tensor, got {type(x).__name__}")
+            raise InputError(f"x must be a torch.Tensor, got {type(x).__name__}")
+        check_real_tensor(x, "x")
         if x.dim() < 1 or x.shape[-1] != n:
             raise ShapeError(f"x: expected shape (..., P, n) with n = {n}, got {tuple(x.shape)}")
         if nu == 0:
             return x
         if u is None:
-            raise ValueError(
+            raise InputError(
                 f"u: this {type(self).__name__} was trained with inputs (nu = {nu}); pass u"
             )
         if u.shape[-1] != nu:
@@ -669,9 +690,9 @@ class GPModel(ConditionalModel):
             The model (frozen again if it was frozen when saved).
         """
         if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
-            raise ValueError(f"state: expected a dict written by to_state() ({STATE_FORMAT})")
+            raise InputError(f"state: expected a dict written by to_state() ({STATE_FORMAT})")
         if cls.role and state.get("class") != cls.__name__:
-            raise ValueError(f"state: holds a {state.get('class')}, not a {cls.__name__}")
+            raise InputError(f"state: holds a {state.get('class')}, not a {cls.__name__}")
         config = GPConfig.from_dict(state["config"])
         sd: dict[str, Tensor] = state["state_dict"]
         dtype = sd["target_std.scale"].dtype
@@ -731,5 +752,5 @@ def _per_output(value: Any, d: int, name: str, dtype: torch.dtype) -> Tensor:
             f"{name}: expected a scalar or {d} values (one per output), got {t.numel()}"
         )
     if not bool(torch.isfinite(t).all()) or not bool((t > 0).all()):
-        raise ValueError(f"{name}: variances must be positive and finite, got {t.tolist()}")
+        raise InputError(f"{name}: variances must be positive and finite, got {t.tolist()}")
     return t

@@ -20,7 +20,15 @@ import gpytorch
 import torch
 from torch import Tensor, nn
 
-__all__ = ["FitState", "Progress", "run_adam"]
+from torchfilt.exceptions import ModelError
+
+__all__ = ["FitDivergedError", "FitState", "Progress", "run_adam"]
+
+
+class FitDivergedError(ModelError, FloatingPointError):
+    """The training loss became non-finite (too large a learning rate, too low a noise floor,
+    outliers). A :class:`~torchfilt.exceptions.ModelError`, and a ``FloatingPointError`` as
+    before."""
 
 
 class FitState(NamedTuple):
@@ -126,7 +134,7 @@ def run_adam(
         The loss of each iteration run.
 
     Raises:
-        FloatingPointError: if the loss becomes non-finite.
+        FitDivergedError: if the loss becomes non-finite.
     """
     plist = [p for p in params if p.requires_grad]
     opt = torch.optim.Adam(plist, lr=lr) if plist else None
@@ -147,7 +155,7 @@ def run_adam(
         loss = loss_fn(it)
         value = float(loss.detach())
         if not math.isfinite(value):
-            raise FloatingPointError(
+            raise FitDivergedError(
                 f"training loss became {value} at iteration {it}; lower lr, raise the noise floor, "
                 "or check the data for outliers"
             )

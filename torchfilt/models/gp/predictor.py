@@ -30,6 +30,7 @@ from typing import Literal, NamedTuple
 import torch
 from torch import Tensor, nn
 
+from torchfilt.exceptions import InputError
 from torchfilt.models.gp.kernels import correlation, scaled_sq_dist
 from torchfilt.models.gp.root import (
     ANCHOR_SHARE,
@@ -304,7 +305,7 @@ class FrozenGP(nn.Module):
     def forward(self, z: Tensor) -> FrozenOutput:
         """Predictive moments at features ``z`` ``(..., F)``; returns ``(..., d)`` tensors."""
         if z.device != self.fill_mean.device:
-            raise ValueError(
+            raise InputError(
                 f"x is on {z.device} but the GP model is on {self.fill_mean.device}; move one "
                 "of them with .to()"
             )
@@ -331,7 +332,7 @@ class FrozenGP(nn.Module):
         """The predictive mean alone at features ``z`` ``(..., F)``, ``(..., d)``: the same
         numbers as ``forward(z).mean`` without the variance's work."""
         if z.device != self.fill_mean.device:
-            raise ValueError(
+            raise InputError(
                 f"x is on {z.device} but the GP model is on {self.fill_mean.device}; move one "
                 "of them with .to()"
             )

@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from torchfilt.exceptions import InputError
+
 __all__ = ["Standardizer"]
 
 #: A column whose standard deviation is below ``CONSTANT_RTOL * max(1, |mean|)`` is treated as
@@ -28,12 +30,12 @@ class Standardizer(nn.Module):
     def __init__(self, shift: Tensor, scale: Tensor, constant: Tensor | None = None) -> None:
         super().__init__()
         if shift.shape != scale.shape or shift.dim() != 1:
-            raise ValueError(
+            raise InputError(
                 f"shift and scale must be vectors of one shape, got {tuple(shift.shape)} and "
                 f"{tuple(scale.shape)}"
             )
         if not bool((scale > 0).all()):
-            raise ValueError("scale must be positive")
+            raise InputError("scale must be positive")
         self.register_buffer("shift", shift.clone())
         self.register_buffer("scale", scale.clone())
         if constant is None:

@@ -1,0 +1,550 @@
+"""Multi-priority steady-state target calculation (SSTC) of double-layered DMC (Li & Ding 2015).
+
+At sample ``k`` the steady-state model predicts, from the open-loop steady-state prediction
+``y^ol_ss(k)`` (for stable CVs the last free prediction ``y^ol(k+N|k)`` of the Kalman-filter or
+classical prediction module) and the last input ``u(k-1)``,
+
+    y_ss = y^ol_ss + G du_ss,     u_ss = u(k-1) + du_ss,     G = S^u_N (steady-state gains).
+
+**Hard constraints** (never relaxed): ``u_min <= u_ss <= u_max``, ``|du_ss| <= du_ss_max`` and the
+hard CV limits ``y_min <= y_ss <= y_max``. When they admit no ``du_ss`` the calculation raises
+:class:`~torchfilt.exceptions.InfeasibleError` naming the conflict.
+
+**Feasibility stages** (linear programs, HiGHS through ``scipy.optimize.linprog``). Each soft row
+``r`` (a :class:`~torchfilt.dmc.TargetRow`: a limit of type II, ``lower``/``upper``, or an ideal value
+of type I, ``ideal``) gets a relaxation ``eps_r >= 0``:
+
+    lower:  f_r >= value - eps_r,     upper:  f_r <= value + eps_r,     ideal:  |f_r - value| <= eps_r
+
+where ``f_r`` is the row's CV, MV or linear combination of ``[y_ss; u_ss]``. Priority by priority,
+from 1 (highest) to the second lowest, stage ``p`` solves
+
+    J*_p = min  sum_{r in p} eps_r / e_r      (e_r: the row's equal-concern error)
+           s.t. hard constraints, the relaxation inequalities of the rows of priority p, and the
+                rows of every earlier priority with their limits moved by the relaxations found
+                there (an ideal value met exactly becomes an equality)
+
+so a lower priority is only ever relaxed to spare a higher one (preemptive order; as in industrial
+SSTC, the relaxed limits of a solved stage become hard constraints for the stages after it).
+
+**Economic stage** (a QP, by Clarabel). With MV costs ``h`` and the minimum-move MVs ``mm``,
+
+    J(du_ss) = sum_{i not in mm} h_i du_i,ss + sum_{i in mm} h_i |du_i,ss|
+
+(``|du|`` through a split ``du = p - n``, ``p, n >= 0``), it solves
+
+    min  w_J (J - J_min)^2 + sum_{r in lowest priority} (eps_r / e_r)^2 + rho ||z||^2
+
+subject to everything above, where ``z`` are all the QP's variables and ``rho`` =
+:data:`SSTC_REGULARISATION` makes the minimiser unique. ``J_min`` is the economic value aimed at (for
+the paper's ``h = [-2, 1, 2]`` and ``|du_ss| <= 0.1`` it is the smallest ``J`` the move bounds allow,
+``-0.4``), so the stage drives ``J`` down as far as the lowest-priority soft constraints let it. The
+rows of the lowest priority are only in this stage (the paper's "QP with the lowest-priority soft
+constraints").
+
+The result ``(y_ss, u_ss)`` is handed to the dynamic layer as CV setpoints and MV ideal values.
+Soft stages always relax; should the economic QP fail to converge, the last feasibility stage's
+target is used with a :class:`~torchfilt.exceptions.ConvergenceWarning`, so the loop never stops
+on a numerical failure.
+Only stable CVs are supported (an integrating CV has no steady-state level to target).
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import numpy as np
+import scipy.optimize
+import torch
+from torch import Tensor
+
+from torchfilt.dmc.qp import solve_one
+from torchfilt.dmc.step_response import StepResponseModel
+from torchfilt.dmc.target import Target, TargetRow
+from torchfilt.exceptions import (
+    ConvergenceWarning,
+    InfeasibleError,
+    InputError,
+    RunError,
+    ShapeError,
+)
+
+__all__ = ["MultiPriorityTarget", "SSTCResult"]
+
+#: Relative (and absolute) margin granted to a relaxed limit in later stages, so that rounding in the
+#: LP solutions never makes a later stage infeasible; an ideal value relaxed by no more than this
+#: becomes an equality.
+STAGE_TOL = 1e-9
+#: Regularisation weight of the economic QP (makes its minimiser unique).
+SSTC_REGULARISATION = 1e-8
+#: A constraint whose slack is below this counts as active; a relaxation above it as relaxed.
+ACTIVE_TOL = 1e-7
+#: Tolerance of the economic QP (Clarabel's gap and feasibility tolerances; its optimum is flat
+#: along the economic direction, where tighter tolerances stall).
+SSTC_QP_TOL = 1e-8
+
+
+class SSTCResult(NamedTuple):
+    """One steady-state target calculation.
+
+    Attributes:
+        y: CV targets ``y_ss``, shape ``(ny,)``.
+        u: MV targets ``u_ss``, shape ``(nu,)``.
+        du: ``u_ss - u(k-1)``, shape ``(nu,)``.
+        relaxation: ``eps_r`` of every soft row (in the row's units), shape ``(R,)``.
+        stage_costs: ``sum eps_r / e_r`` of each priority level, shape ``(levels,)`` (the last is the
+            economic stage's lowest-priority rows).
+        economic: ``J`` at the solution.
+        active: names of the active constraints: hard limits at their bound (``"hard ..."``), soft
+            limits held exactly at their bound (``"at ..."``), ideal values met (``"met ..."``) and
+            relaxed soft rows (``"relaxed ... by eps"``).
+    """
+
+    y: Tensor
+    u: Tensor
+    du: Tensor
+    relaxation: Tensor
+    stage_costs: Tensor
+    economic: float
+    active: list[str]
+
+
+def _vec(
+    value: float | Sequence[float] | Tensor | None, n: int, name: str, default: float
+) -> np.ndarray:
+    if value is None:
+        return np.full(n, default)
+    t = torch.as_tensor(value, dtype=torch.float64)
+    if t.dim() == 0:
+        t = t.expand(n)
+    if t.shape != (n,):
+        raise ShapeError(f"{name}: expected a scalar or shape ({n},), got {tuple(t.shape)}")
+    if bool(torch.isnan(t).any()):
+        raise InputError(f"{name} contains NaN")
+    return t.numpy().astype(np.float64).copy()
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.4g}"
+
+
+class MultiPriorityTarget:
+    """Multi-priority steady-state target calculation (see the module docstring).
+
+    Args:
+        model: step-response model (stable CVs only); ``G = S^u_N``.
+        rows: soft rows (:class:`~torchfilt.dmc.TargetRow` with kind ``lower``, ``upper`` or
+            ``ideal``); priority 1 is the highest, the largest priority goes to the economic QP.
+        u_min: lower MV bounds, scalar or ``(nu,)``.
+        u_max: upper MV bounds, scalar or ``(nu,)``.
+        du_ss_max: bound on ``|u_ss - u(k-1)|``, scalar or ``(nu,)``; ``None`` for none.
+        y_min: hard lower CV limits, scalar or ``(ny,)``; ``None`` for none.
+        y_max: hard upper CV limits, likewise.
+        cost: MV costs ``h``, shape ``(nu,)``; ``None`` for no economic term.
+        minimum_move: indices of the minimum-move MVs (cost ``h_i |du_i,ss|``).
+        J_min: the economic value aimed at.
+        economic_weight: ``w_J``.
+    """
+
+    def __init__(
+        self,
+        model: StepResponseModel,
+        rows: Sequence[TargetRow],
+        *,
+        u_min: float | Tensor,
+        u_max: float | Tensor,
+        du_ss_max: float | Tensor | None = None,
+        y_min: float | Tensor | None = None,
+        y_max: float | Tensor | None = None,
+        cost: Sequence[float] | Tensor | None = None,
+        minimum_move: Sequence[int] = (),
+        J_min: float = 0.0,
+        economic_weight: float = 1.0,
+    ) -> None:
+        if not isinstance(model, StepResponseModel):
+            raise InputError(f"model must be a StepResponseModel, got {type(model).__name__}")
+        if bool(model.integrating.any()):
+            raise InputError(
+                "model: MultiPriorityTarget supports stable CVs only; CVs "
+                f"{model.integrating.nonzero().squeeze(-1).tolist()} are integrating"
+            )
+        ny, nu = model.ny, model.nu
+        self.model, self.ny, self.nu = model, ny, nu
+        self.G = model.steady_gain("u").detach().cpu().double().numpy()
+        inf = float("inf")
+        self.u_min = _vec(u_min, nu, "u_min", -inf)
+        self.u_max = _vec(u_max, nu, "u_max", inf)
+        if bool((self.u_min > self.u_max).any()):
+            raise InputError(f"u_min must not exceed u_max (got {self.u_min} > {self.u_max})")
+        self.du_max = _vec(du_ss_max, nu, "du_ss_max", inf)
+        if bool((self.du_max < 0).any()):
+            raise InputError("du_ss_max must be non-negative")
+        self.y_min = _vec(y_min, ny, "y_min", -inf)
+        self.y_max = _vec(y_max, ny, "y_max", inf)
+        if bool((self.y_min > self.y_max).any()):
+            raise InputError(f"y_min must not exceed y_max (got {self.y_min} > {self.y_max})")
+        self.h = _vec(cost, nu, "cost", 0.0)
+        self.mm = sorted({int(i) for i in minimum_move})
+        if any(not 0 <= i < nu for i in self.mm):
+            raise InputError(f"minimum_move: MV indices must lie in 0..{nu - 1}, got {self.mm}")
+        if not economic_weight >= 0:
+            raise InputError(f"economic_weight must be non-negative, got {economic_weight}")
+        self.J_min, self.w_J = float(J_min), float(economic_weight)
+        if not rows:
+            raise InputError("rows: give at least one soft row")
+        a, kinds, values, concern, prio, names = [], [], [], [], [], []
+        for k, r in enumerate(rows):
+            name, idx = r.variable
+            vec = np.zeros(ny + nu)
+            if name == "y" and isinstance(idx, int) and 0 <= idx < ny:
+                vec[idx] = 1.0
+                label = f"y{idx + 1}"
+            elif name == "u" and isinstance(idx, int) and 0 <= idx < nu:
+                vec[ny + idx] = 1.0
+                label = f"u{idx + 1}"
+            elif name == "lin":
+                w = np.asarray(idx, dtype=np.float64)
+                if w.shape != (ny + nu,):
+                    raise ShapeError(
+                        f"rows[{k}]: linear weights must have shape ({ny + nu},), got {w.shape}"
+                    )
+                vec = w.copy()
+                label = f"row{k}"
+            else:
+                raise InputError(
+                    f"rows[{k}].variable must be ('y', 0..{ny - 1}), ('u', 0..{nu - 1}) or "
+                    f"('lin', weights); got {r.variable!r}"
+                )
+            if r.kind not in ("ideal", "lower", "upper"):
+                raise InputError(f"rows[{k}].kind must be ideal, lower or upper, got {r.kind!r}")
+            if not r.concern > 0:
+                raise InputError(f"rows[{k}].concern must be positive, got {r.concern}")
+            if int(r.priority) != r.priority or r.priority < 1:
+                raise InputError(f"rows[{k}].priority must be a positive integer, got {r.priority}")
+            a.append(vec)
+            kinds.append(r.kind)
+            values.append(float(r.value))
+            concern.append(float(r.concern))
+            prio.append(int(r.priority))
+            names.append(f"p{int(r.priority)} {label} {r.kind} {_fmt(float(r.value))}")
+        self.rows = list(rows)
+        self._a = np.stack(a)  # (R, ny + nu)
+        self._kinds, self._names = kinds, names
+        self._values = np.asarray(values)
+        self._e = np.asarray(concern)
+        self._prio = np.asarray(prio)
+        self.levels = sorted(set(prio))
+
+    # ------------------------------------------------------------------ building blocks
+    def _affine(self, y0: np.ndarray, u_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows as ``f = F du + g``: ``F (R, nu)``, ``g (R,)``."""
+        ny = self.ny
+        a_y, a_u = self._a[:, :ny], self._a[:, ny:]
+        return a_y @ self.G + a_u, a_y @ y0 + a_u @ u_prev
+
+    def _box(self, u_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        lo = np.maximum(self.u_min - u_prev, -self.du_max)
+        hi = np.minimum(self.u_max - u_prev, self.du_max)
+        return lo, hi
+
+    def _check_hard(self, y0: np.ndarray, u_prev: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+        bad = np.nonzero(lo > hi)[0]
+        if bad.size:
+            i = int(bad[0])
+            raise InfeasibleError(
+                f"the hard MV constraints admit no steady state: u{i + 1}(k-1) = "
+                f"{_fmt(u_prev[i])} is more than du_ss_max = {_fmt(self.du_max[i])} outside "
+                f"[u_min, u_max] = [{_fmt(self.u_min[i])}, {_fmt(self.u_max[i])}]"
+            )
+        # each CV's reachable steady-state range over the move box, against its hard limits
+        for j in range(self.ny):
+            g = self.G[j]
+            reach_lo = y0[j] + np.sum(np.where(g > 0, g * lo, g * hi))
+            reach_hi = y0[j] + np.sum(np.where(g > 0, g * hi, g * lo))
+            if reach_hi < self.y_min[j] or reach_lo > self.y_max[j]:
+                raise InfeasibleError(
+                    f"the hard constraints admit no steady state: y{j + 1}_ss can only reach "
+                    f"[{_fmt(reach_lo)}, {_fmt(reach_hi)}] within the MV and move bounds, outside "
+                    f"its hard limits [y_min, y_max] = [{_fmt(self.y_min[j])}, "
+                    f"{_fmt(self.y_max[j])}]"
+                )
+
+    def _rows_ub(
+        self,
+        F: np.ndarray,
+        g: np.ndarray,
+        sel: np.ndarray,
+        nz: int,
+        col0: int,
+        width: int | None = None,
+    ) -> tuple[list[np.ndarray], list[float]]:
+        """Relaxation inequalities ``G z <= h`` of the selected rows (slack ``k`` at ``col0 + k``;
+        the rows are ``f = F z[:width] + g``)."""
+        nu = self.nu if width is None else width
+        A: list[np.ndarray] = []
+        b: list[float] = []
+        for k, r in enumerate(sel):
+            kind, v = self._kinds[r], self._values[r]
+            for sign in (
+                (-1.0, 1.0) if kind == "ideal" else ((-1.0,) if kind == "lower" else (1.0,))
+            ):
+                row = np.zeros(nz)
+                row[:nu] = sign * F[r]  # sign (f - v) <= eps
+                row[col0 + k] = -1.0
+                A.append(row)
+                b.append(sign * (v - g[r]))
+        return A, b
+
+    def _fixed_rows(
+        self,
+        F: np.ndarray,
+        g: np.ndarray,
+        sel: np.ndarray,
+        eps: np.ndarray,
+        nz: int,
+        width: int | None = None,
+    ) -> tuple[list[np.ndarray], list[float], list[np.ndarray], list[float]]:
+        """Rows of solved stages, their limits moved by the fixed relaxations ``eps``.
+
+        Returns ``(A_ub, b_ub, A_eq, b_eq)``: an ideal value met exactly becomes an equality.
+        """
+        nw = self.nu if width is None else width
+        A: list[np.ndarray] = []
+        b: list[float] = []
+        Ae: list[np.ndarray] = []
+        be: list[float] = []
+        for r in sel:
+            kind, v, e = self._kinds[r], self._values[r], eps[r]
+            if kind == "ideal" and e <= STAGE_TOL:
+                row = np.zeros(nz)
+                row[:nw] = F[r]
+                Ae.append(row)
+                be.append(v - g[r])
+                continue
+            margin = e + STAGE_TOL * (1.0 + abs(v))
+            for sign in (
+                (-1.0, 1.0) if kind == "ideal" else ((-1.0,) if kind == "lower" else (1.0,))
+            ):
+                row = np.zeros(nz)
+                row[:nw] = sign * F[r]  # sign (f - v) <= eps
+                A.append(row)
+                b.append(sign * (v - g[r]) + margin)
+        return A, b, Ae, be
+
+    def _hard_ub(
+        self, y0: np.ndarray, nz: int, T: np.ndarray | None = None
+    ) -> tuple[list[np.ndarray], list[float]]:
+        """Hard CV limits as ``G z <= h`` (``du = T z[:nd]`` when ``T`` is given)."""
+        A: list[np.ndarray] = []
+        b: list[float] = []
+        GT = self.G if T is None else self.G @ T
+        nd = GT.shape[1]
+        for j in range(self.ny):
+            if np.isfinite(self.y_max[j]):
+                row = np.zeros(nz)
+                row[:nd] = GT[j]
+                A.append(row)
+                b.append(self.y_max[j] - y0[j])
+            if np.isfinite(self.y_min[j]):
+                row = np.zeros(nz)
+                row[:nd] = -GT[j]
+                A.append(row)
+                b.append(y0[j] - self.y_min[j])
+        return A, b
+
+    # ------------------------------------------------------------------ the calculation
+    def solve(self, y_ss: Tensor, u_prev: Tensor) -> SSTCResult:
+        """Targets from the steady-state open-loop prediction ``(ny,)`` and ``u(k-1)`` ``(nu,)``.
+
+        Raises:
+            InfeasibleError: the hard constraints admit no steady state.
+            ShapeError: wrong input shapes.
+        """
+        ny, nu = self.ny, self.nu
+        y_t = torch.as_tensor(y_ss)
+        u_t = torch.as_tensor(u_prev)
+        if y_t.shape != (ny,):
+            raise ShapeError(f"y_ss: expected shape ({ny},), got {tuple(y_t.shape)}")
+        if u_t.shape != (nu,):
+            raise ShapeError(f"u_prev: expected shape ({nu},), got {tuple(u_t.shape)}")
+        y0 = y_t.detach().cpu().double().numpy()
+        up = u_t.detach().cpu().double().numpy()
+        if not (np.isfinite(y0).all() and np.isfinite(up).all()):
+            raise InputError("y_ss and u_prev must be finite")
+        lo, hi = self._box(up)
+        self._check_hard(y0, up, lo, hi)
+        F, g = self._affine(y0, up)
+        R = len(self._kinds)
+        eps_fixed = np.zeros(R)  # relaxations fixed by the LP stages
+        du_lp: np.ndarray | None = None  # the last LP stage's move (the fallback target)
+        stage_costs: list[float] = []
+        for p in self.levels[:-1]:
+            this = np.nonzero(self._prio == p)[0]
+            fixed = np.nonzero(self._prio < p)[0]
+            nz = nu + this.size
+            A, b = self._hard_ub(y0, nz)
+            Ar, br = self._rows_ub(F, g, this, nz, nu)
+            Af, bf, Ae, be = self._fixed_rows(F, g, fixed, eps_fixed, nz)
+            c = np.zeros(nz)
+            c[nu:] = 1.0 / self._e[this]
+            bounds = [(float(lo[i]), float(hi[i])) for i in range(nu)] + [(0.0, None)] * int(
+                this.size
+            )
+            res = scipy.optimize.linprog(
+                c,
+                A_ub=np.stack(A + Ar + Af),
+                b_ub=np.asarray(b + br + bf),
+                A_eq=np.stack(Ae) if Ae else None,
+                b_eq=np.asarray(be) if be else None,
+                bounds=bounds,
+                method="highs",
+            )
+            if res.status == 2:
+                raise InfeasibleError(
+                    "the hard constraints admit no steady state (the LP of priority "
+                    f"{p} is infeasible): y_ol_ss = {np.round(y0, 6).tolist()}, u(k-1) = "
+                    f"{np.round(up, 6).tolist()}"
+                )
+            if res.status != 0:
+                raise RunError(f"the SSTC LP of priority {p} failed: {res.message}")
+            eps_fixed[this] = np.maximum(res.x[nu:], 0.0)
+            stage_costs.append(float(res.fun))
+            du_lp = res.x[:nu]
+        # economic QP: z = [du (non-mm), p, n (mm), eps (lowest-priority rows)]
+        free = [i for i in range(nu) if i not in self.mm]
+        nd = len(free) + 2 * len(self.mm)
+        T = np.zeros((nu, nd))  # du = T z[:nd]
+        for k, i in enumerate(free):
+            T[i, k] = 1.0
+        for k, i in enumerate(self.mm):
+            T[i, len(free) + 2 * k] = 1.0
+            T[i, len(free) + 2 * k + 1] = -1.0
+        lowest = self.levels[-1]
+        low = np.nonzero(self._prio == lowest)[0]
+        nz = nd + low.size
+        hcoef = np.zeros(nd)
+        for k, i in enumerate(free):
+            hcoef[k] = self.h[i]
+        for k, i in enumerate(self.mm):
+            hcoef[len(free) + 2 * k : len(free) + 2 * k + 2] = self.h[i]
+        FT = F @ T
+        A, b = self._hard_ub(y0, nz, T)
+        Ar, br = self._rows_ub(FT, g, low, nz, nd, width=nd)
+        fixed = np.nonzero(self._prio < lowest)[0]
+        Af, bf, Ae, be = self._fixed_rows(FT, g, fixed, eps_fixed, nz, width=nd)
+        A, b = A + Ar + Af, b + br + bf
+        for i in range(nu):  # the move box, through T
+            for sign, bound in ((1.0, hi[i]), (-1.0, -lo[i])):
+                if np.isfinite(bound):
+                    row = np.zeros(nz)
+                    row[:nd] = sign * T[i]
+                    A.append(row)
+                    b.append(float(bound))
+        for k in [*range(len(free), nd), *range(nd, nz)]:  # p, n, eps >= 0
+            row = np.zeros(nz)
+            row[k] = -1.0
+            A.append(row)
+            b.append(0.0)
+        # objective: w_J (hcoef z - J_min)^2 + sum_lowest (eps / e)^2 + rho ||z||^2
+        Hq = 2.0 * SSTC_REGULARISATION * np.eye(nz)
+        hz = np.concatenate([hcoef, np.zeros(low.size)])
+        Hq += 2.0 * self.w_J * np.outer(hz, hz)
+        q = -2.0 * self.w_J * self.J_min * hz
+        Hq[nd:, nd:] += np.diag(2.0 / self._e[low] ** 2)
+        Aall = np.stack(Ae + A)
+        ball = np.asarray(be + b)
+        x, _, solved, _ = solve_one(
+            Hq,
+            q,
+            Aall,
+            ball,
+            tol=SSTC_QP_TOL,
+            max_iter=200,
+            accept_almost=True,
+            n_eq=len(Ae),
+        )
+        if solved:
+            du = T @ x[:nd]
+        else:  # never crash: keep the feasibility stages' answer and say so
+            warnings.warn(
+                "the SSTC economic QP did not converge (Clarabel); the target of the last "
+                f"feasibility stage is used (y_ol_ss = {np.round(y0, 6).tolist()}, u(k-1) = "
+                f"{np.round(up, 6).tolist()})",
+                ConvergenceWarning,
+                stacklevel=2,
+            )
+            du = du_lp if du_lp is not None else self._hard_point(y0, lo, hi)
+        du = np.clip(du, lo, hi)  # remove interior-point rounding outside the hard box
+        # the relaxations implied by du (exact; the QP's slacks can exceed them only by rounding)
+        f = F @ du + g
+        viol = np.where(
+            np.asarray(self._kinds) == "lower",
+            np.maximum(self._values - f, 0.0),
+            np.where(
+                np.asarray(self._kinds) == "upper",
+                np.maximum(f - self._values, 0.0),
+                np.abs(f - self._values),
+            ),
+        )
+        low_rows = self._prio == lowest
+        stage_costs.append(float(np.sum(viol[low_rows] / self._e[low_rows])))
+        J = float(self.h[free] @ du[free] + self.h[self.mm] @ np.abs(du[self.mm]))
+        y_new = y0 + self.G @ du
+        u_new = up + du
+        active = self._active(y_new, u_new, du, viol, f)
+        dt = self.model.dtype
+        return SSTCResult(
+            torch.as_tensor(y_new, dtype=dt),
+            torch.as_tensor(u_new, dtype=dt),
+            torch.as_tensor(du, dtype=dt),
+            torch.as_tensor(viol, dtype=dt),
+            torch.as_tensor(stage_costs, dtype=dt),
+            J,
+            active,
+        )
+
+    def _hard_point(self, y0: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """A move that satisfies the hard constraints (LP with a zero objective)."""
+        A, b = self._hard_ub(y0, self.nu)
+        res = scipy.optimize.linprog(
+            np.zeros(self.nu),
+            A_ub=np.stack(A) if A else None,
+            b_ub=np.asarray(b) if b else None,
+            bounds=list(zip(lo.tolist(), hi.tolist(), strict=True)),
+            method="highs",
+        )
+        if res.status != 0:
+            raise RunError(f"the SSTC hard-constraint LP failed: {res.message}")
+        return np.asarray(res.x)
+
+    def _active(
+        self, y: np.ndarray, u: np.ndarray, du: np.ndarray, viol: np.ndarray, f: np.ndarray
+    ) -> list[str]:
+        out: list[str] = []
+        for i in range(self.nu):
+            if u[i] >= self.u_max[i] - ACTIVE_TOL:
+                out.append(f"hard u{i + 1} upper {_fmt(self.u_max[i])}")
+            if u[i] <= self.u_min[i] + ACTIVE_TOL:
+                out.append(f"hard u{i + 1} lower {_fmt(self.u_min[i])}")
+            if np.isfinite(self.du_max[i]) and abs(du[i]) >= self.du_max[i] - ACTIVE_TOL:
+                out.append(f"hard |du{i + 1}_ss| {_fmt(self.du_max[i])}")
+        for j in range(self.ny):
+            if y[j] >= self.y_max[j] - ACTIVE_TOL:
+                out.append(f"hard y{j + 1} upper {_fmt(self.y_max[j])}")
+            if y[j] <= self.y_min[j] + ACTIVE_TOL:
+                out.append(f"hard y{j + 1} lower {_fmt(self.y_min[j])}")
+        for r, name in enumerate(self._names):
+            if viol[r] > ACTIVE_TOL:
+                out.append(f"relaxed {name} by {_fmt(viol[r])}")
+            elif self._kinds[r] == "ideal":
+                out.append(f"met {name}")
+            elif abs(f[r] - self._values[r]) <= ACTIVE_TOL:
+                out.append(f"at {name}")
+        return out
+
+    def __call__(self, y_ss: Tensor, u_prev: Tensor) -> Target:
+        """The :class:`~torchfilt.dmc.SteadyStateTarget` interface: ``(y_ss, u_ss)`` targets."""
+        res = self.solve(y_ss, u_prev)
+        return Target(res.y, res.u)
