@@ -193,7 +193,7 @@ def test_unparsable_value_and_ragged_row(tmp_path):
     [
         ({"channels": [{"name": "a", "role": "sensor"}]}, "role must be one of"),
         ({"schema": "other/9"}, "unknown manifest schema"),
-        ({"sample_time": -1}, "sample_time must be positive"),
+        ({"sample_time": -1}, "sample_time must be a finite positive number"),
         (
             {"channels": [{"name": "a", "role": "state"}, {"name": "a", "role": "input"}]},
             "duplicate column",

@@ -176,7 +176,7 @@ def test_tampered_foreign_and_corrupted_bundles_are_refused(tmp_path):
     (tmp_path / "text.pt").write_text("hello")
     with pytest.raises(BundleError, match="not a readable"):
         load_bundle(tmp_path / "text.pt")
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(BundleError, match="model bundle not found"):
         load_bundle(tmp_path / "missing.pt")
     assert cli_main(["info", str(tmp_path / "evil.pt")]) == 2
 

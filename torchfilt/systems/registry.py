@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from torchfilt.exceptions import InputError
 from torchfilt.models import StateSpaceModel
 from torchfilt.systems import pendulum, reaction, reentry
 
@@ -56,11 +57,11 @@ class SystemSpec:
     def nominal_transition(self, **params: float) -> Callable[..., Tensor]:
         """The transition with its physical parameters replaced by ``params``."""
         if self.nominal is None:
-            raise ValueError(f"system {self.name!r} has no nominal model with parameters")
+            raise InputError(f"system {self.name!r} has no nominal model with parameters")
         try:
             return self.nominal(**params)
         except TypeError as e:
-            raise ValueError(
+            raise InputError(
                 f"system {self.name!r}: bad nominal-model parameters {params}: {e}"
             ) from None
 
@@ -143,6 +144,6 @@ def get_system(name: str) -> SystemSpec:
     try:
         return SYSTEMS[name]
     except KeyError:
-        raise ValueError(
+        raise InputError(
             f"unknown system {name!r}; built-in systems are {sorted(SYSTEMS)}"
         ) from None
