@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 
 from torchfilt._version import __version__
-from torchfilt.exceptions import DataError, InputError, RecipeError, RunError, TorchfiltError
+from torchfilt.exceptions import DataError, InputError, RecipeError, RunError
 from torchfilt.io import Dataset, atomic_write_bytes, atomic_write_text, load_dataset
 from torchfilt.io.atomic import output_dir, output_error
 from torchfilt.io.recording import Recording
@@ -233,9 +233,10 @@ def train_recipe(
     log = _Log(out / "train.log", None if progress else stream)
     try:
         return _run(r, ds, prior, out, resume, progress, stream, log)
-    except TorchfiltError:
+    except Exception:
         if not resume and not any((out / f).exists() for f in _RUN_MARKERS[1:]):
-            # nothing trained yet: remove what this attempt wrote, so it blocks no other
+            # nothing trained yet (an invalid option, a full disk): remove what this attempt
+            # wrote, so it blocks no other. A kill (no exception) leaves the run to --resume.
             log.close()
             for f in RUN_FILES:
                 if f not in before and (out / f).is_file():
