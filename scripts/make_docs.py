@@ -1,6 +1,6 @@
 """Regenerate the generated documentation: ``docs/recipes.md`` from the recipe schema.
 
-    python scripts/make_docs.py
+python scripts/make_docs.py
 """
 
 from __future__ import annotations
