@@ -32,6 +32,7 @@ __all__ = [
     "check_new_outputs",
     "clean_stale_temps",
     "output_dir",
+    "output_error",
     "sha256_file",
 ]
 
