@@ -63,6 +63,7 @@ def test_resume_in_empty_directory(world, tmp_path, capsys):
         ["train", world["recipe"], "--out", tmp_path / "empty", "--resume", "--quiet"], capsys
     )
     assert_one_line(code, err, "no run to resume")
+    assert not (tmp_path / "empty").exists(), "a failed resume creates no directory"
 
 
 def test_resume_with_changed_recipe(world, tmp_path, capsys):

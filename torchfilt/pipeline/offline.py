@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import InputError, NumericsWarning
+from torchfilt.exceptions import InputError, NumericsWarning, OutputError
 from torchfilt.filters import CKF, coverage, nees, nis, rmse
 from torchfilt.io import DataError, Recording, atomic_write_bytes, atomic_write_text, read_recording
 from torchfilt.io.atomic import check_new_outputs, output_dir
@@ -189,7 +189,8 @@ def filter_recordings(
         if plot:
             planned.append(out / f"{n}.png")
     check_new_outputs(planned, force=force)
-    output_dir(out)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out}: the output folder is a file; choose a folder")
     spec = resolve_model(model)
     recs: list[Recording] = []
     for p in recordings:
@@ -204,6 +205,7 @@ def filter_recordings(
         )
         if len(recs[-1]) < 2:
             raise DataError("needs at least 2 rows (the first row is the prior's time)", path=p)
+    output_dir(out)
     filt = CKF(spec.model.to(device=dev, dtype=dtype), sqrt=sqrt)
     m0 = (spec.prior_mean if x0 is None else torch.as_tensor(x0)).to(dev, dtype)
     C0 = (spec.prior_cov if P0 is None else torch.as_tensor(P0)).to(dev, dtype)

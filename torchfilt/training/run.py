@@ -190,13 +190,13 @@ def train_recipe(
     ds: Dataset = load_dataset(r.dataset)
     prior = _check_against_dataset(r, ds)
     out = Path(out)
-    created_dir = not out.exists()
-    output_dir(out)
     stream = stream if stream is not None else sys.stderr
     cfg_path = out / "config.json"
+    if resume and not cfg_path.is_file():
+        raise RunError(f"{out}: no run to resume (config.json missing)")
+    created_dir = not out.exists()
+    output_dir(out)
     if resume:
-        if not cfg_path.is_file():
-            raise RunError(f"{out}: no run to resume (config.json missing)")
         try:
             old = json.loads(cfg_path.read_text(encoding="utf-8"))
             old_digest = old.get("digest") if isinstance(old, dict) else None
