@@ -251,7 +251,16 @@ def train_recipe(
 def _check_against_dataset(r: Recipe, ds: Dataset) -> tuple[Tensor, Tensor, str]:
     """Check the recipe against the dataset before any training: training recordings exist, the
     ``inputs`` of each GP side name channels, a ``prior_mean`` system exists, the ``[filter]``
-    prior fits. Returns the bundle's default filter prior."""
+    prior fits. Returns the bundle's default filter prior. Errors name the recipe file."""
+    try:
+        return _check_channels(r, ds)
+    except RecipeError as e:
+        if r.path is None:
+            raise
+        raise RecipeError(f"{r.path}: {e}") from None
+
+
+def _check_channels(r: Recipe, ds: Dataset) -> tuple[Tensor, Tensor, str]:
     train = ds.split("train")
     if not train:
         raise DataError("the dataset has no training recordings", path=ds.manifest_path)
