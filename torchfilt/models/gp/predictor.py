@@ -392,14 +392,12 @@ class FrozenGP(nn.Module):
             rank = None if b["rank"] is None else int(b["rank"])
             if b["class"] == "independent":
                 if form == "exact":
-                    args["factor"] = _cholesky(
-                        independent_khat(
-                            kernel,
-                            args["points"],
-                            args["lengthscale"],
-                            args["outputscale"],
-                            args["noise"],
-                        )[1]
+                    args["factor"] = _independent_factor(
+                        kernel,
+                        args["points"],
+                        args["lengthscale"],
+                        args["outputscale"],
+                        args["noise"],
                     )
                 blocks.append(_IndependentBlock(kernel=kernel, form=form, rank=rank, **args))
             elif b["class"] == "multitask":
@@ -567,10 +565,26 @@ def independent_khat(
         points: standardised training inputs ``(g, S, D)`` (or ``(S, D)``).
         lengthscale: ``(g, D)``; outputscale, noise: ``(g,)``.
     """
+    K = _independent_k(kernel, points, lengthscale, outputscale)
+    Khat = K.clone()
+    Khat.diagonal(dim1=-2, dim2=-1).add_(noise.unsqueeze(-1))
+    return K, Khat
+
+
+def _independent_k(kernel: str, points: Tensor, lengthscale: Tensor, outputscale: Tensor) -> Tensor:
+    """``K = s_f^2 k(X, X)`` of an independent group, ``(g, S, S)``, in one fresh buffer."""
     pts = points / lengthscale.unsqueeze(-2)  # (g, S, D)
-    K = outputscale[:, None, None] * correlation(scaled_sq_dist(pts, pts), kernel)
-    S = pts.shape[-2]
-    return K, K + noise[:, None, None] * torch.eye(S, dtype=K.dtype, device=K.device)
+    return correlation(scaled_sq_dist(pts, pts), kernel).mul_(outputscale[:, None, None])
+
+
+def _independent_factor(
+    kernel: str, points: Tensor, lengthscale: Tensor, outputscale: Tensor, noise: Tensor
+) -> Tensor:
+    """The Cholesky factor of ``K + s^2 I`` (the same numbers as :func:`independent_khat`,
+    without keeping ``K``)."""
+    Khat = _independent_k(kernel, points, lengthscale, outputscale)
+    Khat.diagonal(dim1=-2, dim2=-1).add_(noise.unsqueeze(-1))
+    return _cholesky(Khat)
 
 
 def multitask_khat(
