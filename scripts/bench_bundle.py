@@ -1,9 +1,11 @@
 """Model-bundle load time: with the stored predictor cache (schema 2) against refitting it.
 
-Two bundles: the quick-start bundle (``trainers/reentry.toml`` on ``data/reentry``, as
-``scripts/quickstart.py`` trains it; about 1600 training points per side) and a bundle with 5000
-training points per side (the reaction system, 50 simulated recordings of 100 steps, the same
-recipe options). For each:
+Three bundles: the quick-start bundle (``trainers/reentry.toml`` on ``data/reentry``, as
+``scripts/quickstart.py`` trains it; about 1600 training points per side, transition variance
+exact, sensor low rank) and two bundles with 5000 training points per side (the reaction system,
+50 simulated recordings of 100 steps, the quick-start options): one with the default
+``variance = "auto"`` (low-rank roots are stored), one with ``variance = "exact"`` on both sides,
+the worst case (the ``S x S`` Cholesky factors are not stored but recomputed). For each:
 
 * **cold**: ``load_model`` in a fresh process, the first call (file read, checksum, value checks,
   GP modules, caches); ``cold, torch warm`` the same after one ``torch.broadcast_shapes`` call,
@@ -45,10 +47,10 @@ path = "{data}"
 [transition]
 increment = true
 iterations = 60
-lr = 0.05
+lr = 0.05{variance}
 [measurement]
 iterations = 60
-lr = 0.05
+lr = 0.05{variance}
 [train]
 checkpoint_every = 60
 """
@@ -101,19 +103,22 @@ def build_quickstart(work: Path) -> Path:
     return train_recipe(ROOT / "trainers" / "reentry.toml", work / "quickstart", progress=False)
 
 
-def build_large(work: Path) -> Path:
+def build_large(work: Path, variance: str) -> Path:
     data = work / "large_data"
-    simulate_dataset("reaction", data, recordings=50, steps=100, seed=0, splits=(1.0, 0.0, 0.0))
-    recipe = work / "large.toml"
-    recipe.write_text(LARGE_RECIPE.format(data=data.as_posix()))
-    return train_recipe(recipe, work / "large", progress=False)
+    if not (data / "manifest.json").is_file():
+        simulate_dataset("reaction", data, recordings=50, steps=100, seed=0, splits=(1.0, 0.0, 0.0))
+    recipe = work / f"large_{variance}.toml"
+    extra = "" if variance == "auto" else f'\nvariance = "{variance}"'
+    recipe.write_text(LARGE_RECIPE.format(data=data.as_posix(), variance=extra))
+    return train_recipe(recipe, work / f"large_{variance}", progress=False)
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("out/bench_bundle"))
     ap.add_argument("--quickstart", type=Path, help="an existing quick-start model.pt")
-    ap.add_argument("--large", type=Path, help="an existing 5000-point model.pt")
+    ap.add_argument("--large", type=Path, help="an existing 5000-point model.pt (auto)")
+    ap.add_argument("--large-exact", type=Path, help="an existing 5000-point model.pt (exact)")
     ap.add_argument("--keep", type=Path, help="train the bundles here (kept) instead of a temp dir")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--repeats", type=int, default=3)
@@ -125,7 +130,8 @@ def main(argv: list[str] | None = None) -> int:
         work = args.keep or Path(tmp)
         bundles = {
             "quick start": args.quickstart or build_quickstart(work),
-            "5000 points": args.large or build_large(work),
+            "5000 points, auto": args.large or build_large(work, "auto"),
+            "5000 points, exact": args.large_exact or build_large(work, "exact"),
         }
         for name, path in bundles.items():
             pts = training_points(path)

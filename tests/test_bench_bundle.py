@@ -16,12 +16,13 @@ def test_bench_bundle_small(tmp_path):
     mod = load_script("bench_bundle")
     threads = torch.get_num_threads()
     try:
-        args = ["--quickstart", str(bundle), "--large", str(bundle), "--repeats", "1"]
+        args = ["--quickstart", str(bundle), "--large", str(bundle), "--large-exact", str(bundle)]
+        args += ["--repeats", "1"]
         assert mod.main([*args, "--out", str(tmp_path / "out")]) == 0
     finally:
         torch.set_num_threads(threads)
     res = json.loads((tmp_path / "out" / "bench_bundle.json").read_text())["results"]
-    assert [r["bundle"] for r in res] == ["quick start", "5000 points"]
+    assert [r["bundle"] for r in res] == ["quick start", "5000 points, auto", "5000 points, exact"]
     for r in res:
         assert r["cold_s"] > 0 and r["warm_s"] > 0 and r["refit_s"] > 0
         assert min(r["training_points"].values()) > 0
