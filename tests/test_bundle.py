@@ -15,9 +15,16 @@ from run_support import tiny_bundle, tiny_dataset, write_recipe
 
 from torchfilt import GPMeasurement, GPTransition
 from torchfilt.cli import main
-from torchfilt.exceptions import BundleError
+from torchfilt.exceptions import BundleError, OutputError
 from torchfilt.models.gp.model import GPModel
-from torchfilt.training import BUNDLE_SCHEMA, load_bundle, load_model, save_bundle, train_recipe
+from torchfilt.training import (
+    BUNDLE_SCHEMA,
+    load_bundle,
+    load_model,
+    save_bundle,
+    train_recipe,
+    upgrade_bundle,
+)
 from torchfilt.training.bundle import LEGACY_SCHEMA, UnverifiedBundleWarning
 
 #: a model rebuilt from its stored cache predicts what the trained model predicts; the exact
@@ -209,6 +216,15 @@ def test_schema_1_bundle_loads_with_a_warning(bundle, tmp_path):
         _predict(model.transition, x), _predict(load_model(bundle).transition, x), strict=True
     ):
         torch.testing.assert_close(g, w, rtol=CACHE_RTOL, atol=CACHE_ATOL)
+    new = upgrade_bundle(tmp_path / "old.pt", tmp_path / "new.pt")
+    assert new.read_bytes().startswith(BUNDLE_SCHEMA.encode())
+    assert load_bundle(new)["time_column"] == "time"
+    fast = load_model(new)  # no warning: verified, with caches
+    assert fast.transition.frozen
+    for g, w in zip(_predict(fast.transition, x), _predict(model.transition, x), strict=True):
+        torch.testing.assert_close(g, w, rtol=CACHE_RTOL, atol=CACHE_ATOL)
+    with pytest.raises(OutputError, match="exists"):
+        upgrade_bundle(tmp_path / "old.pt", new)
 
 
 # ------------------------------------------------------------------------------ time column

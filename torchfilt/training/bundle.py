@@ -23,8 +23,8 @@ dataset fingerprint; the resolved recipe; validation figures; and the schema ver
 
 Bundles of the earlier schema ``torchfilt.bundle/1`` (a bare ``torch.save`` file: no checksum, no
 cache) still load, with an :class:`UnverifiedBundleWarning`: their values are range-checked and
-the GP caches are recomputed (slow). Re-save them with :func:`save_bundle` (or re-train) to get a
-verified, fast bundle.
+the GP caches are recomputed (slow). :func:`upgrade_bundle` rewrites one as a verified, fast
+bundle.
 """
 
 from __future__ import annotations
@@ -60,6 +60,7 @@ __all__ = [
     "load_model",
     "load_model_spec",
     "save_bundle",
+    "upgrade_bundle",
 ]
 
 #: Schema identifier stored in every bundle (and in its header).
@@ -246,7 +247,8 @@ def load_bundle(path: str | Path) -> dict[str, Any]:
     if legacy:
         warnings.warn(
             f"{path}: a bundle of the earlier schema {LEGACY_SCHEMA} has no checksum and no "
-            "predictor cache (loading refits the GP caches); re-save it with save_bundle",
+            "predictor cache (loading refits the GP caches); rewrite it with "
+            "torchfilt.training.upgrade_bundle",
             UnverifiedBundleWarning,
             stacklevel=2,
         )
@@ -387,3 +389,36 @@ def load_model_spec(path: str | Path) -> ModelSpec:
 def load_model(path: str | Path) -> StateSpaceModel:
     """The state-space model in a bundle, ready for :class:`~torchfilt.CKF`."""
     return load_model_spec(path).model
+
+
+def upgrade_bundle(path: str | Path, out: str | Path) -> Path:
+    """Rewrite a bundle (of any readable schema) as a ``torchfilt.bundle/2`` bundle with a
+    checksum and the frozen predictors' caches (computed once here).
+
+    Args:
+        path: the bundle to read.
+        out: where to write the new bundle (a different file: ``path`` is left as it is).
+
+    Returns:
+        ``out``.
+
+    Raises:
+        BundleError: ``path`` is not a usable bundle, or ``out`` is ``path``.
+        OutputError: ``out`` exists or cannot be written.
+    """
+    from torchfilt.io.atomic import check_new_outputs
+
+    path, out = Path(path), Path(out)
+    if out.resolve() == path.resolve():
+        raise BundleError(f"{out}: write the upgraded bundle to another file than {path}")
+    check_new_outputs([out], force=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnverifiedBundleWarning)
+        b = load_bundle(path)
+        spec = load_model_spec(path)
+    for role in ("transition", "measurement"):
+        if b[role]["kind"] == "gp":
+            side = getattr(spec.model, role)
+            b[role] = {**b[role], "state": side.to_state()}
+    b.setdefault("time_column", spec.time_column)
+    return save_bundle(out, b)
