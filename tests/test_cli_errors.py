@@ -136,6 +136,7 @@ def test_full_disk_while_training(world, tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(os, "fsync", fail)
     code, err = run_cli(["train", world["recipe"], "--out", tmp_path / "run", "--quiet"], capsys)
     assert_one_line(code, err, "no space left")
+    assert not (tmp_path / "run").exists(), "a failed first write leaves no run directory"
 
 
 # ------------------------------------------------------------------------------ inputs

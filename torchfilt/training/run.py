@@ -217,27 +217,19 @@ def train_recipe(
                 f"{out}: already holds a run; pass --resume to continue it, --force to discard "
                 "it, or choose another --out"
             )
-        before = {f for f in RUN_FILES if (out / f).exists()}
-        config = {
-            "recipe": r.resolved(),
-            "digest": r.digest(),
-            "recipe_file": None if r.path is None else str(r.path),
-            "created": _now(),
-            "versions": {
-                "torchfilt": __version__,
-                "torch": str(torch.__version__),
-                "python": platform.python_version(),
-            },
-        }
-        atomic_write_text(cfg_path, json.dumps(config, indent=2) + "\n")
-    log = _Log(out / "train.log", None if progress else stream)
+    before = {f for f in RUN_FILES if (out / f).exists()}
+    log: _Log | None = None
     try:
+        if not resume:
+            atomic_write_text(cfg_path, json.dumps(_config(r), indent=2) + "\n")
+        log = _Log(out / "train.log", None if progress else stream)
         return _run(r, ds, prior, out, resume, progress, stream, log)
     except Exception:
         if not resume and not any((out / f).exists() for f in _RUN_MARKERS[1:]):
             # nothing trained yet (an invalid option, a full disk): remove what this attempt
             # wrote, so it blocks no other. A kill (no exception) leaves the run to --resume.
-            log.close()
+            if log is not None:
+                log.close()
             for f in RUN_FILES:
                 if f not in before and (out / f).is_file():
                     (out / f).unlink()
@@ -245,7 +237,23 @@ def train_recipe(
                 out.rmdir()
         raise
     finally:
-        log.close()
+        if log is not None:
+            log.close()
+
+
+def _config(r: Recipe) -> dict[str, Any]:
+    """``config.json`` of a new run: the resolved recipe, its digest, library versions."""
+    return {
+        "recipe": r.resolved(),
+        "digest": r.digest(),
+        "recipe_file": None if r.path is None else str(r.path),
+        "created": _now(),
+        "versions": {
+            "torchfilt": __version__,
+            "torch": str(torch.__version__),
+            "python": platform.python_version(),
+        },
+    }
 
 
 def _check_against_dataset(r: Recipe, ds: Dataset) -> tuple[Tensor, Tensor, str]:
