@@ -244,4 +244,6 @@ def test_bundle_remembers_the_time_column(tmp_path, capsys):
         main(["filter", "--model", str(bundle), str(data / "rec_004.csv"), "--out", str(out)]) == 0
     )
     assert main(["evaluate", str(out)]) == 0
-    assert "mean NEES" in capsys.readouterr().out
+    assert main(["info", str(bundle)]) == 0
+    text = capsys.readouterr().out
+    assert "mean NEES" in text and "time column:  t\n" in text

@@ -105,6 +105,7 @@ def _info(args: argparse.Namespace) -> int:
     print(f"  states:       {', '.join(f'{n} [{u}]' if u else n for n, u in spec.states)}")
     print(f"  measurements: {', '.join(f'{n} [{u}]' if u else n for n, u in spec.measurements)}")
     print(f"  inputs:       {', '.join(n for n, _ in spec.inputs) or '(none)'}")
+    print(f"  time column:  {spec.time_column}")
     print(f"  sample time:  {spec.sample_time}")
     print(f"  transition:   {type(spec.model.transition).__name__}")
     print(f"  measurement:  {type(spec.model.measurement).__name__}")

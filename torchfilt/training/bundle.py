@@ -381,7 +381,11 @@ def load_model_spec(path: str | Path) -> ModelSpec:
         prior_mean=b["prior"]["mean"],
         prior_cov=b["prior"]["cov"],
         source=str(path),
-        info={k: b[k] for k in ("name", "dataset", "validation", "recipe", "created") if k in b},
+        info={
+            k: b[k]
+            for k in ("schema", "name", "dataset", "validation", "recipe", "created")
+            if k in b
+        },
         time_column=str(b.get("time_column", "time")),
     )
 
