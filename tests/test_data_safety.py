@@ -177,11 +177,12 @@ def test_recipe_channel_error_before_training_leaves_no_run(data, tmp_path, monk
 
 def test_failure_before_any_stage_does_not_block_the_next_attempt(data, tmp_path):
     recipe = write_recipe(tmp_path / "r.toml", data)
-    recipe.write_text(recipe.read_text().replace("[transition]", "[transition]\nkernel = 'nosuch'"))
+    # a value only the fit checks: the run directory exists when it fails
+    recipe.write_text(recipe.read_text().replace("[transition]", "[transition]\nnoise = -1.0"))
     run = tmp_path / "run"
     run.mkdir()
     (run / "notes.txt").write_text("mine")
-    with pytest.raises(ValueError, match="nosuch"):
+    with pytest.raises(ValueError, match="noise"):
         train_recipe(recipe, run, progress=False)
     assert {p.name for p in run.iterdir()} == {"notes.txt"}
     write_recipe(recipe, data)
