@@ -12,6 +12,7 @@ from torchfilt.training.bundle import (
     load_model,
     load_model_spec,
     save_bundle,
+    upgrade_bundle,
 )
 from torchfilt.training.recipe import Recipe, RecipeError, load_recipe
 from torchfilt.training.run import RunError, train_recipe
@@ -31,4 +32,5 @@ __all__ = [
     "one_step_metrics",
     "save_bundle",
     "train_recipe",
+    "upgrade_bundle",
 ]
