@@ -193,7 +193,9 @@ def test_unparsable_value_and_ragged_row(tmp_path):
     [
         ({"channels": [{"name": "a", "role": "sensor"}]}, "role must be one of"),
         ({"schema": "other/9"}, "unknown manifest schema"),
-        ({"sample_time": -1}, "sample_time must be positive"),
+        ({"sample_time": -1}, "sample_time must be a finite positive number"),
+        ({"sample_time": float("inf")}, "sample_time must be a finite positive number"),
+        ({"sample_time": float("nan")}, "sample_time must be a finite positive number"),
         (
             {"channels": [{"name": "a", "role": "state"}, {"name": "a", "role": "input"}]},
             "duplicate column",
@@ -261,3 +263,78 @@ def test_estimates_round_trip(tmp_path):
     (tmp_path / "bad.csv").write_text("x,y\n1,2\n")
     with pytest.raises(DataError, match="not an estimates file"):
         read_estimates(tmp_path / "bad.csv")
+
+
+# ------------------------------------------------------------------ non-finite and odd values
+def _with_cell(tmp_path, line: int, column: int, value: str, blank_after_header: int = 0):
+    """r.csv with one cell replaced (``line`` counts the header as 1) and blank lines inserted."""
+    write_recording(make_recording(), tmp_path / "r.csv")
+    lines = (tmp_path / "r.csv").read_text().splitlines()
+    fields = lines[line - 1].split(",")
+    fields[column] = value
+    lines[line - 1] = ",".join(fields)
+    lines[1:1] = [""] * blank_after_header
+    (tmp_path / "r.csv").write_text("\n".join(lines) + "\n")
+    return tmp_path / "r.csv"
+
+
+@pytest.mark.parametrize("value", ["inf", "-inf", "Infinity", "1e999", "-1e400"])
+def test_infinite_csv_cell_is_an_error_naming_file_line_column(tmp_path, value):
+    path = _with_cell(tmp_path, 5, 4, value)
+    with pytest.raises(
+        DataError, match=rf"r\.csv, column 'range', line 5: '{value}' is not a finite"
+    ):
+        read_recording(path, CHANNELS)
+
+
+@pytest.mark.parametrize("value", ["", "nan", "NaN", "NA"])
+def test_missing_csv_cells_read_as_nan(tmp_path, value):
+    rec = read_recording(_with_cell(tmp_path, 5, 4, value), CHANNELS)
+    assert np.isnan(rec.column("range")[3])
+
+
+def test_csv_line_numbers_count_blank_lines(tmp_path):
+    path = _with_cell(tmp_path, 5, 1, "abc", blank_after_header=3)
+    with pytest.raises(DataError, match=r"column 'alt', line 8: cannot read 'abc'"):
+        read_recording(path, CHANNELS)
+    write_recording(make_recording(), tmp_path / "t.csv")
+    lines = (tmp_path / "t.csv").read_text().splitlines()
+    lines[4] = lines[4].replace(lines[4].split(",")[0], "0", 1)  # time goes back at data row 4
+    lines[1:1] = ["", ""]
+    (tmp_path / "t.csv").write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError, match=r"column 'time', line 7: time is not strictly increasing"):
+        read_recording(tmp_path / "t.csv", CHANNELS)
+
+
+def test_csv_field_over_the_limit_is_a_data_error(tmp_path):
+    path = _with_cell(tmp_path, 3, 2, "7" * 200_000)
+    with pytest.raises(DataError, match=r"line 3: unreadable CSV \(field larger than field limit"):
+        read_recording(path, CHANNELS)
+
+
+def _npz(tmp_path, **overrides):
+    rec = make_recording()
+    arrays = {"time": rec.time, **{c.name: rec.data[:, i] for i, c in enumerate(CHANNELS)}}
+    arrays.update(overrides)
+    np.savez(tmp_path / "r.npz", **arrays)
+    return tmp_path / "r.npz"
+
+
+def test_infinite_npz_value_is_an_error_naming_row(tmp_path):
+    vel = make_recording().column("vel").copy()
+    vel[6] = np.inf
+    with pytest.raises(DataError, match=r"column 'vel', row 6: is not a finite number"):
+        read_recording(_npz(tmp_path, vel=vel), CHANNELS)
+
+
+def test_complex_npz_is_refused(tmp_path):
+    rng = make_recording().column("range")
+    with pytest.raises(DataError, match=r"column 'range': is complex"):
+        read_recording(_npz(tmp_path, range=rng + 1j * rng), CHANNELS)
+
+
+def test_manifest_infinity_literal_is_refused(tmp_path):
+    text = '{"name": "d", "sample_time": Infinity, "channels": [{"name": "a", "role": "state"}]}'
+    (tmp_path / "manifest.json").write_text(text)
+    with pytest.raises(DataError, match="sample_time must be a finite positive number, got inf"):
+        Manifest.load(tmp_path / "manifest.json")

@@ -236,7 +236,7 @@ def test_tampered_foreign_and_corrupted_bundles_are_refused(tmp_path):
     (tmp_path / "text.pt").write_text("hello")
     with pytest.raises(BundleError, match="not a readable"):
         load_bundle(tmp_path / "text.pt")
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(BundleError, match="model bundle not found"):
         load_bundle(tmp_path / "missing.pt")
     assert cli_main(["info", str(tmp_path / "evil.pt")]) == 2
 
@@ -260,6 +260,15 @@ def test_tampered_foreign_and_corrupted_bundles_are_refused(tmp_path):
             "prior_mean must be a table",
         ),
         ("colour = 1\n", r"unknown key\(s\) \['colour'\] in \[top level\]"),
+        (
+            "[dataset]\npath='x'\n[transition]\nkernel='nosuch'\n[measurement]\n",
+            r"\[transition\] kernel must be \"rbf\", \"matern52\"",
+        ),
+        ("[dataset]\npath='x'\n[transition]\n[measurement]\niterations=0\n", "iterations must be"),
+        ("[dataset]\npath='x'\n[transition]\nlr=-1\n[measurement]\n", r"lr must be a number > 0"),
+        ("[dataset]\npath='x'\n[transition]\nincrement='yes'\n[measurement]\n", "increment"),
+        ("[dataset]\npath='x'\n[transition]\n[measurement]\n[train]\nthreads=0\n", "threads"),
+        ("seed = 1.5\n[dataset]\npath='x'\n[transition]\n[measurement]\n", "seed must be"),
         ("[dataset\n", "not valid TOML"),
     ],
 )
@@ -268,6 +277,13 @@ def test_recipe_errors_name_the_key(tmp_path, text, message):
     p.write_text(text)
     with pytest.raises(RecipeError, match=message):
         load_recipe(p)
+
+
+def test_recipe_kernels_are_the_gp_kernels():
+    from torchfilt.models.gp.kernels import KERNELS
+    from torchfilt.training.recipe import KERNELS as RECIPE_KERNELS
+
+    assert set(RECIPE_KERNELS) == set(KERNELS)
 
 
 @pytest.mark.parametrize("path", sorted((ROOT / "trainers").glob("*.toml")), ids=lambda p: p.name)

@@ -18,6 +18,7 @@ __all__ = [
     "ModelError",
     "NotDetectableError",
     "NumericsWarning",
+    "OutputError",
     "RecipeError",
     "RunError",
     "ShapeError",
@@ -85,6 +86,11 @@ class RecipeError(InputError):
 
 class RunError(TorchfiltError, RuntimeError):
     """A run directory cannot be used as asked (resume without a run, a changed recipe, ...)."""
+
+
+class OutputError(TorchfiltError, OSError):
+    """An output cannot be written: it exists (and ``--force`` was not given), its folder is a
+    file or is read-only, or the disk is full. The message names the path."""
 
 
 class BundleError(TorchfiltError, ValueError):

@@ -1,8 +1,10 @@
 """The ``torchfilt`` command line: train, filter, evaluate, simulate, info.
 
 Each command is a thin layer over its Python twin in :mod:`torchfilt.pipeline` /
-:mod:`torchfilt.training`. Errors in the user's input (bad files, shapes, options) are reported in
-one line with exit status 2; ``--debug`` shows the traceback.
+:mod:`torchfilt.training`. Errors in the user's input (bad files, shapes, options, an output that
+exists or cannot be written) are ``TorchfiltError`` subclasses: they are reported
+in one line on stderr with exit status 2 (``--debug`` shows the traceback). Any other exception is
+a bug and keeps its traceback. No command overwrites a file it did not create unless ``--force``.
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+
+from torchfilt.exceptions import TorchfiltError
 
 __all__ = ["main"]
 
@@ -27,6 +31,7 @@ def _simulate(args: argparse.Namespace) -> int:
         seed=args.seed,
         missing=args.missing,
         fmt=f".{args.format}",
+        force=args.force,
     )
     counts = {s: sum(r.split == s for r in m.recordings) for s in ("train", "validation", "test")}
     print(f"wrote {len(m.recordings)} recordings of {args.system} to {args.out} ({counts})")
@@ -36,7 +41,9 @@ def _simulate(args: argparse.Namespace) -> int:
 def _filter(args: argparse.Namespace) -> int:
     import torch
 
-    from torchfilt.pipeline import filter_recordings
+    from torchfilt.pipeline import check_device, filter_recordings
+
+    check_device(args.device)  # before anything is loaded
 
     summary = filter_recordings(
         args.model,
@@ -47,6 +54,7 @@ def _filter(args: argparse.Namespace) -> int:
         device=args.device,
         dtype=torch.float32 if args.float32 else torch.float64,
         sqrt=args.sqrt,
+        force=args.force,
     )
     for e in summary["recordings"]:
         met = e.get("filtered_metrics") or {}
@@ -67,7 +75,9 @@ def _filter(args: argparse.Namespace) -> int:
 def _evaluate(args: argparse.Namespace) -> int:
     from torchfilt.pipeline import evaluate_outputs
 
-    res = evaluate_outputs(args.dir, which="smoothed" if args.smoothed else "filtered")
+    res = evaluate_outputs(
+        args.dir, which="smoothed" if args.smoothed else "filtered", force=args.force
+    )
     pooled = res["pooled"]
     print(f"{res['which']} estimates, {len(res['recordings'])} recordings, {pooled['steps']} steps")
     cov_key = next(k for k in pooled if k.startswith("coverage"))
@@ -80,7 +90,9 @@ def _evaluate(args: argparse.Namespace) -> int:
 def _train(args: argparse.Namespace) -> int:
     from torchfilt.training import train_recipe
 
-    bundle = train_recipe(args.recipe, args.out, resume=args.resume, progress=not args.quiet)
+    bundle = train_recipe(
+        args.recipe, args.out, resume=args.resume, force=args.force, progress=not args.quiet
+    )
     print(f"model bundle: {bundle}")
     return 0
 
@@ -93,6 +105,7 @@ def _info(args: argparse.Namespace) -> int:
     print(f"  states:       {', '.join(f'{n} [{u}]' if u else n for n, u in spec.states)}")
     print(f"  measurements: {', '.join(f'{n} [{u}]' if u else n for n, u in spec.measurements)}")
     print(f"  inputs:       {', '.join(n for n, _ in spec.inputs) or '(none)'}")
+    print(f"  time column:  {spec.time_column}")
     print(f"  sample time:  {spec.sample_time}")
     print(f"  transition:   {type(spec.model.transition).__name__}")
     print(f"  measurement:  {type(spec.model.measurement).__name__}")
@@ -114,6 +127,9 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument(
         "--resume", action="store_true", help="continue from the last checkpoint in --out"
     )
+    s.add_argument(
+        "--force", action="store_true", help="discard the run already in --out and start afresh"
+    )
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(fn=_train)
 
@@ -126,6 +142,7 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--device", default="cpu", help="torch device, e.g. cuda")
     s.add_argument("--sqrt", action="store_true", help="square-root CKF")
     s.add_argument("--float32", action="store_true", help="compute in float32")
+    s.add_argument("--force", action="store_true", help="overwrite existing estimate files")
     s.set_defaults(fn=_filter)
 
     s = sub.add_parser(
@@ -133,6 +150,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     s.add_argument("dir", type=Path, help="output folder of torchfilt filter")
     s.add_argument("--smoothed", action="store_true", help="evaluate the smoothed estimates")
+    s.add_argument("--force", action="store_true", help="overwrite an existing evaluation file")
     s.set_defaults(fn=_evaluate)
 
     s = sub.add_parser("simulate", help="write synthetic recordings from a built-in system")
@@ -145,6 +163,7 @@ def _parser() -> argparse.ArgumentParser:
         "--missing", type=float, default=0.0, help="probability a measurement is missing"
     )
     s.add_argument("--format", choices=["csv", "npz"], default="csv")
+    s.add_argument("--force", action="store_true", help="replace an existing dataset in --out")
     s.set_defaults(fn=_simulate)
 
     s = sub.add_parser("info", help="describe a model bundle (or system:NAME)")
@@ -158,10 +177,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         return int(args.fn(args))
-    except (ValueError, TypeError, FileNotFoundError, KeyError) as e:
+    except TorchfiltError as e:
         if args.debug:
             raise
-        print(f"torchfilt {args.command}: error: {e}", file=sys.stderr)
+        msg = " ".join(str(e).split()) or type(e).__name__
+        print(f"torchfilt {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"torchfilt {args.command}: interrupted", file=sys.stderr)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -101,8 +102,8 @@ class Manifest:
             dt = float(d["sample_time"])
         except (TypeError, ValueError):
             raise fail(f"sample_time must be a number, got {d['sample_time']!r}") from None
-        if not dt > 0:
-            raise fail(f"sample_time must be positive, got {dt}")
+        if not (math.isfinite(dt) and dt > 0):
+            raise fail(f"sample_time must be a finite positive number, got {dt}")
         time = d.get("time", {})
         time_column = str(time.get("name", "time")) if isinstance(time, dict) else "time"
         time_unit = str(time.get("unit", "s")) if isinstance(time, dict) else "s"

@@ -22,6 +22,8 @@ __all__ = ["SUFFIXES", "Recording", "read_recording", "write_recording"]
 
 #: Supported file types.
 SUFFIXES = (".csv", ".npz")
+#: Cells (case-insensitive, besides an empty cell) that mean "not observed".
+MISSING_CELLS = ("nan", "na")
 #: Relative tolerance on the time step against the manifest's sample time.
 SAMPLE_TIME_RTOL = 1e-6
 _ZIP_MAGIC = b"PK\x03\x04"
@@ -131,10 +133,10 @@ def _check_time(
     path: Path | None,
     sample_time: float | None,
     time_column: str,
-    csv_lines: bool = False,
+    csv_lines: np.ndarray | None = None,
 ) -> None:
     def where(i: int) -> dict[str, int]:
-        return {"line": i + 2} if csv_lines else {"row": i}
+        return {"line": int(csv_lines[i])} if csv_lines is not None else {"row": i}
 
     bad = ~np.isfinite(t)
     if bad.any():
@@ -164,7 +166,10 @@ def _check_time(
                 )
 
 
-def _read_csv(path: Path, want: list[str], maybe: set[str]) -> tuple[dict[str, np.ndarray], bool]:
+def _read_csv(
+    path: Path, want: list[str], maybe: set[str]
+) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+    """The columns, and the file line of each data row (blank lines counted, header = its line)."""
     raw = path.read_bytes()
     if raw.startswith(_ZIP_MAGIC):
         raise DataError("is a zip/NPZ archive, not a CSV file (check the extension)", path=path)
@@ -176,46 +181,64 @@ def _read_csv(path: Path, want: list[str], maybe: set[str]) -> tuple[dict[str, n
         raise DataError(
             f"is not UTF-8 CSV text ({e.reason} at byte {e.start})", path=path
         ) from None
-    rows = list(csv.reader(io.StringIO(text)))
-    rows = [r for r in rows if r and not (len(r) == 1 and not r[0].strip())]
+    reader = csv.reader(io.StringIO(text, newline=""))
+    rows: list[tuple[int, list[str]]] = []  # (line in the file, fields); blank lines skipped
+    try:
+        for row in reader:
+            if row and not (len(row) == 1 and not row[0].strip()):
+                rows.append((reader.line_num, row))
+    except csv.Error as e:
+        raise DataError(f"unreadable CSV ({e})", path=path, line=reader.line_num) from None
     if not rows:
         raise DataError("is empty (no header row)", path=path)
-    header = [h.strip() for h in rows[0]]
+    header_line, header = rows[0][0], [h.strip() for h in rows[0][1]]
     dup = {h for h in header if header.count(h) > 1}
     if dup:
-        raise DataError(f"duplicate column names {sorted(dup)}", path=path, line=1)
+        raise DataError(f"duplicate column names {sorted(dup)}", path=path, line=header_line)
     for name in want:
         if name not in header and name not in maybe:
             raise DataError(
                 f"missing column; the file has columns {header}{_suggest(name, header)}",
                 path=path,
                 column=name,
-                line=1,
+                line=header_line,
             )
     want = [n for n in want if n in header]
     idx = {h: i for i, h in enumerate(header)}
     out = {name: np.empty(len(rows) - 1) for name in want}
-    for r, row in enumerate(rows[1:]):
-        line = r + 2
+    lines = np.array([ln for ln, _ in rows[1:]], dtype=np.int64)
+    for r, (line, row) in enumerate(rows[1:]):
         if len(row) != len(header):
             raise DataError(
                 f"has {len(row)} fields, the header has {len(header)}", path=path, line=line
             )
         for name in want:
             s = row[idx[name]].strip()
-            if s == "" or s.lower() in ("nan", "na"):
+            if s == "" or s.lower() in MISSING_CELLS:
                 out[name][r] = math.nan
                 continue
             try:
-                out[name][r] = float(s)
+                v = float(s)
             except ValueError:
                 raise DataError(
                     f"cannot read {s!r} as a number", path=path, column=name, line=line
                 ) from None
-    return out, True
+            if math.isinf(v):
+                raise DataError(
+                    f"{s!r} is not a finite number (leave the cell empty, or write nan, for a "
+                    "missing value)",
+                    path=path,
+                    column=name,
+                    line=line,
+                )
+            out[name][r] = v
+    return out, lines
 
 
-def _read_npz(path: Path, want: list[str], maybe: set[str]) -> tuple[dict[str, np.ndarray], bool]:
+def _read_npz(
+    path: Path, want: list[str], maybe: set[str]
+) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+    """The arrays (rows are named by index: no line numbers)."""
     with open(path, "rb") as fh:
         head = fh.read(4)
     if head != _ZIP_MAGIC:
@@ -240,7 +263,21 @@ def _read_npz(path: Path, want: list[str], maybe: set[str]) -> tuple[dict[str, n
                         path=path,
                         column=name,
                     )
+                if np.iscomplexobj(a):
+                    raise DataError(
+                        f"is complex ({a.dtype}); channels must be real numbers",
+                        path=path,
+                        column=name,
+                    )
                 out[name] = a.astype(np.float64)
+                bad = np.isinf(out[name])
+                if bad.any():
+                    raise DataError(
+                        "is not a finite number (use NaN for a missing value)",
+                        path=path,
+                        column=name,
+                        row=int(np.argmax(bad)),
+                    )
     except DataError:
         raise
     except ValueError as e:  # object arrays need pickle: refused
@@ -252,7 +289,7 @@ def _read_npz(path: Path, want: list[str], maybe: set[str]) -> tuple[dict[str, n
     lengths = {n: a.shape[0] for n, a in out.items()}
     if len(set(lengths.values())) > 1:
         raise DataError(f"arrays have different lengths {lengths}", path=path)
-    return out, False
+    return out, None
 
 
 def read_recording(
@@ -312,7 +349,7 @@ def read_recording(
             bad = ~np.isfinite(cols[c.name])
             if bad.any():
                 i = int(np.argmax(bad))
-                where = {"line": i + 2} if lines else {"row": i}
+                where = {"line": int(lines[i])} if lines is not None else {"row": i}
                 raise DataError(
                     f"{c.role} channels of training data may not be missing (NaN)",
                     path=path,

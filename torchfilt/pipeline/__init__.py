@@ -5,6 +5,19 @@ is ``torchfilt filter``, and so on).
 """
 
 from torchfilt.pipeline.evaluate import evaluate_outputs
-from torchfilt.pipeline.offline import ModelSpec, filter_recordings, resolve_model
+from torchfilt.pipeline.offline import (
+    ModelSpec,
+    check_device,
+    filter_recordings,
+    output_names,
+    resolve_model,
+)
 
-__all__ = ["ModelSpec", "evaluate_outputs", "filter_recordings", "resolve_model"]
+__all__ = [
+    "ModelSpec",
+    "check_device",
+    "evaluate_outputs",
+    "filter_recordings",
+    "output_names",
+    "resolve_model",
+]

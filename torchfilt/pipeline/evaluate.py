@@ -8,15 +8,17 @@ from typing import Any
 
 import torch
 
+from torchfilt.exceptions import InputError
 from torchfilt.filters import coverage, nees
 from torchfilt.io import Channel, DataError, atomic_write_text, read_recording
+from torchfilt.io.atomic import check_new_outputs
 from torchfilt.io.estimates import read_estimates
 
 __all__ = ["evaluate_outputs"]
 
 
 def evaluate_outputs(
-    out: str | Path, *, which: str = "filtered", level: float = 0.95
+    out: str | Path, *, which: str = "filtered", level: float = 0.95, force: bool = False
 ) -> dict[str, Any]:
     """Evaluate the estimates in a ``torchfilt filter`` output folder against logged truth.
 
@@ -28,22 +30,37 @@ def evaluate_outputs(
         out: the output folder of :func:`~torchfilt.pipeline.filter_recordings`.
         which: ``"filtered"`` or ``"smoothed"``.
         level: interval probability for the coverage.
+        force: overwrite an existing ``evaluation_{which}.json``.
 
     Returns:
         The evaluation (also written to ``evaluation_{which}.json`` in ``out``).
+
+    Raises:
+        DataError: ``out`` is not a filter output folder, or its files are invalid.
+        OutputError: the evaluation file exists (without ``force``).
     """
     out = Path(out)
+    if which not in ("filtered", "smoothed"):
+        raise InputError(f"which must be 'filtered' or 'smoothed', got {which!r}")
+    if not 0.0 < level < 1.0:
+        raise InputError(f"level must be in (0, 1), got {level}")
     index = out / "filter_summary.json"
     if not index.is_file():
         raise DataError(
             "not a torchfilt filter output folder (filter_summary.json missing)", path=out
         )
-    summary = json.loads(index.read_text())
-    if which not in ("filtered", "smoothed"):
-        raise ValueError(f"which must be 'filtered' or 'smoothed', got {which!r}")
+    target = out / f"evaluation_{which}.json"
+    check_new_outputs([target], force=force)
+    try:
+        summary = json.loads(index.read_text(encoding="utf-8"))
+        entries = list(summary["recordings"])
+        if not all(isinstance(e, dict) and "recording" in e for e in entries):
+            raise TypeError
+    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError):
+        raise DataError("not a filter summary written by torchfilt filter", path=index) from None
     per, errs, nees_all, inside = [], [], [], []
     names: list[str] = []
-    for entry in summary["recordings"]:
+    for entry in entries:
         if which not in entry:
             raise DataError(
                 f"has no {which} estimates (run torchfilt filter with --smooth)", path=index
@@ -51,7 +68,10 @@ def evaluate_outputs(
         est = read_estimates(out / entry[which])
         names = est.state_names
         rec = read_recording(
-            entry["recording"], [Channel(n, "state") for n in names], optional=("state",)
+            entry["recording"],
+            [Channel(n, "state") for n in names],
+            time_column=str(entry.get("time_column", "time")),
+            optional=("state",),
         )
         x = torch.as_tensor(rec.data[1:])
         m, P = (t[1:] for t in est.tensors())
@@ -89,7 +109,5 @@ def evaluate_outputs(
             "steps": steps,
         },
     }
-    atomic_write_text(
-        out / f"evaluation_{which}.json", json.dumps(result, indent=2, default=float) + "\n"
-    )
+    atomic_write_text(target, json.dumps(result, indent=2, default=float) + "\n")
     return result

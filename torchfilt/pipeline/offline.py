@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import io
 import json
+import os
 import warnings
 from collections import defaultdict
 from collections.abc import Sequence
@@ -14,13 +16,22 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import NumericsWarning
+from torchfilt.exceptions import InputError, NumericsWarning, OutputError
 from torchfilt.filters import CKF, coverage, nees, nis, rmse
-from torchfilt.io import DataError, Recording, atomic_write_text, read_recording
+from torchfilt.io import DataError, Recording, atomic_write_bytes, atomic_write_text, read_recording
+from torchfilt.io.atomic import check_new_outputs, output_dir
 from torchfilt.io.estimates import Estimates, write_estimates
+from torchfilt.io.recording import SUFFIXES
 from torchfilt.training.bundle import ModelSpec, load_model_spec
 
-__all__ = ["INDEX_NAME", "ModelSpec", "filter_recordings", "resolve_model"]
+__all__ = [
+    "INDEX_NAME",
+    "ModelSpec",
+    "check_device",
+    "filter_recordings",
+    "output_names",
+    "resolve_model",
+]
 
 #: Summary file that ``filter_recordings`` writes into its output folder (read by evaluate).
 INDEX_NAME = "filter_summary.json"
@@ -34,6 +45,65 @@ def resolve_model(spec: str | Path | ModelSpec) -> ModelSpec:
     if s.startswith("system:"):
         return ModelSpec.from_system(s.split(":", 1)[1])
     return load_model_spec(s)
+
+
+def check_device(device: str | torch.device) -> torch.device:
+    """Parse and check a torch device before anything is loaded onto it.
+
+    Raises:
+        InputError: not a device name, or a device this torch build or machine does not have
+            (``cuda`` on a CPU-only build or without a visible GPU, ``cuda:3`` with two GPUs).
+    """
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise InputError(
+            f"--device {device!r}: not a torch device (use cpu, cuda, cuda:N or mps)"
+        ) from None
+    if dev.type == "cuda":
+        if torch.version.cuda is None and getattr(torch.version, "hip", None) is None:
+            raise InputError(f"--device {device!r}: this torch build has no CUDA support")
+        if not torch.cuda.is_available():
+            raise InputError(f"--device {device!r}: no CUDA device is visible")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise InputError(
+                f"--device {device!r}: only {torch.cuda.device_count()} CUDA device(s) visible"
+            )
+    elif dev.type == "mps" and not torch.backends.mps.is_available():
+        raise InputError(f"--device {device!r}: MPS is not available on this machine")
+    elif dev.type not in ("cpu", "cuda", "mps"):
+        raise InputError(f"--device {device!r}: unsupported device type {dev.type!r}")
+    return dev
+
+
+def output_names(recordings: Sequence[str | Path]) -> list[str]:
+    """Unique output base names for recordings, relative to the output folder.
+
+    The file stem (``a/rec.csv`` -> ``rec``) when the stems are unique; otherwise the path relative
+    to the recordings' common folder without its suffix (``a/rec.csv``, ``b/rec.csv`` -> ``a/rec``,
+    ``b/rec``), so no output overwrites another.
+
+    Raises:
+        InputError: a recording is given twice, or two differ only by their suffix.
+    """
+    paths = [Path(os.path.abspath(p)) for p in recordings]
+    seen: dict[Path, int] = {}
+    for i, p in enumerate(paths):
+        if p in seen:
+            raise InputError(f"{recordings[i]}: recording given twice (as argument {seen[p] + 1})")
+        seen[p] = i + 1
+    stems = [p.stem for p in paths]
+    if len(set(stems)) == len(stems):
+        return stems
+    root = Path(os.path.commonpath([str(p.parent) for p in paths]))
+    names = [p.relative_to(root).with_suffix("").as_posix() for p in paths]
+    if len(set(names)) != len(names):
+        dup = next(n for n in names if names.count(n) > 1)
+        raise InputError(
+            f"recordings {dup!r} with different suffixes would write the same estimate files; "
+            "filter them into different --out folders"
+        )
+    return names
 
 
 def _metrics(truth: Tensor, mean: Tensor, cov: Tensor) -> dict[str, Any]:
@@ -61,6 +131,7 @@ def filter_recordings(
     sqrt: bool = False,
     x0: Tensor | None = None,
     P0: Tensor | None = None,
+    force: bool = False,
 ) -> dict[str, Any]:
     """Filter (and optionally smooth) recordings with a model; write estimates, plots and a summary.
 
@@ -71,6 +142,10 @@ def filter_recordings(
     Writes into ``out``: ``{name}.filtered.csv`` (mean, sd, correlations and NIS per step),
     ``{name}.smoothed.csv`` with ``smooth``, ``{name}.png`` with ``plot``, and
     ``filter_summary.json`` (inputs, outputs, and RMSE/NEES/coverage where the log has truth).
+    ``name`` is the recording's file stem, or its path relative to the recordings' common folder
+    when two recordings share a stem (:func:`output_names`). An existing output file is an error
+    unless ``force``; the device, the recording files and the outputs are checked before the
+    model is loaded.
 
     Args:
         model: ``system:NAME``, a model bundle path, or a :class:`ModelSpec`.
@@ -84,23 +159,53 @@ def filter_recordings(
         sqrt: use the square-root filter.
         x0: prior mean override ``(n,)``.
         P0: prior covariance override ``(n, n)``.
+        force: overwrite existing output files.
 
     Returns:
         The summary (also written to ``filter_summary.json``).
+
+    Raises:
+        InputError: no recordings, a recording given twice, a bad device.
+        DataError: a recording is missing or invalid.
+        OutputError: an output exists (without ``force``), or ``out`` cannot be written.
     """
-    spec = resolve_model(model)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    dev = check_device(device)
     if not recordings:
-        raise ValueError("no recordings given")
+        raise InputError("no recordings given")
+    for p in recordings:
+        if not Path(p).is_file():
+            raise DataError("recording not found", path=p)
+        if Path(p).suffix.lower() not in SUFFIXES:
+            raise DataError(
+                f"unsupported file type {Path(p).suffix!r}; use one of {SUFFIXES}", path=p
+            )
+    out = Path(out)
+    names = output_names(recordings)
+    planned = [out / INDEX_NAME]
+    for n in names:
+        planned.append(out / f"{n}.filtered.csv")
+        if smooth:
+            planned.append(out / f"{n}.smoothed.csv")
+        if plot:
+            planned.append(out / f"{n}.png")
+    check_new_outputs(planned, force=force)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out}: the output folder is a file; choose a folder")
+    spec = resolve_model(model)
     recs: list[Recording] = []
     for p in recordings:
         recs.append(
-            read_recording(p, spec.channels, sample_time=spec.sample_time, optional=("state",))
+            read_recording(
+                p,
+                spec.channels,
+                time_column=spec.time_column,
+                sample_time=spec.sample_time,
+                optional=("state",),
+            )
         )
         if len(recs[-1]) < 2:
             raise DataError("needs at least 2 rows (the first row is the prior's time)", path=p)
-    dev = torch.device(device)
+    output_dir(out)
     filt = CKF(spec.model.to(device=dev, dtype=dtype), sqrt=sqrt)
     m0 = (spec.prior_mean if x0 is None else torch.as_tensor(x0)).to(dev, dtype)
     C0 = (spec.prior_cov if P0 is None else torch.as_tensor(P0)).to(dev, dtype)
@@ -129,7 +234,19 @@ def filter_recordings(
         value, dof = nis(res)
         for b, i in enumerate(idx):
             entries[i] = _write_one(
-                recs[i], spec, res, sm, b, value[b], dof[b], m0, C0, out, plot, len(caught)
+                recs[i],
+                names[i],
+                spec,
+                res,
+                sm,
+                b,
+                value[b],
+                dof[b],
+                m0,
+                C0,
+                out,
+                plot,
+                len(caught),
             )
     summary["recordings"] = [entries[i] for i in range(len(recs))]
     atomic_write_text(out / INDEX_NAME, json.dumps(summary, indent=2, default=float) + "\n")
@@ -144,6 +261,7 @@ def _with_prior(mean: Tensor, cov: Tensor, m0: Tensor, C0: Tensor) -> tuple[np.n
 
 def _write_one(
     rec: Recording,
+    name: str,
     spec: ModelSpec,
     res: Any,
     sm: Any,
@@ -160,12 +278,13 @@ def _write_one(
     M, P = _with_prior(res.mean[b], res.cov[b], m0, C0)
     nis_v = np.concatenate([[np.nan], value.detach().cpu().numpy()])
     nis_k = np.concatenate([[0.0], dof.detach().cpu().numpy()])
-    fpath = out / f"{rec.name}.filtered.csv"
+    fpath = out / f"{name}.filtered.csv"
     write_estimates(fpath, Estimates(rec.time, M, P, names, nis_v, nis_k))
     entry: dict[str, Any] = {
         "recording": str(rec.path),
         "rows": len(rec),
-        "filtered": fpath.name,
+        "filtered": f"{name}.filtered.csv",
+        "time_column": rec.time_column,
         "numerics_warnings": warned,
         "finite": bool(np.isfinite(M).all()),
     }
@@ -178,9 +297,9 @@ def _write_one(
     entry["mean_nis_dof"] = float(dof[obs].double().mean()) if bool(obs.any()) else None
     if sm is not None:
         Ms, Ps = _with_prior(sm.mean[b], sm.cov[b], m0, C0)
-        spath = out / f"{rec.name}.smoothed.csv"
+        spath = out / f"{name}.smoothed.csv"
         write_estimates(spath, Estimates(rec.time, Ms, Ps, names))
-        entry["smoothed"] = spath.name
+        entry["smoothed"] = f"{name}.smoothed.csv"
         entry["smoothed_metrics"] = _metrics(
             truth[1:], sm.mean[b].cpu().double(), sm.cov[b].cpu().double()
         )
@@ -204,7 +323,8 @@ def _write_one(
             measurement_units=[u for _, u in spec.measurements],
             title=f"{rec.name}: {spec.source}",
         )
-        ppath = out / f"{rec.name}.png"
-        fig.savefig(ppath)
-        entry["plot"] = ppath.name
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png")
+        atomic_write_bytes(out / f"{name}.png", buf.getvalue())
+        entry["plot"] = f"{name}.png"
     return entry

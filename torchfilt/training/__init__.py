@@ -12,6 +12,7 @@ from torchfilt.training.bundle import (
     load_model,
     load_model_spec,
     save_bundle,
+    upgrade_bundle,
 )
 from torchfilt.training.calibrate import CalibrationResult, calibrate, consistency
 from torchfilt.training.likelihood import (
@@ -47,4 +48,5 @@ __all__ = [
     "save_bundle",
     "step_log_likelihood",
     "train_recipe",
+    "upgrade_bundle",
 ]

@@ -182,12 +182,17 @@ def calibrate(
         first_u = u[0] if isinstance(u, list) else u.reshape(-1, u.shape[-2], u.shape[-1])[0]
         u0 = first_u[:1].to(dtype).expand(pts.shape[0], -1)
 
+    drifting = isinstance(model, DriftModel)
+
     def wrap(side: ConditionalModel, name: str, uu: Tensor | None) -> ConditionalModel:
         if name not in sides:
             return side
         var = _typical_variance(side, pts, uu)
+        # with drift states the measurement's variance is split anew between the white noise and
+        # the drift (its learned variance counted the drift as white noise): it may shrink
+        inflate = inflate_only and not (drifting and name == "measurement")
         return CalibratedModel(
-            side, floor=FLOOR_INIT * var, min_scale=1.0 if inflate_only else 0.0, dtype=dtype
+            side, floor=FLOOR_INIT * var, min_scale=1.0 if inflate else 0.0, dtype=dtype
         )
 
     drift = model if isinstance(model, DriftModel) else None

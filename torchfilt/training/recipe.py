@@ -31,6 +31,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,47 +39,268 @@ from typing import Any
 
 from torchfilt.exceptions import RecipeError
 
-__all__ = ["CALIBRATE_DEFAULTS", "GP_OPTIONS", "Recipe", "RecipeError", "load_recipe"]
+__all__ = [
+    "CALIBRATE_DEFAULTS",
+    "GP_OPTIONS",
+    "RECIPE_SCHEMA",
+    "Key",
+    "Recipe",
+    "RecipeError",
+    "load_recipe",
+    "recipe_reference",
+]
 
-#: Options passed through to ``GPTransition.fit`` / ``GPMeasurement.fit``.
-GP_OPTIONS = frozenset(
-    {
-        "kernel",
-        "structure",
-        "increment",
-        "prior_mean",
-        "inputs",
-        "noise",
-        "noise_floor",
-        "num_latents",
-        "task_rank",
-        "num_inducing",
-        "iterations",
-        "lr",
-        "natural_lr",
-        "subset",
-        "batch_size",
-        "variance",
-        "rank",
-        "tol",
-        "chunk_size",
-    }
-)
-_TOP = {
-    "name",
-    "description",
-    "seed",
-    "dataset",
-    "transition",
-    "measurement",
-    "train",
-    "filter",
-    "calibrate",
+#: Kernels of the GP models (``torchfilt.models.gp.kernels.KERNELS``; a test keeps them equal).
+KERNELS = ("rbf", "matern52", "matern32", "matern12")
+#: Marks a key without a default (it must be given).
+REQUIRED = "(required)"
+
+
+@dataclass(frozen=True)
+class Key:
+    """One recipe key: its name, its default as written in the reference, what it means, and the
+    values it takes (checked when the recipe is loaded, before any training).
+
+    Attributes:
+        name: the key.
+        default: the default, as the reference shows it.
+        meaning: what it does.
+        kind: ``"any"`` (checked later, against the dataset or by the fit), ``"bool"``,
+            ``"int"``, ``"posint"`` (an integer >= 1), ``"posfloat"`` (a finite number > 0) or
+            ``"choice"`` (one of ``choices``).
+        choices: the allowed strings of a ``"choice"`` key.
+    """
+
+    name: str
+    default: str
+    meaning: str
+    kind: str = "any"
+    choices: tuple[str, ...] = ()
+
+    @property
+    def allowed(self) -> str:
+        """The allowed values, as the reference shows them."""
+        return {
+            "bool": "`true`, `false`",
+            "int": "an integer",
+            "posint": "an integer >= 1",
+            "posfloat": "a number > 0",
+            "choice": ", ".join(f'`"{c}"`' for c in self.choices),
+        }.get(self.kind, "")
+
+    def check(self, value: Any, where: str, path: Path | None) -> None:
+        """Raise :class:`RecipeError` naming the file, the table and the key if ``value`` is not
+        one of the allowed values."""
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        ok = {
+            "bool": isinstance(value, bool),
+            "int": isinstance(value, int) and not isinstance(value, bool),
+            "posint": isinstance(value, int) and not isinstance(value, bool) and value >= 1,
+            "posfloat": number and math.isfinite(value) and value > 0,
+            "choice": value in self.choices,
+        }.get(self.kind, True)
+        if not ok:
+            raise RecipeError(
+                f"{path}: [{where}] {self.name} must be {self.allowed.replace('`', '')}, "
+                f"got {value!r}"
+            )
+
+
+def _gp_keys() -> tuple[Key, ...]:
+    return (
+        Key(
+            "model",
+            "(a GP)",
+            '`"system:NAME"`: use a built-in analytic model instead of a GP; '
+            "no other key is then allowed",
+        ),
+        Key(
+            "kernel",
+            '`"rbf"`',
+            '`"rbf"` (ARD), `"matern52"`, `"matern32"` or `"matern12"`',
+            kind="choice",
+            choices=KERNELS,
+        ),
+        Key(
+            "structure",
+            '`"independent"`',
+            '`"independent"` (one GP per output, batched), '
+            '`"multitask"` (LMC, correlated outputs) or `"sparse"` (SVGP, minibatches)',
+            kind="choice",
+            choices=("independent", "multitask", "sparse"),
+        ),
+        Key(
+            "increment",
+            "`false`",
+            "learn `x_{k+1} - x_k` instead of `x_{k+1}` (transition)",
+            kind="bool",
+        ),
+        Key(
+            "prior_mean",
+            "(none)",
+            "a built-in nominal model whose residual the GP learns: "
+            '`{system = "NAME", parameter = value, ...}`',
+        ),
+        Key(
+            "inputs",
+            "(all)",
+            "input selection by channel name (states, then inputs for the "
+            "transition; states for the measurement), shared by all outputs or one list per "
+            "output; integers index the same features",
+        ),
+        Key("noise", "(learned)", "fix the noise variance (scalar or one per output)"),
+        Key(
+            "noise_floor",
+            '`"auto"`',
+            "lower bound of the noise variance: from the data, or a "
+            "variance (scalar or one per output)",
+        ),
+        Key("num_latents", "`1`", "number of latent GPs of a multitask model", kind="posint"),
+        Key("task_rank", "`1`", "rank of each latent's task covariance (multitask)", kind="posint"),
+        Key("num_inducing", "`256`", "inducing points per output (sparse)", kind="posint"),
+        Key("iterations", "`200`", "Adam iterations", kind="posint"),
+        Key("lr", "`0.05`", "Adam learning rate", kind="posfloat"),
+        Key(
+            "natural_lr",
+            "`0.1`",
+            "natural-gradient step of a sparse model's `q(u)`",
+            kind="posfloat",
+        ),
+        Key(
+            "subset",
+            "`1000`",
+            "hyperparameters of an exact model are trained on at most this "
+            "many random rows, then the GP conditions on all rows",
+            kind="posint",
+        ),
+        Key("batch_size", "`1024`", "minibatch size (sparse)", kind="posint"),
+        Key(
+            "variance",
+            '`"auto"`',
+            'frozen predictive variance: `"auto"` (smallest low-rank root '
+            'within `tol` of exact, else exact), `"exact"` or `"lowrank"`',
+            kind="choice",
+            choices=("auto", "exact", "lowrank"),
+        ),
+        Key("rank", "(none)", 'rank of the low-rank root (`variance = "lowrank"`)', kind="posint"),
+        Key("tol", "`0.05`", 'relative variance tolerance of `variance = "auto"`', kind="posfloat"),
+        Key("chunk_size", "`128`", "points per kernel chunk in large batches", kind="posint"),
+    )
+
+
+#: Every recipe section and key with its default and meaning: the validator's allowed keys and
+#: the reference ``docs/recipes.md`` both come from this table (``""`` is the top level). A new
+#: section is one more entry (and one more key in the top level).
+RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
+    "": (
+        Key("name", "(the file's stem)", "run name, stored in the bundle"),
+        Key("description", '`""`', "free text, stored in the bundle"),
+        Key(
+            "seed",
+            "`0`",
+            "seed of every random choice (subsets, initial values, minibatches)",
+            kind="int",
+        ),
+        Key("dataset", REQUIRED, "table: the training data"),
+        Key("transition", REQUIRED, "table: the transition model `x_{k+1} = f(x_k, u_k)`"),
+        Key("measurement", REQUIRED, "table: the measurement model `y_k = h(x_k)`"),
+        Key("train", "(defaults)", "table: checkpointing, dtype, threads"),
+        Key("filter", "(defaults)", "table: the default filter prior stored in the bundle"),
+        Key(
+            "calibrate",
+            "(defaults: on)",
+            "table: the calibration stage (variance scales and noise floors fitted by the "
+            "filter likelihood)",
+        ),
+    ),
+    "dataset": (
+        Key(
+            "path",
+            REQUIRED,
+            "the dataset's `manifest.json` or its folder, relative to the recipe file",
+        ),
+    ),
+    "transition": _gp_keys(),
+    "measurement": _gp_keys(),
+    "train": (
+        Key(
+            "checkpoint_every",
+            "`25`",
+            "iterations between checkpoints (a killed run resumes "
+            "from the last one with `--resume`)",
+            kind="posint",
+        ),
+        Key(
+            "dtype",
+            '`"float64"`',
+            'training dtype: `"float64"` or `"float32"`',
+            kind="choice",
+            choices=("float64", "float32"),
+        ),
+        Key("threads", "(unchanged)", "torch threads for training", kind="posint"),
+    ),
+    "filter": (
+        Key(
+            "prior",
+            '`"data"`',
+            '`"data"` (mean and covariance of the training recordings\' '
+            'initial states) or `"system:NAME"` (a built-in system\'s prior)',
+        ),
+        Key("mean", "(none)", "explicit prior mean, one value per state (with `cov_diag`)"),
+        Key("cov_diag", "(none)", "explicit prior variances, one per state (with `mean`)"),
+    ),
+    "calibrate": (
+        Key(
+            "enabled",
+            "`true`",
+            "after the GPs, fit per-output variance scales and diagonal noise floors of the "
+            "learned sides by the filter's innovation likelihood on the training recordings "
+            "(`torchfilt.calibrate`); `false` turns the stage off",
+            kind="bool",
+        ),
+        Key(
+            "sides",
+            '`"learned"`',
+            '`"learned"` (the GP sides) or a list of `"transition"` and/or `"measurement"`',
+        ),
+        Key("window", "`100`", "window length in steps (longer recordings are cut)", kind="posint"),
+        Key(
+            "burn_in",
+            "`20`",
+            "uncounted steps at the start of every window (an integer in [0, window))",
+            kind="int",
+        ),
+        Key("iterations", "`100`", "Adam (or L-BFGS) iterations", kind="posint"),
+        Key(
+            "lr",
+            "`0.1`",
+            "learning rate on the log scales and floors (at most 10)",
+            kind="posfloat",
+        ),
+        Key(
+            "optimizer",
+            '`"adam"`',
+            '`"adam"` or `"lbfgs"`',
+            kind="choice",
+            choices=("adam", "lbfgs"),
+        ),
+        Key(
+            "patience",
+            "`15`",
+            "early stopping: iterations without a better held-out likelihood on the validation "
+            "recordings",
+            kind="posint",
+        ),
+        Key(
+            "inflate_only",
+            "`true`",
+            "keep the variance scales >= 1: calibration only adds uncertainty",
+            kind="bool",
+        ),
+    ),
 }
-_DATASET = {"path"}
-_TRAIN = {"checkpoint_every", "dtype", "threads"}
-_FILTER = {"prior", "mean", "cov_diag"}
-#: ``[calibrate]``: the calibration stage (see :func:`torchfilt.training.calibrate`), with defaults.
+
+#: Defaults of the ``[calibrate]`` section.
 CALIBRATE_DEFAULTS: dict[str, Any] = {
     "enabled": True,
     "sides": "learned",
@@ -90,6 +312,39 @@ CALIBRATE_DEFAULTS: dict[str, Any] = {
     "patience": 15,
     "inflate_only": True,
 }
+
+#: Options passed through to ``GPTransition.fit`` / ``GPMeasurement.fit``.
+GP_OPTIONS = frozenset(k.name for k in RECIPE_SCHEMA["transition"] if k.name != "model")
+
+
+def _allowed(section: str) -> set[str]:
+    return {k.name for k in RECIPE_SCHEMA[section]}
+
+
+def _check_values(table: dict[str, Any], section: str, path: Path | None) -> None:
+    keys = {k.name: k for k in RECIPE_SCHEMA[section]}
+    for name, value in table.items():
+        keys[name].check(value, section or "top level", path)
+
+
+def recipe_reference() -> str:
+    """The recipe reference (``docs/recipes.md``) as Markdown, from :data:`RECIPE_SCHEMA`."""
+    out = [
+        "# Recipe reference",
+        "",
+        "A recipe is a TOML file (see `trainers/`) that `torchfilt train` runs. Unknown keys are",
+        "errors, so a typo never trains a different model silently. Channel names (`inputs`) and",
+        "the `[filter]` prior are checked against the dataset before any training.",
+        "",
+        "This page is generated from `RECIPE_SCHEMA` in `torchfilt/training/recipe.py`, the table",
+        "the validator uses (`python scripts/make_docs.py` rewrites it; a test checks that the two",
+        "agree).",
+    ]
+    for section, keys in RECIPE_SCHEMA.items():
+        out += ["", "## Top level" if not section else f"## `[{section}]`", ""]
+        out += ["| key | default | values | meaning |", "|---|---|---|---|"]
+        out += [f"| `{k.name}` | {k.default} | {k.allowed} | {k.meaning} |" for k in keys]
+    return "\n".join(out) + "\n"
 
 
 @dataclass
@@ -108,12 +363,9 @@ class Recipe:
         threads: torch threads for training (``None``: leave as is).
         filter: default filter prior for the bundle (``prior = "data"`` (default), ``"system:NAME"``,
             or explicit ``mean`` and ``cov_diag``).
-        calibrate: the calibration stage (``[calibrate]``, on by default; ``enabled = false``
-            turns it off): ``sides`` (``"learned"``, the GP sides, or a list of
-            ``"transition"``/``"measurement"``), ``window``, ``burn_in``, ``iterations``, ``lr``,
-            ``optimizer`` (``"adam"`` or ``"lbfgs"``), ``patience`` (early stopping on the
-            validation recordings), ``inflate_only`` (scales >= 1, default ``true``).
         description: free text.
+        calibrate: the ``[calibrate]`` section with its defaults filled in (see
+            :data:`RECIPE_SCHEMA`).
     """
 
     path: Path | None
@@ -173,7 +425,8 @@ def _side(table: Any, where: str, path: Path | None) -> dict[str, Any]:
         if not str(t["model"]).startswith("system:"):
             raise RecipeError(f'{path}: [{where}] model must be "system:NAME", got {t["model"]!r}')
         return t
-    t = _check_keys(table, GP_OPTIONS, where, path)
+    t = _check_keys(table, _allowed(where) - {"model"}, where, path)
+    _check_values(t, where, path)
     pm = t.get("prior_mean")
     if pm is not None and (not isinstance(pm, dict) or "system" not in pm):
         raise RecipeError(
@@ -191,22 +444,18 @@ def load_recipe(path: str | Path) -> Recipe:
         d = tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise RecipeError(f"{path}: not valid TOML ({e})") from None
-    d = _check_keys(d, _TOP, "top level", path)
-    ds = _check_keys(d.get("dataset", {}), _DATASET, "dataset", path)
+    d = _check_keys(d, _allowed(""), "top level", path)
+    ds = _check_keys(d.get("dataset", {}), _allowed("dataset"), "dataset", path)
     if "path" not in ds:
         raise RecipeError(f"{path}: [dataset] needs 'path'")
-    train = _check_keys(d.get("train", {}), _TRAIN, "train", path)
-    filt = _check_keys(d.get("filter", {}), _FILTER, "filter", path)
+    train = _check_keys(d.get("train", {}), _allowed("train"), "train", path)
+    filt = _check_keys(d.get("filter", {}), _allowed("filter"), "filter", path)
+    _check_values(d, "", path)
+    _check_values(train, "train", path)
     dtype = str(train.get("dtype", "float64"))
-    if dtype not in ("float64", "float32"):
-        raise RecipeError(f"{path}: [train] dtype must be 'float64' or 'float32', got {dtype!r}")
     every = int(train.get("checkpoint_every", 25))
-    if every < 1:
-        raise RecipeError(f"{path}: [train] checkpoint_every must be >= 1, got {every}")
-    calib = _calibrate(d.get("calibrate", {}), path)
-    seed = d.get("seed", 0)
-    if not isinstance(seed, int):
-        raise RecipeError(f"{path}: seed must be an integer, got {seed!r}")
+    threads = None if train.get("threads") is None else int(train["threads"])
+    seed = int(d.get("seed", 0))
     return Recipe(
         path=path,
         name=str(d.get("name", path.stem)),
@@ -216,44 +465,32 @@ def load_recipe(path: str | Path) -> Recipe:
         measurement=_side(d.get("measurement"), "measurement", path),
         checkpoint_every=every,
         dtype=dtype,
-        threads=None if train.get("threads") is None else int(train["threads"]),
+        threads=threads,
         filter=filt,
         description=str(d.get("description", "")),
-        calibrate=calib,
+        calibrate=_calibrate(d.get("calibrate", {}), path),
     )
 
 
 def _calibrate(table: Any, path: Path | None) -> dict[str, Any]:
     """Validate ``[calibrate]`` and fill in its defaults."""
-    t = _check_keys(table, set(CALIBRATE_DEFAULTS), "calibrate", path)
+    t = _check_keys(table, _allowed("calibrate"), "calibrate", path)
+    _check_values(t, "calibrate", path)
     out = {**CALIBRATE_DEFAULTS, **t}
-    for key in ("enabled", "inflate_only"):
-        if not isinstance(out[key], bool):
-            raise RecipeError(f"{path}: [calibrate] {key} must be true or false")
     sides = out["sides"]
     ok_sides = sides == "learned" or (
-        isinstance(sides, list) and sides and set(sides) <= {"transition", "measurement"}
+        isinstance(sides, list) and bool(sides) and set(sides) <= {"transition", "measurement"}
     )
     if not ok_sides:
         raise RecipeError(
             f'{path}: [calibrate] sides must be "learned" or a list of "transition" and/or '
             f'"measurement", got {sides!r}'
         )
-    for key in ("window", "iterations", "patience"):
-        v = out[key]
-        if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-            raise RecipeError(f"{path}: [calibrate] {key} must be a positive integer, got {v!r}")
-    b = out["burn_in"]
-    if not isinstance(b, int) or isinstance(b, bool) or not 0 <= b < out["window"]:
+    if not 0 <= out["burn_in"] < out["window"]:
         raise RecipeError(
-            f"{path}: [calibrate] burn_in must be an integer in [0, window), got {b!r}"
+            f"{path}: [calibrate] burn_in must be an integer in [0, window), got {out['burn_in']!r}"
         )
-    lr = out["lr"]
-    if not isinstance(lr, int | float) or isinstance(lr, bool) or not 0 < float(lr) <= 10:
-        raise RecipeError(f"{path}: [calibrate] lr must be a number in (0, 10], got {lr!r}")
-    out["lr"] = float(lr)
-    if out["optimizer"] not in ("adam", "lbfgs"):
-        raise RecipeError(
-            f'{path}: [calibrate] optimizer must be "adam" or "lbfgs", got {out["optimizer"]!r}'
-        )
+    if float(out["lr"]) > 10:
+        raise RecipeError(f"{path}: [calibrate] lr must be a number in (0, 10], got {out['lr']!r}")
+    out["lr"] = float(out["lr"])
     return out

@@ -15,6 +15,11 @@ A run directory holds:
   after calibration;
 - ``model.pt``: the final model bundle.
 
+The recipe, the dataset and the recipe's channel names are checked before anything is written,
+and a run that fails on an invalid option before any stage is trained removes the files it wrote,
+so the next attempt is not blocked. ``force=True`` (``--force``) discards a run already in the
+directory (its files above, nothing else) and starts afresh.
+
 A run killed at any moment resumes from its last checkpoint with ``resume=True`` (``torchfilt train
 ... --resume``) and reaches the same model as an uninterrupted run with the same seed.
 """
@@ -22,6 +27,7 @@ A run killed at any moment resumes from its last checkpoint with ``resume=True``
 from __future__ import annotations
 
 import datetime as _dt
+import io
 import json
 import platform
 import sys
@@ -32,8 +38,9 @@ import torch
 from torch import Tensor
 
 from torchfilt._version import __version__
-from torchfilt.exceptions import RunError
-from torchfilt.io import Dataset, atomic_write, atomic_write_text, load_dataset
+from torchfilt.exceptions import DataError, InputError, RecipeError, RunError
+from torchfilt.io import Dataset, atomic_write_bytes, atomic_write_text, load_dataset
+from torchfilt.io.atomic import output_dir, output_error
 from torchfilt.io.recording import Recording
 from torchfilt.models import StateSpaceModel
 from torchfilt.systems import get_system
@@ -54,6 +61,30 @@ __all__ = ["RunError", "train_recipe"]
 STAGES = ("transition", "measurement")
 #: The calibration stage's checkpoint in a run directory.
 CALIBRATE_CHECKPOINT = "calibrate.ckpt"
+#: The files a run writes into its directory (``force`` removes these, and only these).
+RUN_FILES = (
+    "config.json",
+    "dataset.json",
+    "metrics.jsonl",
+    "checkpoint.pt",
+    "transition.pt",
+    "measurement.pt",
+    "train.log",
+    "validation.json",
+    "model.pt",
+    "calibration.pt",
+    CALIBRATE_CHECKPOINT,
+)
+#: A directory holding any of these holds a run (``resume`` continues it, ``force`` discards it).
+_RUN_MARKERS = (
+    "config.json",
+    "checkpoint.pt",
+    "transition.pt",
+    "measurement.pt",
+    "calibration.pt",
+    CALIBRATE_CHECKPOINT,
+    "model.pt",
+)
 
 
 def _now() -> str:
@@ -69,13 +100,20 @@ class _Log:
     """Plain lines to ``train.log`` (always) and to the console when progress is off."""
 
     def __init__(self, path: Path, echo: TextIO | None) -> None:
-        self.fh = open(path, "a", encoding="utf-8")
+        self.path = path
+        try:
+            self.fh = open(path, "a", encoding="utf-8")
+        except OSError as e:
+            raise output_error(path, e) from None
         self.echo = echo
 
     def __call__(self, msg: str) -> None:
         line = f"{_now()} {msg}\n"
-        self.fh.write(line)
-        self.fh.flush()
+        try:
+            self.fh.write(line)
+            self.fh.flush()
+        except OSError as e:
+            raise output_error(self.path, e) from None
         if self.echo is not None:
             self.echo.write(msg + "\n")
             self.echo.flush()
@@ -92,12 +130,14 @@ def _feature_indices(names: list[Any] | None, features: list[str], where: str) -
     def one(v: Any) -> int:
         if isinstance(v, int):
             if not 0 <= v < len(features):
-                raise ValueError(
+                raise RecipeError(
                     f"[{where}] inputs: index {v} out of range for features {features}"
                 )
             return v
-        if v not in features:
-            raise ValueError(f"[{where}] inputs: unknown channel {v!r}; features are {features}")
+        if not isinstance(v, str) or v not in features:
+            raise RecipeError(
+                f"[{where}] inputs: unknown channel {v!r}; the channels are {features}"
+            )
         return features.index(v)
 
     if names and isinstance(names[0], list):
@@ -110,18 +150,23 @@ def _prior(recipe: Recipe, train: list[Recording], n: int) -> tuple[Tensor, Tens
     f = recipe.filter
     if "mean" in f or "cov_diag" in f:
         if "mean" not in f or "cov_diag" not in f:
-            raise ValueError("[filter] give both mean and cov_diag")
-        m = torch.tensor(f["mean"], dtype=torch.float64)
-        c = torch.diag(torch.tensor(f["cov_diag"], dtype=torch.float64))
+            raise RecipeError("[filter] give both mean and cov_diag")
+        try:
+            m = torch.tensor(f["mean"], dtype=torch.float64)
+            c = torch.diag(torch.tensor(f["cov_diag"], dtype=torch.float64))
+        except (TypeError, ValueError, RuntimeError):
+            raise RecipeError("[filter] mean and cov_diag must be lists of numbers") from None
         if m.shape != (n,) or c.shape != (n, n):
-            raise ValueError(f"[filter] mean and cov_diag must have {n} entries")
+            raise RecipeError(f"[filter] mean and cov_diag must have {n} entries (the states)")
+        if not bool(torch.isfinite(m).all()) or not bool((c.diagonal() > 0).all()):
+            raise RecipeError("[filter] mean must be finite and cov_diag positive")
         return m, c, "recipe"
     prior = str(f.get("prior", "data"))
     if prior.startswith("system:"):
         s = get_system(prior.split(":", 1)[1])
         return s.prior_mean(), s.prior_cov(), prior
     if prior != "data":
-        raise ValueError(
+        raise RecipeError(
             f"[filter] prior must be 'data', 'system:NAME' or mean/cov_diag, got {prior!r}"
         )
     x0 = torch.stack([r.states[0].to(torch.float64) for r in train])
@@ -140,6 +185,7 @@ def train_recipe(
     out: str | Path,
     *,
     resume: bool = False,
+    force: bool = False,
     progress: bool = True,
     stream: TextIO | None = None,
 ) -> Path:
@@ -149,6 +195,7 @@ def train_recipe(
         recipe: a recipe file (``trainers/*.toml``) or a :class:`Recipe`.
         out: run directory.
         resume: continue the run in ``out`` from its last checkpoint.
+        force: discard a run already in ``out`` (the files of :data:`RUN_FILES`) and start afresh.
         progress: show a progress bar (on a terminal; plain lines otherwise).
         stream: where progress goes (default ``sys.stderr``).
 
@@ -156,62 +203,144 @@ def train_recipe(
         Path of the model bundle ``out/model.pt``.
 
     Raises:
-        RunError: ``out`` already holds a run (without ``resume``), or has none to resume, or the
-            recipe or dataset changed since the run started.
-        RecipeError, DataError: invalid recipe or dataset.
+        RunError: ``out`` already holds a run (without ``resume`` or ``force``), or has none to
+            resume, or the recipe or dataset changed since the run started.
+        RecipeError, DataError: invalid recipe or dataset (raised before anything is written).
+        OutputError: ``out`` is a file, is read-only, or the disk is full.
     """
+    if resume and force:
+        raise InputError("--resume continues the run in --out and --force discards it: pick one")
     r = recipe if isinstance(recipe, Recipe) else load_recipe(recipe)
+    ds: Dataset = load_dataset(r.dataset)
+    prior = _check_against_dataset(r, ds)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     stream = stream if stream is not None else sys.stderr
     cfg_path = out / "config.json"
+    if resume and not cfg_path.is_file():
+        raise RunError(f"{out}: no run to resume (config.json missing)")
+    created_dir = not out.exists()
+    output_dir(out)
     if resume:
-        if not cfg_path.is_file():
-            raise RunError(f"{out}: no run to resume (config.json missing)")
-        old = json.loads(cfg_path.read_text())
-        if old.get("digest") != r.digest():
-            raise RunError(f"{out}: the recipe changed since this run started; start a new run")
-    else:
-        if any((out / f).exists() for f in ("config.json", "checkpoint.pt", "model.pt")):
+        try:
+            old = json.loads(cfg_path.read_text(encoding="utf-8"))
+            old_digest = old.get("digest") if isinstance(old, dict) else None
+        except (UnicodeDecodeError, json.JSONDecodeError):
+            raise RunError(f"{cfg_path}: unreadable run configuration (not JSON)") from None
+        if old_digest != r.digest():
             raise RunError(
-                f"{out}: already holds a run; pass --resume to continue it, or choose another --out"
+                f"{out}: the recipe changed since this run started; start a new run "
+                "(another --out, or --force to discard this one)"
             )
-        config = {
-            "recipe": r.resolved(),
-            "digest": r.digest(),
-            "recipe_file": None if r.path is None else str(r.path),
-            "created": _now(),
-            "versions": {
-                "torchfilt": __version__,
-                "torch": str(torch.__version__),
-                "python": platform.python_version(),
-            },
-        }
-        atomic_write_text(cfg_path, json.dumps(config, indent=2) + "\n")
-    log = _Log(out / "train.log", None if progress else stream)
+    else:
+        if force:
+            for f in RUN_FILES:
+                if (out / f).is_file():
+                    (out / f).unlink()
+        elif any((out / f).exists() for f in _RUN_MARKERS):
+            raise RunError(
+                f"{out}: already holds a run; pass --resume to continue it, --force to discard "
+                "it, or choose another --out"
+            )
+    before = {f for f in RUN_FILES if (out / f).exists()}
+    log: _Log | None = None
     try:
-        return _run(r, out, resume, progress, stream, log)
+        if not resume:
+            atomic_write_text(cfg_path, json.dumps(_config(r), indent=2) + "\n")
+        log = _Log(out / "train.log", None if progress else stream)
+        return _run(r, ds, prior, out, resume, progress, stream, log)
+    except Exception:
+        if not resume and not any((out / f).exists() for f in _RUN_MARKERS[1:]):
+            # nothing trained yet (an invalid option, a full disk): remove what this attempt
+            # wrote, so it blocks no other. A kill (no exception) leaves the run to --resume.
+            if log is not None:
+                log.close()
+            for f in RUN_FILES:
+                if f not in before and (out / f).is_file():
+                    (out / f).unlink()
+            if created_dir and not any(out.iterdir()):
+                out.rmdir()
+        raise
     finally:
-        log.close()
+        if log is not None:
+            log.close()
 
 
-def _run(r: Recipe, out: Path, resume: bool, progress: bool, stream: TextIO, log: _Log) -> Path:
+def _config(r: Recipe) -> dict[str, Any]:
+    """``config.json`` of a new run: the resolved recipe, its digest, library versions."""
+    return {
+        "recipe": r.resolved(),
+        "digest": r.digest(),
+        "recipe_file": None if r.path is None else str(r.path),
+        "created": _now(),
+        "versions": {
+            "torchfilt": __version__,
+            "torch": str(torch.__version__),
+            "python": platform.python_version(),
+        },
+    }
+
+
+def _check_against_dataset(r: Recipe, ds: Dataset) -> tuple[Tensor, Tensor, str]:
+    """Check the recipe against the dataset before any training: training recordings exist, the
+    ``inputs`` of each GP side name channels, a ``prior_mean`` system exists, the ``[filter]``
+    prior fits. Returns the bundle's default filter prior. Errors name the recipe file."""
+    try:
+        return _check_channels(r, ds)
+    except RecipeError as e:
+        if r.path is None:
+            raise
+        raise RecipeError(f"{r.path}: {e}") from None
+
+
+def _check_channels(r: Recipe, ds: Dataset) -> tuple[Tensor, Tensor, str]:
+    train = ds.split("train")
+    if not train:
+        raise DataError("the dataset has no training recordings", path=ds.manifest_path)
+    states, inputs = ds.manifest.names("state"), ds.manifest.names("input")
+    for stage in STAGES:
+        opts = getattr(r, stage)
+        if "model" in opts:
+            get_system(str(opts["model"]).split(":", 1)[1])
+            continue
+        features = states + inputs if stage == "transition" else states
+        if "inputs" in opts:
+            sel = opts["inputs"]
+            if not isinstance(sel, list):
+                raise RecipeError(f"[{stage}] inputs must be a list of channel names")
+            _feature_indices(sel, features, stage)
+        if opts.get("prior_mean") is not None:
+            nominal_model(opts["prior_mean"])
+    return _prior(r, train, len(states))
+
+
+def _run(
+    r: Recipe,
+    ds: Dataset,
+    prior: tuple[Tensor, Tensor, str],
+    out: Path,
+    resume: bool,
+    progress: bool,
+    stream: TextIO,
+    log: _Log,
+) -> Path:
     if r.threads is not None:
         torch.set_num_threads(r.threads)
     dtype = torch.float64 if r.dtype == "float64" else torch.float32
-    ds: Dataset = load_dataset(r.dataset)
     dlog = ds.log()
     ds_path = out / "dataset.json"
     if resume and ds_path.is_file():
-        old = json.loads(ds_path.read_text())
-        if old["fingerprint"]["dataset_sha256"] != dlog["fingerprint"]["dataset_sha256"]:
+        try:
+            old_sha = json.loads(ds_path.read_text(encoding="utf-8"))["fingerprint"][
+                "dataset_sha256"
+            ]
+        except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError):
+            raise RunError(f"{ds_path}: unreadable dataset log") from None
+        if old_sha != dlog["fingerprint"]["dataset_sha256"]:
             raise RunError(
                 f"{out}: the dataset changed since this run started (fingerprint differs)"
             )
     atomic_write_text(ds_path, json.dumps(dlog, indent=2, default=float) + "\n")
     train, val = ds.split("train"), ds.split("validation")
-    if not train:
-        raise ValueError(f"{ds.manifest_path}: the dataset has no training recordings")
     states = ds.manifest.names("state")
     inputs = ds.manifest.names("input")
     log(
@@ -233,7 +362,7 @@ def _run(r: Recipe, out: Path, resume: bool, progress: bool, stream: TextIO, log
             log(f"{stage}: built-in model {opts['model']}")
             continue
         if resume and done.is_file():
-            entries[stage] = torch.load(done, weights_only=True)
+            entries[stage] = _load_stage(done)
             log(f"{stage}: already trained (resumed)")
             continue
         entries[stage] = _fit_stage(
@@ -243,7 +372,7 @@ def _run(r: Recipe, out: Path, resume: bool, progress: bool, stream: TextIO, log
 
     f = build_side(entries["transition"], "transition")
     h = build_side(entries["measurement"], "measurement")
-    m0, P0, how = _prior(r, train, len(states))
+    m0, P0, how = prior
     calibration = _calibrate_stage(
         r,
         entries,
@@ -296,6 +425,7 @@ def _run(r: Recipe, out: Path, resume: bool, progress: bool, stream: TextIO, log
             ],
         },
         "sample_time": ds.manifest.sample_time,
+        "time_column": ds.manifest.time_column,
         "time_unit": ds.manifest.time_unit,
         "prior": {"mean": m0, "cov": P0, "source": how},
         "calibration": calibration,
@@ -328,13 +458,24 @@ def _load_checkpoint(path: Path) -> dict[str, Any]:
     return ckpt
 
 
+def _load_stage(path: Path) -> dict[str, Any]:
+    """A finished stage's entry (plain data only), with a clear error if unusable."""
+    try:
+        entry = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise RunError(
+            f"{path}: unreadable stage file ({type(e).__name__}); delete it to retrain the stage"
+        ) from None
+    if not isinstance(entry, dict) or "kind" not in entry:
+        raise RunError(f"{path}: not a torchfilt stage file; delete it to retrain the stage")
+    return entry
+
+
 def _save(path: Path, obj: dict[str, Any]) -> None:
-    """``torch.save`` atomically (temporary file + rename)."""
-
-    def write(fh: Any) -> None:
-        torch.save(obj, fh)
-
-    atomic_write(path, write)
+    """``torch.save`` into memory, then one atomic write (temporary file + rename)."""
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def _fmt(v: list[float]) -> str:
@@ -351,11 +492,19 @@ def _trim_metrics(path: Path, ckpt: dict[str, Any] | None, fresh: bool) -> None:
     cal_done = (path.parent / "calibration.pt").is_file()
     cal_ckpt = path.parent / CALIBRATE_CHECKPOINT
     cal_it = _checkpoint_iteration(cal_ckpt) if cal_ckpt.is_file() else 0
-    for line in path.read_text().splitlines():
+    lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    for i, line in enumerate(lines):
         try:
             rec = json.loads(line)
-        except json.JSONDecodeError:
-            continue  # a line torn by a kill: it is redone
+            if not isinstance(rec, dict) or not {"stage", "iteration"} <= rec.keys():
+                raise TypeError
+        except (json.JSONDecodeError, KeyError, TypeError):
+            if i == len(lines) - 1:  # torn by a kill mid-write: that iteration is redone
+                continue
+            raise RunError(
+                f"{path}: line {i + 1} is not a metrics record; delete the file to resume "
+                "without the earlier metrics"
+            ) from None
         if rec.get("stage") == "calibrate":
             if cal_done or rec["iteration"] <= cal_it:
                 keep.append(line)
@@ -397,13 +546,16 @@ def _fit_stage(
         opts["inputs"] = _feature_indices(opts["inputs"], features, stage)
     iterations = int(opts.get("iterations", 200))
     bar = ProgressBar(f"train {stage}", iterations, stream, enabled=progress)
-    metrics = open(out / "metrics.jsonl", "a", encoding="utf-8")
+    try:
+        metrics = open(out / "metrics.jsonl", "a", encoding="utf-8")
+    except OSError as e:
+        raise output_error(out / "metrics.jsonl", e) from None
     every = r.checkpoint_every
     ckpt_path = out / "checkpoint.pt"
 
     def callback(state: Any) -> None:
         hyper = {k: _tensor_list(v) for k, v in state.hyperparameters().items()}
-        metrics.write(
+        metrics.write(  # append-only log; a torn last line is dropped on resume
             json.dumps(
                 {
                     "stage": stage,

@@ -664,9 +664,10 @@ class GPModel(ConditionalModel):
     def to_state(self) -> dict[str, Any]:
         """Plain tensors and dicts (no pickled callables) for ``torch.load(weights_only=True)``.
 
-        The frozen caches are not stored; :meth:`from_state` recomputes them (one Cholesky per
-        group). A prior-mean callable is not stored: re-attach it with ``from_state(...,
-        prior_mean=fn)``.
+        A frozen model also stores its predictor's cache (:meth:`FrozenGP.cache`), so
+        :meth:`from_state` does not choose the variance form again (only an exact form's
+        Cholesky factor is recomputed). A prior-mean callable is not stored: re-attach it with
+        ``from_state(..., prior_mean=fn)``.
         """
         return {
             "format": STATE_FORMAT,
@@ -674,6 +675,7 @@ class GPModel(ConditionalModel):
             "config": self.config.to_dict(),
             "state_dict": {k: v.detach().clone() for k, v in self.state_dict().items()},
             "predictor": None if self._freeze_opts is None else dict(self._freeze_opts),
+            "frozen": None if self.predictor is None else self.predictor.cache(),
         }
 
     @classmethod
@@ -734,7 +736,10 @@ class GPModel(ConditionalModel):
             prior_mean,
         )
         model.load_state_dict(sd)
-        if state.get("predictor"):
+        if state.get("predictor") and state.get("frozen"):
+            model.predictor = FrozenGP.from_cache(state["frozen"])
+            model._freeze_opts = dict(state["predictor"])
+        elif state.get("predictor"):
             model.freeze(**state["predictor"])
         return model
 

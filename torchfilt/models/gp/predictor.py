@@ -25,7 +25,7 @@ step, differentiable in the points (autograd). Large batches are processed in ch
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Literal, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -40,10 +40,20 @@ from torchfilt.models.gp.root import (
     ritz_root,
 )
 
-__all__ = ["AUTO_RANKS", "AUTO_TOL", "CHUNK_SIZE", "FrozenGP", "FrozenOutput", "VarianceMode"]
+__all__ = [
+    "AUTO_RANKS",
+    "AUTO_TOL",
+    "CACHE_FORMAT",
+    "CHUNK_SIZE",
+    "FrozenGP",
+    "FrozenOutput",
+    "VarianceMode",
+]
 
 VarianceMode = Literal["exact", "lowrank", "auto"]
 
+#: Tag of the plain-dict cache written by :meth:`FrozenGP.cache`.
+CACHE_FORMAT = "torchfilt.frozen/1"
 #: Default number of points per kernel chunk.
 CHUNK_SIZE = 128
 #: Ranks tried by ``variance="auto"``, smallest first.
@@ -84,6 +94,8 @@ class _Block(nn.Module):
     alpha: Tensor
     noise: Tensor
     factor: Tensor
+
+    cache_args: dict[str, Tensor]
 
     def __init__(self, kernel: str, form: str, rank: int | None) -> None:
         super().__init__()
@@ -141,6 +153,23 @@ class _IndependentBlock(_Block):
         factor: Tensor,
     ) -> None:
         super().__init__(kernel, form, rank)
+        self.cache_args = _cache_args(
+            form,
+            outputs=outputs,
+            features=features,
+            in_shift=in_shift,
+            in_scale=in_scale,
+            lengthscale=lengthscale,
+            points=points,
+            alpha=alpha,
+            const=const,
+            outputscale=outputscale,
+            noise=noise,
+            extra_diag=extra_diag,
+            out_shift=out_shift,
+            out_scale=out_scale,
+            factor=factor,
+        )
         pts = points / lengthscale.unsqueeze(-2)  # points: (g, S, D) standardised
         weight = 1.0 / (in_scale.unsqueeze(0) * lengthscale)  # (g, D)
         amp = outputscale * out_scale  # (g,): kernel amplitude in target units
@@ -220,6 +249,22 @@ class _MultitaskBlock(_Block):
         factor: Tensor,
     ) -> None:
         super().__init__(kernel, form, rank)
+        self.cache_args = _cache_args(
+            form,
+            outputs=outputs,
+            features=features,
+            in_shift=in_shift,
+            in_scale=in_scale,
+            lengthscale=lengthscale,
+            points=points,
+            task_covar=task_covar,
+            alpha=alpha,
+            const=const,
+            noise=noise,
+            out_shift=out_shift,
+            out_scale=out_scale,
+            factor=factor,
+        )
         pts = points.unsqueeze(0) / lengthscale.unsqueeze(-2)  # (Q, S, D)
         self._buf("outputs", outputs)
         self._buf("features", features)
@@ -301,6 +346,76 @@ class FrozenGP(nn.Module):
     def forms(self) -> list[tuple[str, int | None]]:
         """``(form, rank)`` of each block (output group)."""
         return [(b.form, b.rank) for b in self.blocks]  # type: ignore[misc]
+
+    def cache(self) -> dict[str, Any]:
+        """The frozen state as plain tensors and dicts (for ``torch.load(weights_only=True)``).
+
+        Everything :meth:`from_cache` needs to rebuild the predictor without choosing a variance
+        form again (the expensive part of freezing): each block's form and rank, ``alpha``, the
+        low-rank root or sparse factor, hyperparameters and standardisation. An exact block's
+        Cholesky factor (``S x S`` per output) is not stored: :meth:`from_cache` recomputes it,
+        one Cholesky per output group.
+        """
+        blocks = []
+        for b in self.blocks:
+            assert isinstance(b, _Block)
+            blocks.append(
+                {
+                    "class": "multitask" if isinstance(b, _MultitaskBlock) else "independent",
+                    "kernel": b.kernel,
+                    "form": b.form,
+                    "rank": b.rank,
+                    "args": {k: v.detach().clone() for k, v in b.cache_args.items()},
+                }
+            )
+        return {
+            "format": CACHE_FORMAT,
+            "out_dim": self.out_dim,
+            "chunk_size": self.chunk_size,
+            "fill_mean": self.fill_mean.detach().clone(),
+            "blocks": blocks,
+        }
+
+    @classmethod
+    def from_cache(cls, cache: dict[str, Any]) -> FrozenGP:
+        """Rebuild a predictor from :meth:`cache` (no variance-form selection, no root).
+
+        Raises:
+            ValueError: ``cache`` is not a predictor cache, or is inconsistent.
+        """
+        if not isinstance(cache, dict) or cache.get("format") != CACHE_FORMAT:
+            raise ValueError(f"not a frozen-predictor cache ({CACHE_FORMAT})")
+        blocks: list[nn.Module] = []
+        for i, b in enumerate(cache["blocks"]):
+            form, kernel, args = str(b["form"]), str(b["kernel"]), dict(b["args"])
+            if form not in ("exact", "lowrank", "sparse"):
+                raise ValueError(f"blocks[{i}]: unknown variance form {form!r}")
+            rank = None if b["rank"] is None else int(b["rank"])
+            if b["class"] == "independent":
+                if form == "exact":
+                    args["factor"] = _independent_factor(
+                        kernel,
+                        args["points"],
+                        args["lengthscale"],
+                        args["outputscale"],
+                        args["noise"],
+                    )
+                blocks.append(_IndependentBlock(kernel=kernel, form=form, rank=rank, **args))
+            elif b["class"] == "multitask":
+                if form == "exact":
+                    args["factor"] = _cholesky(
+                        multitask_khat(
+                            kernel,
+                            args["points"],
+                            args["lengthscale"],
+                            args["task_covar"],
+                            args["noise"],
+                        )[1]
+                    )
+                blocks.append(_MultitaskBlock(kernel=kernel, form=form, rank=rank, **args))
+            else:
+                raise ValueError(f"blocks[{i}]: unknown block class {b['class']!r}")
+        return cls(blocks, cache["fill_mean"], int(cache["out_dim"]), int(cache["chunk_size"]))
 
     def forward(self, z: Tensor) -> FrozenOutput:
         """Predictive moments at features ``z`` ``(..., F)``; returns ``(..., d)`` tensors."""
@@ -436,6 +551,60 @@ def _choose_form(
     return "exact", None, L
 
 
+def _cache_args(form: str, **args: Tensor) -> dict[str, Tensor]:
+    """A block's constructor arguments, less an exact form's factor (recomputed from the rest)."""
+    return {k: v.detach() for k, v in args.items() if not (k == "factor" and form == "exact")}
+
+
+def independent_khat(
+    kernel: str, points: Tensor, lengthscale: Tensor, outputscale: Tensor, noise: Tensor
+) -> tuple[Tensor, Tensor]:
+    """``K`` and ``K + s^2 I`` of an independent group, ``(g, S, S)`` each.
+
+    Args:
+        kernel: kernel name.
+        points: standardised training inputs ``(g, S, D)`` (or ``(S, D)``).
+        lengthscale: ``(g, D)``; outputscale, noise: ``(g,)``.
+    """
+    K = _independent_k(kernel, points, lengthscale, outputscale)
+    Khat = K.clone()
+    Khat.diagonal(dim1=-2, dim2=-1).add_(noise.unsqueeze(-1))
+    return K, Khat
+
+
+def _independent_k(kernel: str, points: Tensor, lengthscale: Tensor, outputscale: Tensor) -> Tensor:
+    """``K = s_f^2 k(X, X)`` of an independent group, ``(g, S, S)``, in one fresh buffer."""
+    pts = points / lengthscale.unsqueeze(-2)  # (g, S, D)
+    return correlation(scaled_sq_dist(pts, pts), kernel).mul_(outputscale[:, None, None])
+
+
+def _independent_factor(
+    kernel: str, points: Tensor, lengthscale: Tensor, outputscale: Tensor, noise: Tensor
+) -> Tensor:
+    """The Cholesky factor of ``K + s^2 I`` (the same numbers as :func:`independent_khat`,
+    without keeping ``K``)."""
+    Khat = _independent_k(kernel, points, lengthscale, outputscale)
+    Khat.diagonal(dim1=-2, dim2=-1).add_(noise.unsqueeze(-1))
+    return _cholesky(Khat)
+
+
+def multitask_khat(
+    kernel: str, points: Tensor, lengthscale: Tensor, task_covar: Tensor, noise: Tensor
+) -> tuple[Tensor, Tensor]:
+    """``K`` and ``K + diag(noise)`` of an LMC group in data-major order, ``(S d, S d)`` each.
+
+    Args:
+        kernel: kernel name.
+        points: standardised training inputs ``(S, D)``.
+        lengthscale: ``(Q, D)``; task_covar: ``(Q, d, d)``; noise: ``(d,)``.
+    """
+    S, d = points.shape[0], task_covar.shape[-1]
+    pts = points.unsqueeze(0) / lengthscale.unsqueeze(-2)
+    k = correlation(scaled_sq_dist(pts, pts), kernel)  # (Q, S, S)
+    K = torch.einsum("qij,qtu->itju", k, task_covar).reshape(S * d, S * d)
+    return K, K + torch.diag(noise.repeat(S))
+
+
 def _cholesky(Khat: Tensor) -> Tensor:
     L, info = torch.linalg.cholesky_ex(Khat)
     if bool((info > 0).any()):
@@ -487,9 +656,8 @@ def independent_block(
         hyper["constant"],
     )
     pts = train_x.unsqueeze(0) / ls.unsqueeze(-2)  # (g, S, D)
-    K = os_[:, None, None] * correlation(scaled_sq_dist(pts, pts), kernel)
-    S = train_x.shape[0]
-    Khat = K + noise[:, None, None] * torch.eye(S, dtype=K.dtype, device=K.device)
+    points = train_x.unsqueeze(0).expand(ls.shape[0], -1, -1)
+    K, Khat = independent_khat(kernel, points, ls, os_, noise)
     L = _cholesky(Khat)
     alpha = torch.cholesky_solve((train_y - c.unsqueeze(-1)).unsqueeze(-1), L).squeeze(-1)
     rows = prior = K.new_zeros(0)
@@ -507,7 +675,7 @@ def independent_block(
         in_shift=in_shift,
         in_scale=in_scale,
         lengthscale=ls,
-        points=train_x.unsqueeze(0).expand(ls.shape[0], -1, -1),
+        points=points,
         alpha=alpha,
         const=c,
         outputscale=os_,
@@ -605,9 +773,7 @@ def multitask_block(
     ls, B, c, noise = hyper["lengthscale"], hyper["task_covar"], hyper["constant"], hyper["noise"]
     S, d = train_x.shape[0], B.shape[-1]
     pts = train_x.unsqueeze(0) / ls.unsqueeze(-2)
-    k = correlation(scaled_sq_dist(pts, pts), kernel)  # (Q, S, S)
-    K = torch.einsum("qij,qtu->itju", k, B).reshape(S * d, S * d)
-    Khat = K + torch.diag(noise.repeat(S))
+    K, Khat = multitask_khat(kernel, train_x, ls, B, noise)
     L = _cholesky(Khat)
     resid = (train_y.T - c).reshape(-1, 1)  # data-major: row i * d + t
     alpha = torch.cholesky_solve(resid, L).squeeze(-1)
