@@ -83,9 +83,9 @@ VARIANTS = {
 CALIBRATED = {"a_cal": "GP f (increment) + GP h, calibrated by the filter likelihood"}
 #: calibration: measurement-only recordings (independent noise seeds), whole recordings, the first
 #: steps uncounted, Adam on the log variance scales and floors
-CAL_RECORDINGS = 32
+CAL_RECORDINGS = 4
 CAL_BURN_IN = 5
-CAL_ITERATIONS = 40
+CAL_ITERATIONS = 10
 CAL_LR = 0.2
 #: GP training recipe (the product defaults of ``bench_gp_filter.py`` / ``trainers/reentry.toml``)
 RECIPE: dict[str, Any] = {"iterations": 150, "lr": 0.05, "subset": 1000}
@@ -116,7 +116,7 @@ def calibrated_variant(
         P0=reentry.prior_cov(),
         window=None,
         burn_in=CAL_BURN_IN,
-        iterations=CAL_ITERATIONS,
+        iterations=args.cal_iterations,
         lr=CAL_LR,
         progress=args.progress,
     )
@@ -475,6 +475,13 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         default=CAL_RECORDINGS,
         help="measurement-only recordings that calibrate variant (a) (0: no calibrated row)",
+    )
+    ap.add_argument(
+        "--cal-iterations",
+        type=int,
+        default=CAL_ITERATIONS,
+        help="Adam iterations of the calibration (each costs S^2 per cubature point: the "
+        "re-entry GPs need their exact variance)",
     )
     ap.add_argument("--progress", action="store_true", help="GP training progress on stderr")
     args = ap.parse_args(argv)

@@ -21,6 +21,8 @@ iterations = {iters}
 lr = 0.05
 [train]
 checkpoint_every = {every}
+[calibrate]
+iterations = 5
 """
 
 

@@ -153,7 +153,8 @@ def test_load_model_does_not_refit(bundle, monkeypatch):
 
     monkeypatch.setattr(GPModel, "freeze", no_freeze)
     model = load_model(bundle)
-    assert model.transition.frozen and model.measurement.frozen
+    # both sides are calibrated GPs: the wrappers hold the frozen GPs
+    assert model.transition.base.frozen and model.measurement.base.frozen
 
 
 def test_cached_model_predicts_as_a_refrozen_one(bundle):
@@ -220,7 +221,7 @@ def test_schema_1_bundle_loads_with_a_warning(bundle, tmp_path):
     assert new.read_bytes().startswith(BUNDLE_SCHEMA.encode())
     assert load_bundle(new)["time_column"] == "time"
     fast = load_model(new)  # no warning: verified, with caches
-    assert fast.transition.frozen
+    assert fast.transition.base.frozen
     for g, w in zip(_predict(fast.transition, x), _predict(model.transition, x), strict=True):
         torch.testing.assert_close(g, w, rtol=CACHE_RTOL, atol=CACHE_ATOL)
     with pytest.raises(OutputError, match="exists"):

@@ -255,3 +255,43 @@ def test_recipe_calibrate_section(tmp_path):
         p.write_text(base + f"[calibrate]\n{bad}\n")
         with pytest.raises(RecipeError, match=msg):
             load_recipe(p)
+
+
+# ------------------------------------------------------------------------------ sensor drift
+def test_sensor_drift_states_equal_the_hand_written_augmented_model():
+    from torchfilt.models.drift import with_sensor_drift
+
+    q, r1, r2, tau, sd = 0.01, 0.04, 0.09, 20.0, 0.3
+    base = torchfilt.StateSpaceModel(
+        lambda x, u: x,
+        lambda x, u: torch.cat([x, x], -1),
+        Q=torch.tensor([[q]], dtype=DT),
+        R=torch.diag(torch.tensor([r1, r2], dtype=DT)),
+    )
+    drift = with_sensor_drift(base, [1], time_constant=tau, sd=sd)
+    a = math.exp(-1.0 / tau)
+    A = torch.diag(torch.tensor([1.0, a], dtype=DT))
+    H = torch.tensor([[1.0, 0.0], [1.0, 1.0]], dtype=DT)
+    manual = torchfilt.StateSpaceModel(
+        lambda x, u: x @ A.mT,
+        lambda x, u: x @ H.mT,
+        Q=torch.diag(torch.tensor([q, sd**2 * (1 - a * a)], dtype=DT)),
+        R=torch.diag(torch.tensor([r1, r2], dtype=DT)),
+    )
+    g = torch.Generator().manual_seed(5)
+    y = torch.randn(3, 40, 2, generator=g, dtype=DT)
+    y[:, ::3, 0] = math.nan
+    x0, P0 = drift.prior(torch.zeros(1, dtype=DT), torch.eye(1, dtype=DT))
+    assert x0.shape == (2,) and torch.allclose(P0, torch.diag(torch.tensor([1.0, sd**2], dtype=DT)))
+    with torch.no_grad():
+        a_res = torchfilt.CKF(drift).filter(y, x0=x0, P0=P0)
+        b_res = torchfilt.CKF(manual).filter(y, x0=x0, P0=P0)
+    torch.testing.assert_close(a_res.mean, b_res.mean, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(a_res.cov, b_res.cov, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(a_res.log_likelihood, b_res.log_likelihood, rtol=1e-10, atol=0)
+    # the drift parameters are fitted with the calibration (and reported)
+    cal = torchfilt.calibrate(drift, Sequences(y), x0=x0, P0=P0, window=None, iterations=3)
+    assert set(cal.parameters) == {"transition", "measurement", "drift"}
+    assert cal.parameters["drift"]["channels"] == [1]
+    assert cal.parameters["drift"]["time_constant"][0] != tau  # moved
+    assert float(drift.time_constant.detach()) == pytest.approx(tau)  # the given model is kept

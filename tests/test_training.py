@@ -43,6 +43,8 @@ iterations = {iters}
 lr = 0.05
 [train]
 checkpoint_every = {every}
+[calibrate]
+iterations = {cal_iters}
 """
 
 
@@ -53,8 +55,12 @@ def tiny_data(tmp_path_factory):
     return root
 
 
-def write_recipe(path: Path, data: Path, iters: int = 20, every: int = 5) -> Path:
-    path.write_text(RECIPE.format(data=data.as_posix(), iters=iters, every=every))
+def write_recipe(
+    path: Path, data: Path, iters: int = 20, every: int = 5, cal_iters: int = 12
+) -> Path:
+    path.write_text(
+        RECIPE.format(data=data.as_posix(), iters=iters, every=every, cal_iters=cal_iters)
+    )
     return path
 
 
@@ -192,7 +198,7 @@ def test_resume_after_kill_during_calibration_equals_uninterrupted(
 
 def test_calibration_can_be_switched_off(tmp_path, tiny_data):
     recipe = write_recipe(tmp_path / "tiny.toml", tiny_data, iters=3, every=3)
-    recipe.write_text(recipe.read_text() + "[calibrate]\nenabled = false\n")
+    recipe.write_text(recipe.read_text().replace("[calibrate]\n", "[calibrate]\nenabled = false\n"))
     run = tmp_path / "run"
     train_recipe(recipe, run, progress=False)
     assert load_bundle(run / "model.pt")["calibration"] is None

@@ -10,7 +10,8 @@ remedy is to estimate the drift: :func:`with_sensor_drift` appends one state per
     b_{k+1} = a b_k + e_k,   a = exp(-dt / tau),   e_k ~ N(0, sd^2 (1 - a^2)),
 
 (stationary standard deviation ``sd``, time constant ``tau``), adds it to the channel's
-measurement, and makes ``tau`` and ``sd`` learnable (``Positive``, softplus), so that
+measurement, and makes ``tau`` and ``sd`` learnable (log parametrisations: both span orders of
+magnitude, and an optimiser step then changes them by a factor, not by an amount), so that
 :func:`torchfilt.calibrate` fits them by the filter likelihood together with the variance scales.
 The drift is only identifiable when the dynamics predict the measured state (from other sensors
 or inputs): otherwise a drift and a change of the state explain the data equally well.
@@ -26,7 +27,20 @@ from torch import Tensor, nn
 from torchfilt.exceptions import InputError, ShapeError
 from torchfilt.models.base import ConditionalModel, Prediction
 from torchfilt.models.functional import StateSpaceModel
-from torchfilt.models.params import Positive
+
+
+class _LogPositive(nn.Module):
+    """A positive vector ``exp(raw)``."""
+
+    def __init__(self, init: Tensor) -> None:
+        super().__init__()
+        if not bool(torch.isfinite(init).all()) or bool((init <= 0).any()):
+            raise InputError(f"initial values must be finite and positive, got {init.tolist()}")
+        self.raw = nn.Parameter(init.log())
+
+    def forward(self) -> Tensor:
+        return self.raw.exp()
+
 
 __all__ = ["DriftModel", "with_sensor_drift"]
 
@@ -47,7 +61,7 @@ class _DriftTransition(ConditionalModel):
     """``[f(x), a b]`` with noise ``blockdiag(Q_f, sd^2 (1 - a^2))``."""
 
     def __init__(
-        self, base: ConditionalModel, n: int, k: int, tau: Positive, sd: Positive, dt: float
+        self, base: ConditionalModel, n: int, k: int, tau: _LogPositive, sd: _LogPositive, dt: float
     ) -> None:
         super().__init__()
         self.base, self.n, self.k, self.dt = base, n, k, float(dt)
@@ -128,8 +142,8 @@ class DriftModel(StateSpaceModel):
         self,
         base: StateSpaceModel,
         channels: Sequence[int],
-        tau: Positive,
-        sd: Positive,
+        tau: _LogPositive,
+        sd: _LogPositive,
         dt: float,
     ) -> None:
         n = base.state_dim
@@ -153,7 +167,7 @@ class DriftModel(StateSpaceModel):
         return self.transition.sd()
 
     def drift_parameters(self) -> list[nn.Parameter]:
-        """The learnable drift parameters (``tau`` and ``sd``, softplus-parametrised)."""
+        """The learnable drift parameters (``log tau`` and ``log sd``)."""
         assert isinstance(self.transition, _DriftTransition)
         return [*self.transition.tau.parameters(), *self.transition.sd.parameters()]
 
@@ -212,6 +226,6 @@ def with_sensor_drift(
 
     if not sample_time > 0:
         raise InputError(f"sample_time must be positive, got {sample_time}")
-    tau = Positive(vec(time_constant, "time_constant"), dtype=dtype)
-    sdv = Positive(vec(sd, "sd"), dtype=dtype)
+    tau = _LogPositive(vec(time_constant, "time_constant"))
+    sdv = _LogPositive(vec(sd, "sd"))
     return DriftModel(model, ch, tau, sdv, sample_time)

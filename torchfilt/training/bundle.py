@@ -453,6 +453,7 @@ def upgrade_bundle(path: str | Path, out: str | Path) -> Path:
     for role in ("transition", "measurement"):
         if b[role]["kind"] == "gp":
             side = getattr(spec.model, role)
+            side = side.base if isinstance(side, CalibratedModel) else side
             b[role] = {**b[role], "state": side.to_state()}
     b.setdefault("time_column", spec.time_column)
     return save_bundle(out, b)

@@ -224,6 +224,11 @@ def window_data(
             if stop >= lengths[r]:
                 break
             s += stride
+    if not ys:
+        raise InputError(
+            f"y: every recording is at most burn_in = {burn_in} steps long (lengths "
+            f"{list(lengths)[:5]}): no step would be counted; use a smaller burn_in"
+        )
     return _Windows(
         torch.stack(ys),
         None if u is None else torch.stack(us),

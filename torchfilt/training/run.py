@@ -644,6 +644,13 @@ def _calibrate_stage(
     if resume and ckpt.is_file():
         log(f"calibrate: resuming from iteration {_checkpoint_iteration(ckpt)}")
     iterations = int(c["iterations"])
+    # short recordings: the burn-in may take at most half of the shortest one
+    shortest = min(len(rec) - 1 for rec in train)
+    burn_in = min(int(c["burn_in"]), shortest // 2)
+    if burn_in < int(c["burn_in"]):
+        log(
+            f"calibrate: burn_in {c['burn_in']} -> {burn_in} (shortest recording: {shortest} steps)"
+        )
     bar = ProgressBar("calibrate", iterations, stream, enabled=progress)
     every = r.checkpoint_every
     with open(out / "metrics.jsonl", "a", encoding="utf-8") as metrics:
@@ -670,7 +677,7 @@ def _calibrate_stage(
             validation=val or None,
             sides=sides,  # type: ignore[arg-type]
             window=int(c["window"]),
-            burn_in=int(c["burn_in"]),
+            burn_in=burn_in,
             iterations=iterations,
             lr=float(c["lr"]),
             optimizer=c["optimizer"],
