@@ -72,7 +72,7 @@ def gp_tensors(bundle: dict) -> dict[str, torch.Tensor]:
     return out
 
 
-def test_end_to_end_train_filter_evaluate(tmp_path, tiny_data):
+def test_end_to_end_train_filter_evaluate(tmp_path, tiny_data, capsys):
     recipe = write_recipe(tmp_path / "tiny.toml", tiny_data)
     run = tmp_path / "run"
     assert cli_main(["train", str(recipe), "--out", str(run), "--quiet"]) == 0
@@ -116,6 +116,10 @@ def test_end_to_end_train_filter_evaluate(tmp_path, tiny_data):
         model.transition.scale, torch.tensor(cal["transition"]["scale"], dtype=torch.float64)
     )
     assert min(cal["transition"]["scale"] + cal["measurement"]["scale"]) >= 1.0  # inflate only
+    capsys.readouterr()
+    assert cli_main(["info", str(run / "model.pt")]) == 0
+    info = capsys.readouterr().out
+    assert "CalibratedModel" in info and '"calibration"' in info and '"scale"' in info
 
 
 def _wait_for(path: Path, proc: subprocess.Popen, log: Path, timeout: float = 120.0) -> None:

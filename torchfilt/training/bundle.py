@@ -452,7 +452,7 @@ def upgrade_bundle(path: str | Path, out: str | Path) -> Path:
         spec = load_model_spec(path)
     for role in ("transition", "measurement"):
         if b[role]["kind"] == "gp":
-            side = getattr(spec.model, role)
+            side: Any = getattr(spec.model, role)
             side = side.base if isinstance(side, CalibratedModel) else side
             b[role] = {**b[role], "state": side.to_state()}
     b.setdefault("time_column", spec.time_column)

@@ -269,7 +269,9 @@ class LikelihoodFit:
         initial_log_likelihood: training log-likelihood before the fit.
         validation: held-out log-likelihood per measurement at the returned parameters.
         iterations: iterations run.
-        best_iteration: iteration whose parameters are returned (0: the initial ones).
+        best_iteration: iteration whose parameters are returned (0: the initial ones): the best
+            held-out likelihood with ``validation``; else the last iteration, or an earlier one
+            whose training loss was lower.
         stopped: why the loop ended: ``"iterations"``, ``"converged"``, ``"early stopping"``,
             ``"callback"`` or ``"non-finite"``.
         measurements: counted measurement components.
@@ -497,6 +499,8 @@ def fit_likelihood(
     wx0: Tensor | None = None
     wP0: Tensor | None = None
     initial: float | None = None
+    # without held-out data: the parameters with the lowest training loss seen (loss, values, it)
+    best_train: tuple[float, list[Tensor], int] = (math.inf, snapshot(), 0)
     if resume and ckpt_path is not None and ckpt_path.is_file():
         ck = _load_checkpoint(ckpt_path, fingerprint)
         restore(ck["params"])
@@ -505,6 +509,11 @@ def fit_likelihood(
         best_it, best_score = int(ck["best_iteration"]), float(ck["best_score"])
         best_params = [t.clone() for t in ck["best_params"]]
         wx0, wP0, initial = ck["wx0"], ck["wP0"], float(ck["initial"])
+        best_train = (
+            float(ck["best_train_loss"]),
+            [t.clone() for t in ck["best_train_params"]],
+            int(ck["best_train_iteration"]),
+        )
 
     t_start = time.perf_counter()
     if wx0 is None or wP0 is None:
@@ -544,6 +553,8 @@ def fit_likelihood(
                 project()
             finite = bool(torch.isfinite(loss_t))
         loss = float(loss_t)
+        if finite and loss < best_train[0]:  # loss_t scores the parameters before this step
+            best_train = (loss, good, it - 1)
         finite = finite and all(bool(torch.isfinite(p).all()) for p in plist)
         elapsed = time.perf_counter() - t_start
         if not finite:
@@ -580,6 +591,9 @@ def fit_likelihood(
                     "wx0": wx0,
                     "wP0": wP0,
                     "initial": initial,
+                    "best_train_loss": best_train[0],
+                    "best_train_params": best_train[1],
+                    "best_train_iteration": best_train[2],
                 },
             )
         if stop:
@@ -593,7 +607,8 @@ def fit_likelihood(
             break
         last_loss = loss
 
-    # The returned parameters: the best held-out ones; without held-out data the last (finite) ones.
+    # The returned parameters: the best held-out ones; without held-out data the last (finite)
+    # ones, unless an earlier iteration scored a better training loss.
     if val is not None:
         restore(best_params)
     else:
@@ -601,6 +616,11 @@ def fit_likelihood(
     wx0, wP0 = starts()
     with torch.no_grad():
         final = float(train_loglik(wx0, wP0))
+        if val is None and -final / counted > best_train[0]:
+            restore(best_train[1])
+            best_it = best_train[2]
+            wx0, wP0 = starts()
+            final = float(train_loglik(wx0, wP0))
     vfinal = val_loglik() if val is not None else None
     return LikelihoodFit(
         log_likelihood=final,
