@@ -63,18 +63,26 @@ class CalibrationResult:
 
 
 def _typical_variance(side: ConditionalModel, x: Tensor, u: Tensor | None) -> Tensor:
-    """Mean predictive variance per output ``(d,)`` at the points ``x (N, n)`` (+ additive noise)."""
+    """A variance scale per output ``(d,)`` for the floor's start: a GP's likelihood noise (the
+    one-step scatter of its targets), else the additive noise's diagonal, else the predictive
+    variance at the prior mean ``x[:1]``. Not the variance at spread points: far from a GP's data
+    it reverts to the prior variance, orders of magnitude too large."""
+    d = side.out_dim
     with torch.no_grad():
-        pred = side.predict(x.unsqueeze(0), None if u is None else u.unsqueeze(0))
-        d = side.out_dim
-        var = x.new_zeros(d)
-        if pred.var is not None:
-            var = var + pred.var.reshape(-1, d).mean(0)
-        if pred.cov is not None:
-            var = var + pred.cov.reshape(-1, d, d).diagonal(dim1=-2, dim2=-1).mean(0)
-        noise = side.noise_cov(0) if side.time_varying_noise else side.noise_cov()
-        if noise is not None:
-            var = var + noise.to(var).reshape(-1, d, d).diagonal(dim1=-2, dim2=-1).mean(0)
+        nv = getattr(side, "noise_variance", None)
+        if isinstance(nv, Tensor) and nv.shape == (d,):
+            var = nv.to(x.dtype)
+        else:
+            noise = side.noise_cov(0) if side.time_varying_noise else side.noise_cov()
+            if noise is not None:
+                var = noise.to(x).reshape(-1, d, d).diagonal(dim1=-2, dim2=-1).mean(0)
+            else:
+                pred = side.predict(x[:1].unsqueeze(0), None if u is None else u[:1].unsqueeze(0))
+                var = x.new_zeros(d)
+                if pred.var is not None:
+                    var = var + pred.var.reshape(-1, d).mean(0)
+                if pred.cov is not None:
+                    var = var + pred.cov.reshape(-1, d, d).diagonal(dim1=-2, dim2=-1).mean(0)
     tiny = torch.finfo(var.dtype).tiny
     return torch.where(var > tiny, var, torch.ones_like(var))
 
