@@ -8,16 +8,23 @@ or covariance ``(..., P, d, d)`` (how a GP supplies Q and R), plus an additive n
 from torchfilt.models.base import ConditionalModel, Prediction, TimeVarying
 from torchfilt.models.functional import FunctionModel, StateSpaceModel, as_conditional
 from torchfilt.models.integrate import rk4
-from torchfilt.models.linear import LinearGaussianModel, LinearModel
+from torchfilt.models.linear import (
+    LinearGaussianModel,
+    LinearModel,
+    LinearSystem,
+    linear_system,
+)
 
 __all__ = [
     "ConditionalModel",
     "FunctionModel",
     "LinearGaussianModel",
     "LinearModel",
+    "LinearSystem",
     "Prediction",
     "StateSpaceModel",
     "TimeVarying",
     "as_conditional",
+    "linear_system",
     "rk4",
 ]
