@@ -247,7 +247,7 @@ def _psd_sqrt(A: Tensor) -> Tensor:
     return evecs * evals.clamp_min(0.0).sqrt().unsqueeze(-2)
 
 
-def _noise_steps(side: torch.nn.Module, name: str, T: int, d: int, like: Tensor) -> Tensor:
+def noise_steps(side: torch.nn.Module, name: str, T: int, d: int, like: Tensor) -> Tensor:
     """A model side's noise as ``(..., T, d, d)`` (an expanded view when constant)."""
     if side.time_varying_noise:
         try:
@@ -266,13 +266,13 @@ def _noise_steps(side: torch.nn.Module, name: str, T: int, d: int, like: Tensor)
 
 def _check(
     model: StateSpaceModel,
-    system: LinearSystem,
+    system: LinearSystem | None,
     y: Tensor,
     u: Tensor | None,
     x0: Tensor,
     P0: Tensor,
     mask: Tensor | None,
-) -> tuple[Data, LinearSteps]:
+) -> tuple[Data, LinearSteps, Tensor | None]:
     n, m = model.state_dim, model.obs_dim
     if not isinstance(y, Tensor):
         raise InputTypeError(f"y must be a torch.Tensor, got {type(y).__name__}")
@@ -319,22 +319,20 @@ def _check(
             raise ShapeError(
                 f"mask: shape {tuple(mask.shape)} does not broadcast with y {tuple(y.shape)}"
             ) from None
-    A = system.A.to(dtype=dtype, device=device)
-    H = system.H.to(dtype=dtype, device=device)
     shapes = {"y": y.shape[:-2], "x0": x0.shape[:-1], "P0": P0.shape[:-2]}
     shapes_params: dict[str, torch.Size] = {}
     c = d = None
-    if system.B is not None or system.D is not None:
-        if u is None:
-            raise InputError("u: the model has an input matrix (B or D); pass the inputs u")
-    if u is not None and (system.B is not None or system.D is not None):
+    uses_u = system is None or system.B is not None or system.D is not None
+    if system is not None and uses_u and u is None:
+        raise InputError("u: the model has an input matrix (B or D); pass the inputs u")
+    if u is not None and uses_u:
         u = torch.as_tensor(u, device=device).to(dtype)
         if u.dim() < 2 or u.shape[-2] != T:
             raise ShapeError(f"u: expected shape (..., T, nu) with T = {T}, got {tuple(u.shape)}")
         if not bool(torch.isfinite(u).all()):
             raise InputError("u contains non-finite entries; inputs cannot be missing")
         shapes["u"] = u.shape[:-2]
-        for name, M in (("B", system.B), ("D", system.D)):
+        for name, M in () if system is None else (("B", system.B), ("D", system.D)):
             if M is None:
                 continue
             M = M.to(dtype=dtype, device=device)
@@ -349,10 +347,15 @@ def _check(
             else:
                 d = off
     shapes["mask"] = obs.shape[:-2]
-    Q = _noise_steps(model.transition, "Q", T, n, y)
-    R = _noise_steps(model.measurement, "R", T, m, y)
+    Q = noise_steps(model.transition, "Q", T, n, y)
+    R = noise_steps(model.measurement, "R", T, m, y)
     shapes["Q"], shapes["R"] = Q.shape[:-3], R.shape[:-3]
-    shapes["A"], shapes["H"] = A.shape[:-2], H.shape[:-2]
+    if system is not None:
+        A = system.A.to(dtype=dtype, device=device)
+        H = system.H.to(dtype=dtype, device=device)
+        shapes["A"], shapes["H"] = A.shape[:-2], H.shape[:-2]
+    else:  # placeholders: the caller linearises the model itself
+        A, H = y.new_zeros(n, n), y.new_zeros(m, n)
     shapes.update(shapes_params)
     try:
         batch = torch.broadcast_shapes(*shapes.values())
@@ -370,7 +373,22 @@ def _check(
         R=R,
     )
     data = Data(y, obs, x0.expand(*batch, n), P0.expand(*batch, n, n), batch, complete)
-    return data, steps
+    return data, steps, u
+
+
+def check_inputs(
+    model: StateSpaceModel,
+    y: Tensor,
+    u: Tensor | None = None,
+    *,
+    x0: Tensor,
+    P0: Tensor,
+    mask: Tensor | None = None,
+) -> tuple[Data, Tensor, Tensor, Tensor | None]:
+    """Check the inputs of any model: the data, the noise ``Q (..., T, n, n)`` and
+    ``R (..., T, m, m)`` (expanded views when constant) and the inputs ``u (..., T, nu)``."""
+    data, steps, u = _check(model, None, y, u, x0, P0, mask)
+    return data, steps.Q, steps.R, u
 
 
 def linear_steps(
@@ -393,7 +411,8 @@ def linear_steps(
             f"{type(model).__name__} is not a linear-Gaussian model: the exact Kalman path needs "
             "a LinearGaussianModel or a model with a linear_system() method"
         )
-    return _check(model, system, y, u, x0, P0, mask)
+    data, steps, _ = _check(model, system, y, u, x0, P0, mask)
+    return data, steps
 
 
 # ---------------------------------------------------------------------------------- filter
@@ -486,6 +505,131 @@ def _run(
         for name in ("cov", "predicted_cov"):
             if name in out:
                 out[name] = out[name] @ out[name].mT
+    return out
+
+
+def _per_step(x: Tensor | None, batch: torch.Size, B: int, tail: int) -> list[Tensor] | None:
+    """Split ``x (..., T, *tail)`` into ``T`` tensors ``(B, *tail)``, or ``(*tail)`` when ``x``
+    has no batch dimensions (they broadcast against the flattened batch)."""
+    if x is None:
+        return None
+    T = x.shape[x.dim() - tail - 1]
+    if x.dim() == tail + 1:
+        return list(x.unbind(0))
+    x = x.expand(*batch, *x.shape[x.dim() - tail - 1 :]).reshape(B, T, *x.shape[x.dim() - tail :])
+    return list(x.unbind(1))
+
+
+def _run_fast(
+    data: Data, steps: LinearSteps, *, keep: frozenset[str], inplace: bool
+) -> dict[str, Tensor] | None:
+    """The plain recursion with as few operations per step as possible: the batch flattened to
+    one dimension, means as row vectors ``(B, 1, n)`` (one matmul whether or not ``A`` is
+    batched), no host synchronisation inside the loop. Returns ``None`` if some innovation
+    covariance failed to factor (the caller then runs :func:`_run`, which adds jitter)."""
+    T, n, m = data.y.shape[-2], data.x0.shape[-1], data.y.shape[-1]
+    batch = data.batch
+    B = batch.numel()
+    mean = data.x0.reshape(B, 1, n)
+    P = data.P0.reshape(B, n, n)
+    A = _per_step(steps.A, batch, B, 2)
+    AT = [a.mT for a in A]  # type: ignore[union-attr]
+    Q = _per_step(steps.Q, batch, B, 2)
+    H = _per_step(steps.H, batch, B, 2)
+    HT = [h.mT for h in H]  # type: ignore[union-attr]
+    R = _per_step(steps.R, batch, B, 2)
+    c = _per_step(None if steps.c is None else steps.c.unsqueeze(-2), batch, B, 2)
+    d = _per_step(None if steps.d is None else steps.d.unsqueeze(-2), batch, B, 2)
+    y = _per_step(data.y.unsqueeze(-2), batch, B, 2)
+    assert A is not None and Q is not None and H is not None and R is not None and y is not None
+    o_rows: list[Tensor] = []
+    o_outer: list[Tensor] = []
+    o_unit: list[Tensor] = []
+    if not data.complete:
+        o = data.obs.to(data.y.dtype).unsqueeze(-2)  # (..., T, 1, m)
+        o_rows = _per_step(o, batch, B, 2) or []
+        o_outer = _per_step(o.mT * o, batch, B, 2) or []
+        o_unit = _per_step(torch.diag_embed(1.0 - o.squeeze(-2)), batch, B, 2) or []
+    store_cov = bool({"cov", "cross_cov"} & keep)
+    store_pred = bool(
+        {"predicted_mean", "predicted_cov", "measurement_mean", "innovation", "innovation_cov"}
+        & keep
+    )
+    loop_ll = "log_likelihood" in keep and not store_pred
+    means: list[Tensor] = []
+    covs: list[Tensor] = []
+    pmeans: list[Tensor] = []
+    pcovs: list[Tensor] = []
+    infos: list[Tensor] = []
+    bufs: dict[str, Tensor] = {}
+    if inplace:
+        bufs["mean"] = mean.new_empty(B, T, n)
+        if store_cov:
+            bufs["cov"] = P.new_empty(B, T, n, n)
+        if store_pred:
+            bufs["predicted_mean"] = mean.new_empty(B, T, n)
+            bufs["predicted_cov"] = P.new_empty(B, T, n, n)
+    ll_sum: Tensor | None = None
+    for t in range(T):
+        mp = mean @ AT[t]
+        if c is not None:
+            mp = mp + c[t]
+        Pp = A[t] @ (P @ AT[t]) + Q[t]
+        PHt = Pp @ HT[t]
+        S = H[t] @ PHt + R[t]
+        e = y[t] - mp @ HT[t]
+        if d is not None:
+            e = e - d[t]
+        if not data.complete:
+            S = torch.addcmul(o_unit[t], S, o_outer[t])
+            PHt = PHt * o_rows[t]
+            e = e * o_rows[t]
+        L, info = torch.linalg.cholesky_ex(S)
+        KT = torch.cholesky_solve(PHt.mT, L)  # (B, m, n)
+        mean = mp + e @ KT
+        P = Pp - PHt @ KT
+        infos.append(info)
+        if loop_ll:
+            z = torch.linalg.solve_triangular(L, e.mT, upper=False)
+            dof = m if data.complete else o_rows[t].sum((-2, -1))
+            term = -0.5 * (
+                (z * z).sum((-2, -1))
+                + 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+                + dof * _LOG_2PI
+            )
+            ll_sum = term if ll_sum is None else ll_sum + term
+        if inplace:
+            bufs["mean"][:, t].copy_(mean.squeeze(-2))
+            if store_cov:
+                bufs["cov"][:, t].copy_(P)
+            if store_pred:
+                bufs["predicted_mean"][:, t].copy_(mp.squeeze(-2))
+                bufs["predicted_cov"][:, t].copy_(Pp)
+        else:
+            means.append(mean)
+            if store_cov:
+                covs.append(P)
+            if store_pred:
+                pmeans.append(mp)
+                pcovs.append(Pp)
+    if bool(torch.stack(infos).any()):
+        return None
+    out: dict[str, Tensor] = {}
+    if inplace:
+        out.update(bufs)
+    else:
+        out["mean"] = torch.cat(means, -2)
+        if store_cov:
+            out["cov"] = torch.stack(covs, 1)
+        if store_pred:
+            out["predicted_mean"] = torch.cat(pmeans, -2)
+            out["predicted_cov"] = torch.stack(pcovs, 1)
+    for k, v in out.items():
+        if k.endswith("cov"):
+            v = symmetrize(v)
+        out[k] = v.reshape(*batch, *v.shape[1:])
+    if ll_sum is not None:
+        out["log_likelihood"] = ll_sum.reshape(batch)
     return out
 
 
@@ -713,7 +857,8 @@ def filter_steps(
         return assemble(data, steps, out, keep, ParallelFilterResult)
     params = [data.x0, data.P0, data.y, *(x for x in steps if x is not None)]
     grad = torch.is_grad_enabled() and any(x.requires_grad for x in params)
-    out = _run(data, steps, sqrt=sqrt, keep=keep, inplace=not grad)
+    fast = None if sqrt else _run_fast(data, steps, keep=keep, inplace=not grad)
+    out = fast if fast is not None else _run(data, steps, sqrt=sqrt, keep=keep, inplace=not grad)
     return assemble(data, steps, out, keep, KalmanFilterResult)
 
 
