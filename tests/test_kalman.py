@@ -281,3 +281,24 @@ def test_result_path_survives_reconstruction():
     again = type(res)(*res)
     assert again.path == "kalman" and isinstance(again, torchfilt.FilterResult)
     assert res._replace(mean=res.mean * 2).path == "kalman"
+
+
+@pytest.mark.parametrize("grad", [False, True], ids=["no_grad", "grad"])
+def test_log_likelihood_inside_the_loop(monkeypatch, grad):
+    """Large batches sum the log-likelihood inside the loop: same value (and gradient)."""
+    import torchfilt.filters.kalman as kalman
+
+    p = make_problem(12)
+    q = torch.tensor(1.0, dtype=torch.float64, requires_grad=grad)
+    model = LinearGaussianModel(
+        t64(p["A"]), t64(p["H"]), q * t64(p["Q"]), t64(p["R"]), B=t64(p["B"])
+    )
+    args, kw = (t64(p["y"]), t64(p["u"])), dict(x0=t64(p["m0"]), P0=t64(p["P0"]))
+    want = CKF(model).filter(*args, **kw, path="cubature")
+    monkeypatch.setattr(kalman, "_VECTOR_LL_BYTES", 0)
+    got = CKF(model).filter(*args, **kw)
+    assert_results_equal(got, want)
+    if grad:
+        g1 = torch.autograd.grad(got.log_likelihood, q, retain_graph=True)[0]
+        g2 = torch.autograd.grad(want.log_likelihood, q)[0]
+        assert_same(g1, g2, "gradient")

@@ -520,28 +520,46 @@ def _per_step(x: Tensor | None, batch: torch.Size, B: int, tail: int) -> list[Te
     return list(x.unbind(1))
 
 
+#: below this many bytes of innovation factors the log-likelihood is computed after the loop,
+#: vectorised over time (fewer operations per step); above it, inside the loop (less memory)
+_VECTOR_LL_BYTES = 1 << 24
+
+
+def _result_bytes(data: Data, keep: frozenset[str]) -> int:
+    """Bytes of the per-step fields in ``keep``."""
+    n, m = data.x0.shape[-1], data.y.shape[-1]
+    per = {"mean": n, "cov": n * n, "predicted_mean": n, "predicted_cov": n * n}
+    per |= {"measurement_mean": m, "innovation": m, "innovation_cov": m * m, "cross_cov": n * n}
+    size = sum(v for k, v in per.items() if k in keep)
+    return data.batch.numel() * data.y.shape[-2] * size * data.y.element_size()
+
+
 def _run_fast(
     data: Data, steps: LinearSteps, *, keep: frozenset[str], inplace: bool
 ) -> dict[str, Tensor] | None:
-    """The plain recursion with as few operations per step as possible: the batch flattened to
-    one dimension, means as row vectors ``(B, 1, n)`` (one matmul whether or not ``A`` is
-    batched), no host synchronisation inside the loop. Returns ``None`` if some innovation
-    covariance failed to factor (the caller then runs :func:`_run`, which adds jitter)."""
+    """The plain recursion with as few operations per step as possible.
+
+    The batch is flattened to one dimension and means are row vectors ``(B, 1, n)`` (one matmul
+    whether or not ``A`` is batched); every returned field is produced inside the loop (the
+    cross-covariance ``P A^T``, the innovation and its covariance are intermediate results there
+    anyway) and written straight into its output, so nothing of size ``B T`` is allocated beyond
+    the results; no host synchronisation inside the loop. Returns ``None`` if some innovation
+    covariance failed to factor (the caller then runs :func:`_run`, which adds jitter).
+    """
     T, n, m = data.y.shape[-2], data.x0.shape[-1], data.y.shape[-1]
     batch = data.batch
     B = batch.numel()
     mean = data.x0.reshape(B, 1, n)
     P = data.P0.reshape(B, n, n)
-    A = _per_step(steps.A, batch, B, 2)
-    AT = [a.mT for a in A]  # type: ignore[union-attr]
-    Q = _per_step(steps.Q, batch, B, 2)
-    H = _per_step(steps.H, batch, B, 2)
-    HT = [h.mT for h in H]  # type: ignore[union-attr]
-    R = _per_step(steps.R, batch, B, 2)
+    A = _per_step(steps.A, batch, B, 2) or []
+    AT = [a.mT for a in A]
+    Q = _per_step(steps.Q, batch, B, 2) or []
+    H = _per_step(steps.H, batch, B, 2) or []
+    HT = [h.mT for h in H]
+    R = _per_step(steps.R, batch, B, 2) or []
     c = _per_step(None if steps.c is None else steps.c.unsqueeze(-2), batch, B, 2)
     d = _per_step(None if steps.d is None else steps.d.unsqueeze(-2), batch, B, 2)
-    y = _per_step(data.y.unsqueeze(-2), batch, B, 2)
-    assert A is not None and Q is not None and H is not None and R is not None and y is not None
+    y = _per_step(data.y.unsqueeze(-2), batch, B, 2) or []
     o_rows: list[Tensor] = []
     o_outer: list[Tensor] = []
     o_unit: list[Tensor] = []
@@ -550,36 +568,39 @@ def _run_fast(
         o_rows = _per_step(o, batch, B, 2) or []
         o_outer = _per_step(o.mT * o, batch, B, 2) or []
         o_unit = _per_step(torch.diag_embed(1.0 - o.squeeze(-2)), batch, B, 2) or []
-    store_cov = bool({"cov", "cross_cov"} & keep)
-    store_pred = bool(
-        {"predicted_mean", "predicted_cov", "measurement_mean", "innovation", "innovation_cov"}
-        & keep
-    )
-    loop_ll = "log_likelihood" in keep and not store_pred
-    means: list[Tensor] = []
-    covs: list[Tensor] = []
-    pmeans: list[Tensor] = []
-    pcovs: list[Tensor] = []
-    infos: list[Tensor] = []
-    bufs: dict[str, Tensor] = {}
-    if inplace:
-        bufs["mean"] = mean.new_empty(B, T, n)
-        if store_cov:
-            bufs["cov"] = P.new_empty(B, T, n, n)
-        if store_pred:
-            bufs["predicted_mean"] = mean.new_empty(B, T, n)
-            bufs["predicted_cov"] = P.new_empty(B, T, n, n)
+    want_ll = "log_likelihood" in keep
+    vector_ll = want_ll and B * T * m * m * data.y.element_size() < _VECTOR_LL_BYTES
+    shapes = {
+        "mean": (n,),
+        "cov": (n, n),
+        "predicted_mean": (n,),
+        "predicted_cov": (n, n),
+        "measurement_mean": (m,),
+        "innovation": (m,),
+        "innovation_cov": (m, m),
+        "cross_cov": (n, n),
+    }
+    fields = [k for k in shapes if k in keep]
+    if vector_ll:
+        fields += ["_chol", "_residual"]
+        shapes["_chol"], shapes["_residual"] = (m, m), (m,)
+    lists: dict[str, list[Tensor]] = {k: [] for k in fields}
+    bufs = {k: mean.new_empty(B, T, *shapes[k]) for k in fields} if inplace else {}
     ll_sum: Tensor | None = None
+    infos: list[Tensor] = []
     for t in range(T):
+        cross = P @ AT[t]
         mp = mean @ AT[t]
         if c is not None:
             mp = mp + c[t]
-        Pp = A[t] @ (P @ AT[t]) + Q[t]
+        Pp = A[t] @ cross + Q[t]
         PHt = Pp @ HT[t]
         S = H[t] @ PHt + R[t]
-        e = y[t] - mp @ HT[t]
+        ym = mp @ HT[t]
         if d is not None:
-            e = e - d[t]
+            ym = ym + d[t]
+        e = y[t] - ym
+        out = {"innovation": e, "innovation_cov": S}
         if not data.complete:
             S = torch.addcmul(o_unit[t], S, o_outer[t])
             PHt = PHt * o_rows[t]
@@ -589,7 +610,7 @@ def _run_fast(
         mean = mp + e @ KT
         P = Pp - PHt @ KT
         infos.append(info)
-        if loop_ll:
+        if want_ll and not vector_ll:
             z = torch.linalg.solve_triangular(L, e.mT, upper=False)
             dof = m if data.complete else o_rows[t].sum((-2, -1))
             term = -0.5 * (
@@ -598,39 +619,44 @@ def _run_fast(
                 + dof * _LOG_2PI
             )
             ll_sum = term if ll_sum is None else ll_sum + term
-        if inplace:
-            bufs["mean"][:, t].copy_(mean.squeeze(-2))
-            if store_cov:
-                bufs["cov"][:, t].copy_(P)
-            if store_pred:
-                bufs["predicted_mean"][:, t].copy_(mp.squeeze(-2))
-                bufs["predicted_cov"][:, t].copy_(Pp)
-        else:
-            means.append(mean)
-            if store_cov:
-                covs.append(P)
-            if store_pred:
-                pmeans.append(mp)
-                pcovs.append(Pp)
+        out.update(
+            mean=mean,
+            cov=P,
+            predicted_mean=mp,
+            predicted_cov=Pp,
+            measurement_mean=ym,
+            cross_cov=cross,
+            _chol=L,
+            _residual=e,
+        )
+        for k in fields:
+            v = out[k]
+            if inplace:
+                bufs[k][:, t].copy_(v.reshape(B, *shapes[k]))
+            else:
+                lists[k].append(v.reshape(B, 1, *shapes[k]))
     if bool(torch.stack(infos).any()):
         return None
-    out: dict[str, Tensor] = {}
-    if inplace:
-        out.update(bufs)
-    else:
-        out["mean"] = torch.cat(means, -2)
-        if store_cov:
-            out["cov"] = torch.stack(covs, 1)
-        if store_pred:
-            out["predicted_mean"] = torch.cat(pmeans, -2)
-            out["predicted_cov"] = torch.stack(pcovs, 1)
-    for k, v in out.items():
-        if k.endswith("cov"):
-            v = symmetrize(v)
-        out[k] = v.reshape(*batch, *v.shape[1:])
+    res = bufs if inplace else {k: torch.cat(v, 1) for k, v in lists.items()}
+    if vector_ll:
+        e_all, L_all = res.pop("_residual"), res.pop("_chol")
+        dof_all = m if data.complete else data.obs.to(e_all.dtype).sum(-1).reshape(B, T)
+        z_all = torch.linalg.solve_triangular(L_all, e_all.unsqueeze(-1), upper=False)
+        ll_sum = -0.5 * (
+            (z_all * z_all).sum((-2, -1))
+            + 2.0 * L_all.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+            + dof_all * _LOG_2PI
+        ).sum(-1)
+    if "innovation" in res:
+        missing = ~data.obs.expand(*batch, T, m).reshape(B, T, m)
+        if inplace:
+            res["innovation"].masked_fill_(missing, float("nan"))
+        else:
+            res["innovation"] = res["innovation"].masked_fill(missing, float("nan"))
+    final = {k: v.reshape(*batch, *v.shape[1:]) for k, v in res.items()}
     if ll_sum is not None:
-        out["log_likelihood"] = ll_sum.reshape(batch)
-    return out
+        final["log_likelihood"] = ll_sum.reshape(batch)
+    return final
 
 
 def _psd_sqrt_steps(X: Tensor) -> Tensor:
@@ -688,10 +714,10 @@ def assemble(
     """Fill a result from the recursion's outputs, deriving the measurement terms and
     cross-covariances; fields not in ``keep`` are empty tensors."""
     res = dict(out)
-    if "cross_cov" in keep:
+    if "cross_cov" in keep and "cross_cov" not in out:
         P_prev = shifted(data.P0, out["cov"], -3)
         res["cross_cov"] = P_prev @ steps.A.mT
-    if {"measurement_mean", "innovation", "innovation_cov"} & keep or (
+    if ({"measurement_mean", "innovation", "innovation_cov"} & keep) - set(out) or (
         "log_likelihood" in keep and "log_likelihood" not in out
     ):
         y_mean, innov, S, ll = measurement_terms(
@@ -857,7 +883,10 @@ def filter_steps(
         return assemble(data, steps, out, keep, ParallelFilterResult)
     params = [data.x0, data.P0, data.y, *(x for x in steps if x is not None)]
     grad = torch.is_grad_enabled() and any(x.requires_grad for x in params)
-    fast = None if sqrt else _run_fast(data, steps, keep=keep, inplace=not grad)
+    # small results: lists stacked at the end (fewer operations per step); large ones: written
+    # into preallocated outputs (no second copy) unless autograd records
+    inplace = not grad and _result_bytes(data, keep) > _VECTOR_LL_BYTES
+    fast = None if sqrt else _run_fast(data, steps, keep=keep, inplace=inplace)
     out = fast if fast is not None else _run(data, steps, sqrt=sqrt, keep=keep, inplace=not grad)
     return assemble(data, steps, out, keep, KalmanFilterResult)
 
