@@ -302,3 +302,30 @@ def test_log_likelihood_inside_the_loop(monkeypatch, grad):
         g1 = torch.autograd.grad(got.log_likelihood, q, retain_graph=True)[0]
         g2 = torch.autograd.grad(want.log_likelihood, q)[0]
         assert_same(g1, g2, "gradient")
+
+
+@pytest.mark.parametrize("varying", [False, True], ids=["invariant", "time_varying"])
+def test_shared_covariance_path(varying):
+    """All observed and one P0 for the batch: the covariance recursion runs once (and, for a
+    time-invariant model, stops once converged); every field still equals the CKF's."""
+    p = make_problem(13, T=120, missing=0.0)
+    p["y"][3] = p["y"][2]
+    rng = np.random.default_rng(2)
+    T, m = p["y"].shape
+    D = rng.standard_normal((m, 1))
+    Q = (
+        TimeVarying(t64(np.linspace(0.5, 2.0, T)[:, None, None] * p["Q"]))
+        if varying
+        else t64(p["Q"])
+    )
+    model = LinearGaussianModel(t64(p["A"]), t64(p["H"]), Q, t64(p["R"]), B=t64(p["B"]), D=t64(D))
+    gen = torch.Generator().manual_seed(3)
+    y = t64(p["y"]) + torch.randn(4, T, m, generator=gen, dtype=torch.float64)
+    x0 = torch.randn(4, 3, generator=gen, dtype=torch.float64)
+    kw = dict(x0=x0, P0=t64(p["P0"]))
+    want = CKF(model).filter(y, t64(p["u"]), **kw, path="cubature")
+    got = CKF(model).filter(y, t64(p["u"]), **kw)
+    assert got.cov.stride(0) == 0  # one covariance sequence, viewed by every batch element
+    assert_results_equal(got, want)
+    part = CKF(model).filter(y, t64(p["u"]), **kw, outputs=("mean", "log_likelihood"))
+    assert_same(part.log_likelihood, want.log_likelihood, "outputs=")

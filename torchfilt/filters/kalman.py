@@ -659,6 +659,126 @@ def _run_fast(
     return final
 
 
+#: the covariance recursion counts as converged when one step changes no entry by more than
+#: this many ulps of the largest entry (from then on it only moves by rounding)
+_STEADY_ULPS = 4.0
+
+
+def _shared_covariance(data: Data, steps: LinearSteps) -> bool:
+    """Whether every sequence of the batch has the same covariances: all data observed, and
+    ``P0``, ``A``, ``Q``, ``H``, ``R`` without batch dimensions (``x0``, ``y``, ``u`` may differ)."""
+    if not data.complete:
+        return False
+    if any(s != 0 for s in data.P0.stride()[:-2]):
+        return False
+    return all(x.dim() == 3 for x in (steps.A, steps.Q, steps.H, steps.R))
+
+
+def _run_shared(
+    data: Data, steps: LinearSteps, *, keep: frozenset[str]
+) -> dict[str, Tensor] | None:
+    """The plain filter when the covariances do not depend on the sequence (see
+    :func:`_shared_covariance`): the Riccati recursion runs once for the whole batch, and for a
+    time-invariant model only until it has converged to rounding (``_STEADY_ULPS``), after
+    which gains and covariances repeat; the means then follow from the affine recursion
+    ``m_t = m_{t-1} F_t + g_t`` (row vectors), one fused multiply-add per step. Covariance
+    fields come back as views expanded over the batch. ``None`` if a factorisation failed."""
+    T, n, m = data.y.shape[-2], data.x0.shape[-1], data.y.shape[-1]
+    batch = data.batch
+    B = batch.numel()
+    invariant = all(x.stride(-3) == 0 for x in (steps.A, steps.Q, steps.H, steps.R))
+    invariant = invariant and all(
+        x is None or x.stride(x.dim() - 2) == 0 for x in (steps.c, steps.d)
+    )
+    A, Q, H, R = (x.unbind(0) for x in (steps.A, steps.Q, steps.H, steps.R))
+    P = data.P0.reshape(-1, n, n)[0]
+    tol = _STEADY_ULPS * torch.finfo(P.dtype).eps
+    rec: dict[str, list[Tensor]] = {k: [] for k in ("cov", "pcov", "cross", "KT", "L", "S")}
+    infos: list[Tensor] = []
+    for t in range(T):
+        AT, HT = A[t].mT, H[t].mT
+        cross = P @ AT
+        Pp = A[t] @ cross + Q[t]
+        PHt = Pp @ HT
+        S = H[t] @ PHt + R[t]
+        L, info = torch.linalg.cholesky_ex(S)
+        KT = torch.cholesky_solve(PHt.mT, L)
+        P_new = Pp - PHt @ KT
+        for name, v in zip(rec, (P_new, Pp, cross, KT, L, S), strict=True):
+            rec[name].append(v)
+        infos.append(info)
+        step = P_new - P
+        P = P_new
+        if invariant and t >= 2 and bool(step.abs().max() <= tol * P.abs().max()):
+            break
+    if bool(torch.stack(infos).any()):
+        return None
+    k = len(infos)
+    full = {}
+    for name, vals in rec.items():
+        head = torch.stack(vals, 0)
+        if k < T:  # the converged values repeat
+            whole = head.new_empty(T, *head.shape[1:])
+            whole[:k] = head
+            whole[k:] = head[-1]
+            head = whole
+        full[name] = head  # (T, ., .)
+    KT_all, L_all = full["KT"], full["L"]
+    A_all, H_all = steps.A, steps.H
+    # time-major (T, B, .) so that every product is one batched matmul over T with the
+    # per-step (T, ., .) matrices: m_t = m_{t-1} A^T (I - H^T K^T) + c_t (I - H^T K^T) + (y_t - d_t) K^T
+    IKH = torch.eye(n, dtype=P.dtype, device=P.device) - H_all.mT @ KT_all  # (T, n, n)
+    F = A_all.mT @ IKH
+
+    def tmajor(x: Tensor, k: int) -> Tensor:  # (..., T, k) -> (T, B, k)
+        return x.expand(*batch, T, k).reshape(B, T, k).transpose(0, 1)
+
+    y_t = tmajor(data.y, m)
+    g = (y_t if steps.d is None else y_t - tmajor(steps.d, m)) @ KT_all  # (T, B, n)
+    c_t = None if steps.c is None else tmajor(steps.c, n)
+    if c_t is not None:
+        g = g + c_t @ IKH
+    mean = data.x0.reshape(B, n)
+    means = []
+    Fs, gs = F.unbind(0), g.unbind(0)
+    for t in range(T):
+        mean = torch.addmm(gs[t], mean, Fs[t])
+        means.append(mean)
+    m_all = torch.stack(means, 0)  # (T, B, n)
+    m_prev = torch.cat([data.x0.reshape(1, B, n), m_all[:-1]], 0)
+    mp = m_prev @ A_all.mT
+    if c_t is not None:
+        mp = mp + c_t
+    ym = mp @ H_all.mT
+    if steps.d is not None:
+        ym = ym + tmajor(steps.d, m)
+    e = y_t - ym  # (T, B, m)
+    z = torch.linalg.solve_triangular(L_all, e.mT, upper=False)  # (T, m, B): B right-hand sides
+    logdet = 2.0 * L_all.diagonal(dim1=-2, dim2=-1).log().sum()
+    ll = -0.5 * ((z * z).sum((0, 1)) + logdet + T * m * _LOG_2PI)
+    m_all, mp, ym, e = (x.transpose(0, 1) for x in (m_all, mp, ym, e))
+    out = {
+        "mean": m_all,
+        "predicted_mean": mp,
+        "measurement_mean": ym,
+        "innovation": e,
+        "cov": full["cov"],
+        "predicted_cov": full["pcov"],
+        "innovation_cov": full["S"],
+        "cross_cov": full["cross"],
+    }
+    res = {}
+    for name, v in out.items():
+        if name not in keep and name != "mean":
+            continue
+        if v.dim() == 3 and name.endswith("cov"):
+            res[name] = v  # shared: assemble expands it over the batch
+        else:
+            res[name] = v.reshape(*batch, *v.shape[1:])
+    res["log_likelihood"] = ll.reshape(batch)
+    return res
+
+
 def _psd_sqrt_steps(X: Tensor) -> Tensor:
     """Square roots of ``(..., T, d, d)``; one factorisation when ``X`` is an expanded constant."""
     if X.stride(-3) == 0:
@@ -886,7 +1006,11 @@ def filter_steps(
     # small results: lists stacked at the end (fewer operations per step); large ones: written
     # into preallocated outputs (no second copy) unless autograd records
     inplace = not grad and _result_bytes(data, keep) > _VECTOR_LL_BYTES
-    fast = None if sqrt else _run_fast(data, steps, keep=keep, inplace=inplace)
+    fast = None
+    if not sqrt and not grad and _shared_covariance(data, steps):
+        fast = _run_shared(data, steps, keep=keep)
+    if fast is None and not sqrt:
+        fast = _run_fast(data, steps, keep=keep, inplace=inplace)
     out = fast if fast is not None else _run(data, steps, sqrt=sqrt, keep=keep, inplace=not grad)
     return assemble(data, steps, out, keep, KalmanFilterResult)
 
