@@ -7,7 +7,10 @@ and dynamax's jitted ``lgssm_filter`` / ``lgssm_smoother`` (run by ``--jax-pytho
 venv with JAX: ``scripts/_dynamax_peer.py``). Every peer's means are compared with torchfilt's
 (``max_diff``), so all compute the same thing. Figures are the median of ``--repeats`` runs after a
 warm-up, in microseconds per time step (per sequence-step for batches); ``vs_*`` columns are
-the peer's time over torchfilt's exact sequential time (> 1: torchfilt is faster).
+the peer's time over torchfilt's exact sequential time (> 1: torchfilt is faster). With all data
+observed and one ``P0`` for the batch torchfilt computes one covariance sequence for the whole
+batch; the "own covs" column gives each sequence its own ``P0``, so that it keeps one covariance
+per sequence as dynamax's vmap does (like for like).
 
     python scripts/bench_linear.py --out out/bench_linear --jax-python /work/wt/jaxenv/bin/python
 
@@ -50,10 +53,21 @@ def problem(n: int, m: int, T: int, batch: int, seed: int = 0) -> dict[str, np.n
     return dict(A=A, H=H, Q=Q, R=R, m0=np.zeros(n), P0=np.eye(n), y=y)
 
 
-def torch_runner(p: dict[str, np.ndarray], *, smoother: bool, parallel: bool, path: str = "kalman"):
+def torch_runner(
+    p: dict[str, np.ndarray],
+    *,
+    smoother: bool,
+    parallel: bool,
+    path: str = "kalman",
+    per_sequence: bool = False,
+):
+    """torchfilt's run; ``per_sequence`` gives ``P0`` per sequence, so that the filter keeps one
+    covariance per sequence (as dynamax's vmap does) instead of sharing one for the batch."""
     t = lambda a: torch.tensor(a, dtype=torch.float64)  # noqa: E731
     model = torchfilt.LinearGaussianModel(t(p["A"]), t(p["H"]), t(p["Q"]), t(p["R"]))
     y, x0, P0 = t(p["y"]), t(p["m0"]), t(p["P0"])
+    if per_sequence and y.dim() == 3:
+        P0 = P0.expand(y.shape[0], *P0.shape).clone()
     if path == "cubature":
         ckf = torchfilt.CKF(model)
 
@@ -164,6 +178,12 @@ def main() -> None:
             ckf_fn = torch_runner(p, smoother=smoother, parallel=False, path="cubature")
             row["ckf_us"] = timeit(ckf_fn, 1) / per * 1e6
             row["ckf_max_diff"] = _diff(ckf_fn(), ref)
+            if batch > 1:  # like for like with dynamax's vmap: one covariance per sequence
+                own = torch_runner(p, smoother=smoother, parallel=False, per_sequence=True)
+                row["per_sequence_us"] = timeit(own, args.repeats) / per * 1e6
+                row["per_sequence_max_diff"] = _diff(own(), ref)
+            else:
+                row["per_sequence_us"] = row["per_sequence_max_diff"] = None
             if batch == 1:
                 fp = filterpy_runner(p, smoother=smoother)
                 row["filterpy_us"] = timeit(fp, args.repeats) / per * 1e6
@@ -175,28 +195,31 @@ def main() -> None:
             )
             row["dynamax_us"] = None if secs is None else secs / per * 1e6
             row["dynamax_max_diff"] = _diff(mean, ref)
-            for peer in ("ckf", "filterpy", "dynamax", "parallel"):
+            for peer in ("ckf", "filterpy", "dynamax", "parallel", "per_sequence"):
                 v = row[f"{peer}_us"]
                 row[f"vs_{peer}"] = None if v is None else v / row["torchfilt_us"]
             rows.append(row)
             print(f"done {kind} batch {batch} n {n}", file=sys.stderr)
-    headers = ["case", "batch", "n", "torchfilt", "parallel", "CKF", "filterpy", "dynamax"]
-    headers += ["filterpy/tf", "dynamax/tf", "max diff"]
+    headers = ["case", "batch", "n", "torchfilt", "own covs", "parallel", "CKF", "filterpy"]
+    headers += ["dynamax", "filterpy/tf", "dynamax/tf", "dynamax/own", "max diff"]
     body = [
         [
             r["case"],
             r["batch"],
             r["n"],
             r["torchfilt_us"],
+            r["per_sequence_us"],
             r["parallel_us"],
             r["ckf_us"],
             r["filterpy_us"],
             r["dynamax_us"],
             r["vs_filterpy"],
             r["vs_dynamax"],
+            None if r["per_sequence_us"] is None or r["dynamax_us"] is None
+            else r["dynamax_us"] / r["per_sequence_us"],
             max(
                 (r[k] for k in ("parallel_max_diff", "ckf_max_diff", "filterpy_max_diff",
-                                "dynamax_max_diff") if r[k] is not None),
+                                "dynamax_max_diff", "per_sequence_max_diff") if r[k] is not None),
                 default=None,
             ),
         ]

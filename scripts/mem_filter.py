@@ -29,7 +29,8 @@ import torchfilt
 
 CONFIGS = {
     "ckf": "CKF, sigma-point path (path='cubature')",
-    "kalman": "exact Kalman path (default for a linear model)",
+    "kalman": "exact Kalman path (default); one covariance shared by the batch",
+    "kalman_per_seq": "exact path, P0 given per sequence (one covariance per sequence)",
     "kalman_sqrt": "exact Kalman path, square-root",
     "kalman_mean_ll": "exact path, outputs=('mean', 'log_likelihood')",
     "parallel": "parallel-in-time path (parallel=True)",
@@ -72,6 +73,8 @@ def _run(name: str, model: Any, y: torch.Tensor, x0: torch.Tensor, P0: torch.Ten
     filt = torchfilt.CKF(model, sqrt=sqrt)
     if name == "ckf":
         return filt.filter(y, **kw, path="cubature")
+    if name in ("kalman_per_seq", "kalman_sqrt", "kalman_grad"):
+        kw["P0"] = P0.expand(y.shape[0], *P0.shape).clone()  # one covariance per sequence
     if name == "kalman_mean_ll":
         return filt.filter(y, **kw, outputs=("mean", "log_likelihood"))
     if name == "parallel":

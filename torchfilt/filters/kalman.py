@@ -737,25 +737,26 @@ def _run_shared(
     g = (y_t if steps.d is None else y_t - tmajor(steps.d, m)) @ KT_all  # (T, B, n)
     c_t = None if steps.c is None else tmajor(steps.c, n)
     if c_t is not None:
-        g = g + c_t @ IKH
-    mean = data.x0.reshape(B, n)
-    means = []
-    Fs, gs = F.unbind(0), g.unbind(0)
-    for t in range(T):
-        mean = torch.addmm(gs[t], mean, Fs[t])
-        means.append(mean)
-    m_all = torch.stack(means, 0)  # (T, B, n)
-    m_prev = torch.cat([data.x0.reshape(1, B, n), m_all[:-1]], 0)
-    mp = m_prev @ A_all.mT
+        g += c_t @ IKH
+    # the recursion runs in place in g's buffer: m_t = g_t + m_{t-1} F_t
+    m_all = g
+    m_all[0].addmm_(data.x0.reshape(B, n), F[0])
+    for t in range(1, T):
+        m_all[t].addmm_(m_all[t - 1], F[t])
+    mp = torch.empty_like(m_all)
+    torch.matmul(data.x0.reshape(B, n), A_all[0].mT, out=mp[0])
+    if T > 1:
+        torch.matmul(m_all[:-1], A_all[1:].mT, out=mp[1:])
     if c_t is not None:
-        mp = mp + c_t
+        mp += c_t
     ym = mp @ H_all.mT
     if steps.d is not None:
-        ym = ym + tmajor(steps.d, m)
+        ym += tmajor(steps.d, m)
     e = y_t - ym  # (T, B, m)
     z = torch.linalg.solve_triangular(L_all, e.mT, upper=False)  # (T, m, B): B right-hand sides
     logdet = 2.0 * L_all.diagonal(dim1=-2, dim2=-1).log().sum()
-    ll = -0.5 * ((z * z).sum((0, 1)) + logdet + T * m * _LOG_2PI)
+    ll = -0.5 * (z.square_().sum((0, 1)) + logdet + T * m * _LOG_2PI)
+    del z
     m_all, mp, ym, e = (x.transpose(0, 1) for x in (m_all, mp, ym, e))
     out = {
         "mean": m_all,
