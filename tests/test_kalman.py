@@ -329,3 +329,9 @@ def test_shared_covariance_path(varying):
     assert_results_equal(got, want)
     part = CKF(model).filter(y, t64(p["u"]), **kw, outputs=("mean", "log_likelihood"))
     assert_same(part.log_likelihood, want.log_likelihood, "outputs=")
+    sm_want = CKF(model).smooth(y, t64(p["u"]), **kw, path="cubature")
+    sm = CKF(model).smooth(y, t64(p["u"]), **kw)
+    assert sm.cov.stride(0) == 0
+    assert_same(sm.mean, sm_want.mean, "smoothed mean")
+    assert_same(sm.cov, sm_want.cov, "smoothed cov")
+    assert_same(sm.gain, sm_want.gain, "smoother gain")

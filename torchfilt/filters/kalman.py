@@ -727,8 +727,15 @@ def _run_shared(
     A_all, H_all = steps.A, steps.H
     # time-major (T, B, .) so that every product is one batched matmul over T with the
     # per-step (T, ., .) matrices: m_t = m_{t-1} A^T (I - H^T K^T) + c_t (I - H^T K^T) + (y_t - d_t) K^T
-    IKH = torch.eye(n, dtype=P.dtype, device=P.device) - H_all.mT @ KT_all  # (T, n, n)
-    F = A_all.mT @ IKH
+    eye = torch.eye(n, dtype=P.dtype, device=P.device)
+    if k < T:  # gains repeat from step k - 1 on: form I - H^T K^T and F once for those
+        IKH = eye - H_all[:k].mT @ KT_all[:k]
+        F = A_all[:k].mT @ IKH
+        IKH = torch.cat([IKH, IKH[-1:].expand(T - k, n, n)], 0)
+        F = torch.cat([F, F[-1:].expand(T - k, n, n)], 0)
+    else:
+        IKH = eye - H_all.mT @ KT_all  # (T, n, n)
+        F = A_all.mT @ IKH
 
     def tmajor(x: Tensor, k: int) -> Tensor:  # (..., T, k) -> (T, B, k)
         return x.expand(*batch, T, k).reshape(B, T, k).transpose(0, 1)
@@ -1020,6 +1027,10 @@ def smooth_steps(data: Data, steps: LinearSteps, *, sqrt: bool, parallel: bool) 
     """Filter and smooth already checked inputs."""
     res = filter_steps(data, steps, sqrt=sqrt, parallel=parallel)
     T = res.mean.shape[-2]
+    if not sqrt and not parallel and T > 1 and _is_shared(res) and steps.A.dim() == 3:
+        grad = torch.is_grad_enabled() and any(x.requires_grad for x in res if x.numel())
+        if not grad:
+            return _smooth_shared(data, steps, res)
     el = smoother_elements(res, steps)
     if parallel:
         from torchfilt.filters.parallel import parallel_smoother_moments
@@ -1040,6 +1051,63 @@ def smooth_steps(data: Data, steps: LinearSteps, *, sqrt: bool, parallel: bool) 
         covs.reverse()
         ms, Ps = torch.stack(means, -2), torch.stack(covs, -3)
     return SmootherResult(ms, Ps, el.E[..., :-1, :, :], res)
+
+
+def _is_shared(res: FilterResult) -> bool:
+    """Whether the covariance fields of ``res`` are one sequence viewed by the whole batch."""
+    return all(st == 0 for x in (res.cov, res.predicted_cov) for st in x.stride()[: x.dim() - 3])
+
+
+def _const_from(*xs: Tensor) -> int:
+    """The first time index from which every ``x (T', ., .)`` repeats its value exactly."""
+    same = torch.ones(xs[0].shape[0] - 1, dtype=torch.bool, device=xs[0].device)
+    for x in xs:
+        same &= (x[1:] == x[:-1]).flatten(1).all(1)
+    changed = (~same).nonzero()
+    return 0 if changed.numel() == 0 else int(changed.max()) + 1
+
+
+def _smooth_shared(data: Data, steps: LinearSteps, res: FilterResult) -> SmootherResult:
+    """The RTS pass when the filter's covariances are shared by the batch (no autograd): gains and
+    the backward covariance recursion run once, on ``(T, n, n)``, and stop once converged to
+    rounding where gains repeat; the means follow ``m^s_t = g_t + m^s_{t+1} G_t^T``, one addmm per
+    step over the flattened batch."""
+    batch, T, n = data.batch, res.mean.shape[-2], res.mean.shape[-1]
+    B = batch.numel()
+    lead = (0,) * (res.cov.dim() - 3)
+    P, Pp, A = res.cov[lead], res.predicted_cov[lead], steps.A
+    # gains from step c on repeat when the model is time-invariant and the filter converged
+    c = _const_from(P[:-1], Pp[1:]) if A.stride(0) == 0 else T - 2
+    h = slice(0, c + 1)
+    C = P[h] @ A[1 : c + 2].mT
+    G_h = cholesky_solve(C.mT, safe_cholesky(Pp[1 : c + 2], name="predicted covariance")).mT
+    L_h = P[h] - G_h @ Pp[1 : c + 2] @ G_h.mT
+    G, L = G_h.new_empty(T - 1, n, n), L_h.new_empty(T - 1, n, n)
+    G[h], L[h] = G_h, L_h
+    G[c + 1 :], L[c + 1 :] = G_h[-1], L_h[-1]
+    tol = _STEADY_ULPS * torch.finfo(P.dtype).eps
+    P_s = P[-1]
+    covs = P.new_empty(T, n, n)
+    covs[-1] = P_s
+    L = symmetrize(L)
+    t = T - 2
+    while t >= 0:
+        new = symmetrize(L[t] + G[t] @ P_s @ G[t].mT)
+        covs[t] = new
+        converged = t > c and bool((new - P_s).abs().max() <= tol * new.abs().max())
+        P_s = new
+        t -= 1
+        if converged:  # the gains repeat down to step c: so does the smoothed covariance
+            covs[c : t + 1] = P_s
+            t = c - 1
+    # means, time-major: g_t = m_t - m^-_{t+1} G_t^T
+    m = res.mean.reshape(B, T, n).transpose(0, 1)
+    mp = res.predicted_mean.reshape(B, T, n).transpose(0, 1)
+    ms = m - torch.cat([mp[1:] @ G.mT, torch.zeros_like(mp[:1])], 0)  # (T, B, n), g_t
+    for k in range(T - 2, -1, -1):
+        ms[k].addmm_(ms[k + 1], G[k].mT)
+    mean = ms.transpose(0, 1).reshape(*batch, T, n)
+    return SmootherResult(mean, covs.expand(*batch, T, n, n), G.expand(*batch, T - 1, n, n), res)
 
 
 def _smooth_sqrt(
