@@ -338,7 +338,9 @@ def _check(
             M = M.to(dtype=dtype, device=device)
             if M.shape[-1] != u.shape[-1]:
                 raise ShapeError(
-                    f"u: expected {M.shape[-1]} inputs (the columns of {name}), got {u.shape[-1]}"
+                    f"u: expected shape (..., nu) with nu = {M.shape[-1]} for the "
+                    f"{'transition' if name == 'B' else 'measurement'}'s input matrix, got "
+                    f"{tuple(u.shape)}"
                 )
             shapes_params[name] = M.shape[:-2]
             off = (M.unsqueeze(-3) @ u.unsqueeze(-1)).squeeze(-1)  # (..., T, rows)
