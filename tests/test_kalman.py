@@ -161,10 +161,13 @@ def test_batched_parameters_equal_loop(sqrt):
         assert_same(sm.cov[i], ref.cov, f"model {i} smoothed cov")
 
 
+@pytest.mark.parametrize("complete", [False, True], ids=["missing", "complete"])
 @pytest.mark.parametrize("sqrt", [False, True], ids=["plain", "sqrt"])
-def test_log_likelihood_gradients_equal_ckf(sqrt):
+def test_log_likelihood_gradients_equal_ckf(sqrt, complete):
     """d log-likelihood / d(A, Q, R) through the exact path equals it through the cubature path."""
-    p = make_problem(6)
+    p = make_problem(6, missing=0.0 if complete else 0.2)
+    if complete:
+        p["y"][3] = p["y"][2]
 
     def grads(path):
         A = t64(p["A"]).requires_grad_(True)
