@@ -1,10 +1,18 @@
-"""Filters and smoothers: the batched cubature Gaussian filter, RTS smoothing and metrics."""
+"""Filters and smoothers: the batched cubature Gaussian filter, the exact and parallel-in-time
+Kalman filter for linear models, RTS and iterated smoothing, and metrics."""
 
 from torchfilt.filters.constrained import ConstrainedCKF, ConstrainedInfo
 from torchfilt.filters.gaussian import CKF, GaussianFilter
 from torchfilt.filters.graphed import GraphedFilter
+from torchfilt.filters.iterated import iterated_smoother
+from torchfilt.filters.kalman import kalman_filter, kalman_smoother
 from torchfilt.filters.metrics import coverage, nees, nis, rmse
-from torchfilt.filters.results import FilterResult, SmootherResult
+from torchfilt.filters.results import (
+    FilterResult,
+    KalmanFilterResult,
+    ParallelFilterResult,
+    SmootherResult,
+)
 from torchfilt.filters.smoother import rts_smooth
 
 __all__ = [
@@ -14,8 +22,13 @@ __all__ = [
     "FilterResult",
     "GaussianFilter",
     "GraphedFilter",
+    "KalmanFilterResult",
+    "ParallelFilterResult",
     "SmootherResult",
     "coverage",
+    "iterated_smoother",
+    "kalman_filter",
+    "kalman_smoother",
     "nees",
     "nis",
     "rmse",

@@ -177,7 +177,8 @@ class ConstrainedCKF(GaussianFilter):
         self.max_iter = int(max_iter)
 
     # ------------------------------------------------------------------ public API
-    def filter(
+    # no exact Kalman path here (path=, parallel=, outputs= of GaussianFilter.filter)
+    def filter(  # type: ignore[override]
         self,
         y: Tensor,
         u: Tensor | None = None,

@@ -17,7 +17,7 @@ from __future__ import annotations
 import contextlib
 import math
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
 import torch
@@ -25,6 +25,13 @@ from torch import Tensor, nn
 
 from torchfilt.cubature import CubatureRule, SphericalRadialRule, sigma_points
 from torchfilt.exceptions import DivergenceWarning, ShapeError
+from torchfilt.filters.kalman import (
+    Path,
+    kalman_filter,
+    kalman_smoother,
+    select_outputs,
+    select_path,
+)
 from torchfilt.filters.results import FilterResult, SmootherResult
 from torchfilt.models import Prediction, StateSpaceModel
 from torchfilt.numerics import cholesky_solve, gaussian_log_prob, safe_cholesky, symmetrize, tria
@@ -400,6 +407,9 @@ class GaussianFilter(nn.Module):
         x0: Tensor,
         P0: Tensor,
         mask: Tensor | None = None,
+        path: Path = "auto",
+        parallel: bool = False,
+        outputs: Collection[str] | None = None,
     ) -> FilterResult:
         """Filter measurement sequences.
 
@@ -412,17 +422,32 @@ class GaussianFilter(nn.Module):
             x0: prior mean, shape ``(..., n)``.
             P0: prior covariance, shape ``(..., n, n)``, symmetric positive definite.
             mask: optional boolean ``(..., T, m)``; ``False`` marks a component as missing.
+            path: ``"auto"`` (default) runs the closed-form Kalman filter
+                (:mod:`torchfilt.filters.kalman`) for a linear-Gaussian model and the sigma-point
+                filter otherwise; ``"kalman"`` or ``"cubature"`` forces one (for testing).
+            parallel: run the parallel-in-time (associative scan) Kalman filter; linear models
+                only.
+            outputs: names of the result fields to return (e.g. ``("mean", "log_likelihood")``);
+                the others are empty tensors. On the exact path the others are never stored.
 
         Returns:
-            A :class:`~torchfilt.filters.FilterResult`. A step with no observed component is a
+            A :class:`~torchfilt.filters.FilterResult`; its ``path`` says which path ran. A step
+            with no observed component is a
             pure prediction (its log-likelihood term is 0). A sequence whose covariance cannot be
             factored even with jitter becomes NaN from that step on and a
             :class:`~torchfilt.exceptions.DivergenceWarning` is emitted; the rest of the batch is
             unaffected.
         """
+        # -- exact Kalman path for linear models (torchfilt.filters.kalman) -------------------
+        if select_path(self.model, path=path, parallel=parallel, redraw=self.redraw):
+            return kalman_filter(
+                self.model, y, u, x0=x0, P0=P0, mask=mask, sqrt=self.sqrt, parallel=parallel,
+                outputs=outputs,
+            )  # fmt: skip
+        # -------------------------------------------------------------------------------------
         inp = self._check(y, u, x0, P0, mask)
         outs = self._scan(inp, self._step_for(inp.y.device))
-        return self._assemble(inp, outs, stacklevel=3)
+        return select_outputs(self._assemble(inp, outs, stacklevel=3), outputs)
 
     def _scan(self, inp: _Inputs, step_fn: Callable[..., _Step]) -> list[_Step]:
         """Run ``step_fn`` over time from the prior, handing it each step's data and noise."""
@@ -524,15 +549,25 @@ class GaussianFilter(nn.Module):
         x0: Tensor,
         P0: Tensor,
         mask: Tensor | None = None,
+        path: Path = "auto",
+        parallel: bool = False,
     ) -> SmootherResult:
         """Filter, then run the cubature Rauch-Tung-Striebel smoother backwards.
 
-        Arguments as in :meth:`filter`. Returns a :class:`~torchfilt.filters.SmootherResult` with
-        smoothed means ``(..., T, n)`` and covariances ``(..., T, n, n)``.
+        Arguments as in :meth:`filter` (a linear model takes the closed-form Kalman filter and RTS
+        smoother, sequential or with ``parallel=True`` by associative scan). Returns a
+        :class:`~torchfilt.filters.SmootherResult` with smoothed means ``(..., T, n)`` and
+        covariances ``(..., T, n, n)``.
         """
         from torchfilt.filters.smoother import rts_smooth
 
-        return rts_smooth(self.filter(y, u, x0=x0, P0=P0, mask=mask))
+        # -- exact Kalman path for linear models (torchfilt.filters.kalman) -------------------
+        if select_path(self.model, path=path, parallel=parallel, redraw=self.redraw):
+            return kalman_smoother(
+                self.model, y, u, x0=x0, P0=P0, mask=mask, sqrt=self.sqrt, parallel=parallel
+            )
+        # -------------------------------------------------------------------------------------
+        return rts_smooth(self.filter(y, u, x0=x0, P0=P0, mask=mask, path="cubature"))
 
 
 class CKF(GaussianFilter):

@@ -6,7 +6,7 @@ from typing import NamedTuple
 
 from torch import Tensor
 
-__all__ = ["FilterResult", "SmootherResult"]
+__all__ = ["FilterResult", "KalmanFilterResult", "ParallelFilterResult", "SmootherResult"]
 
 
 class FilterResult(NamedTuple):
@@ -42,6 +42,34 @@ class FilterResult(NamedTuple):
     log_likelihood: Tensor
     cross_cov: Tensor
 
+    @property
+    def path(self) -> str:
+        """Which computation produced the result: ``"cubature"`` (sigma points), ``"kalman"``
+        (the closed-form recursion of a linear model) or ``"parallel"`` (its associative scan)."""
+        return "cubature"
+
+
+class KalmanFilterResult(FilterResult):
+    """A :class:`FilterResult` computed by the closed-form Kalman recursion (``path ==
+    "kalman"``). Same fields; a field left out with ``outputs=`` is an empty tensor."""
+
+    __slots__ = ()
+
+    @property
+    def path(self) -> str:
+        return "kalman"
+
+
+class ParallelFilterResult(FilterResult):
+    """A :class:`FilterResult` computed by the parallel-in-time (associative scan) Kalman filter
+    (``path == "parallel"``)."""
+
+    __slots__ = ()
+
+    @property
+    def path(self) -> str:
+        return "parallel"
+
 
 class SmootherResult(NamedTuple):
     """Output of a Rauch-Tung-Striebel smoother.
@@ -57,3 +85,8 @@ class SmootherResult(NamedTuple):
     cov: Tensor
     gain: Tensor
     filtered: FilterResult
+
+    @property
+    def path(self) -> str:
+        """The path of the forward pass (see :attr:`FilterResult.path`)."""
+        return self.filtered.path

@@ -14,18 +14,25 @@ from torchfilt.models.base import (
 )
 from torchfilt.models.functional import FunctionModel, StateSpaceModel, as_conditional
 from torchfilt.models.integrate import rk4
-from torchfilt.models.linear import LinearGaussianModel, LinearModel
+from torchfilt.models.linear import (
+    LinearGaussianModel,
+    LinearModel,
+    LinearSystem,
+    linear_system,
+)
 
 __all__ = [
     "ConditionalModel",
     "FunctionModel",
     "LinearGaussianModel",
     "LinearModel",
+    "LinearSystem",
     "Prediction",
     "StateSpaceModel",
     "TimeVarying",
     "as_conditional",
     "check_output",
     "check_prediction",
+    "linear_system",
     "rk4",
 ]
