@@ -27,8 +27,14 @@ from torchfilt.cubature import CubatureRule, SphericalRadialRule, sigma_points
 from torchfilt.exceptions import DivergenceWarning, ShapeError
 from torchfilt.filters.results import FilterResult, SmootherResult
 from torchfilt.models import Prediction, StateSpaceModel
-from torchfilt.numerics import cholesky_solve, gaussian_log_prob, safe_cholesky, symmetrize, tria
-from torchfilt.numerics.linalg import _compiling
+from torchfilt.numerics import (
+    cholesky_solve,
+    gaussian_log_prob,
+    no_host_sync,
+    safe_cholesky,
+    symmetrize,
+    tria,
+)
 
 if TYPE_CHECKING:
     from torchfilt.filters.graphed import GraphedFilter
@@ -121,7 +127,7 @@ def _noise_sqrt(A: Tensor) -> Tensor:
     Where no host synchronisation is allowed (``torch.compile``, ``sync_free``) the choice
     cannot be made on the host: the Cholesky factor of ``A + eps * mean|diag A| * I`` is used.
     """
-    if _compiling():
+    if no_host_sync():
         n = A.shape[-1]
         eye = torch.eye(n, dtype=A.dtype, device=A.device)
         scale = A.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(A.dtype).tiny)

@@ -26,7 +26,7 @@ from torch import Tensor
 
 from torchfilt.exceptions import ShapeError
 from torchfilt.filters.results import FilterResult
-from torchfilt.numerics.linalg import sync_free
+from torchfilt.settings import sync_free
 
 if TYPE_CHECKING:
     from torchfilt.filters.gaussian import GaussianFilter

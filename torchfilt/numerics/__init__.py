@@ -7,6 +7,7 @@ number of leading batch dimensions.
 from torchfilt.numerics.box import Box
 from torchfilt.numerics.linalg import (
     cholesky_ok,
+    no_host_sync,
     psd_solve,
     safe_cholesky,
     symmetrize,
@@ -39,6 +40,7 @@ __all__ = [
     "cholesky_ok",
     "cholesky_solve",
     "gaussian_log_prob",
+    "no_host_sync",
     "psd_solve",
     "safe_cholesky",
     "solve_dare",

@@ -14,6 +14,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchfilt.settings import current_small_matrix_kernels
+
 __all__ = [
     "SMALL_BATCH",
     "SMALL_MAX",
@@ -31,9 +33,17 @@ SMALL_BATCH = 64
 
 
 def use_unrolled(A: Tensor) -> bool:
-    """Whether the unrolled kernels beat the library calls for ``A`` of shape ``(..., n, k)``."""
+    """Whether to use the unrolled kernels for ``A`` of shape ``(..., n, k)``.
+
+    :func:`torchfilt.settings.small_matrix_kernels` chooses; under ``"auto"`` (the default) they
+    are used where they beat the library calls: under ``torch.compile``, or from ``SMALL_BATCH``
+    matrices on.
+    """
     if A.shape[-2] > SMALL_MAX:
         return False
+    mode = current_small_matrix_kernels()
+    if mode != "auto":
+        return mode == "unrolled"
     if torch.compiler.is_compiling():
         return True
     return A[..., 0, 0].numel() >= SMALL_BATCH
