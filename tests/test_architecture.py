@@ -90,6 +90,56 @@ def _package(module: str, modules: dict[str, Path]) -> str:
     return ".".join(parts[:2]) if len(parts) > 1 else module
 
 
+def test_no_import_cycles():
+    """No module imports, directly or through others, a module that imports it back (imports
+    inside functions and ``TYPE_CHECKING`` blocks count: they hide a cycle, they do not remove it).
+    Edges into a package's own ``__init__`` from its submodules are not counted when the
+    ``__init__`` only re-exports (the usual layout); every other cycle is."""
+    modules = _modules()
+    graph: dict[str, set[str]] = {m: set() for m in modules}
+    for mod, path in modules.items():
+        for target, _ in _imports(path, modules):
+            if target not in modules or target == mod:
+                continue
+            if mod.startswith(target + "."):
+                continue  # a submodule reading its package's re-exports
+            if target.startswith(mod + ".") and modules[mod].name == "__init__.py":
+                continue  # a package re-exporting its submodules
+            graph[mod].add(target)
+    # Tarjan's strongly connected components
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    cycles: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                cycles.append(sorted(comp))
+
+    for v in graph:
+        if v not in index:
+            visit(v)
+    assert not cycles, "import cycles:\n" + "\n".join(" <-> ".join(c) for c in cycles)
+
+
 def test_no_private_imports_across_packages():
     """A name or module starting with ``_`` is private to its sub-package (``torchfilt.filters``,
     ``torchfilt.numerics``, ...): no other sub-package imports it."""

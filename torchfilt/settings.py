@@ -12,8 +12,9 @@ traced to the switches that produced it.
 * :func:`small_matrix_kernels`: ``"auto"`` (default), ``"unrolled"`` or ``"library"``. For
   matrices up to 6x6 the entry-by-entry Cholesky and triangular solves of
   :mod:`torchfilt.numerics.small` replace LAPACK. ``"auto"`` takes them from a batch of 64
-  matrices on (and always under ``torch.compile``); a filter resolves ``"auto"`` once per run
-  from its batch size, so every step of a run takes the same kernels. The two agree to round-off.
+  matrices on; a filter resolves ``"auto"`` once per run from its batch size, so every step of a
+  run takes the same kernels. The two agree to round-off. Compiled code always takes the unrolled
+  kernels (they fuse into the surrounding code), whatever this switch says.
 * :func:`skip_guard_checks`: let a ``compile=True`` filter skip Dynamo's guard checks after the
   first steps of a run (``torch.compiler.set_stance(skip_guard_eval_unsafe=True)``). Off by
   default: it is only safe when the model is not modified while a run is in progress.

@@ -35,17 +35,17 @@ SMALL_BATCH = 64
 def use_unrolled(A: Tensor) -> bool:
     """Whether to use the unrolled kernels for ``A`` of shape ``(..., n, k)``.
 
+    Under ``torch.compile`` they always are. Otherwise
     :func:`torchfilt.settings.small_matrix_kernels` chooses; under ``"auto"`` (the default) they
-    are used where they beat the library calls: under ``torch.compile``, or from ``SMALL_BATCH``
-    matrices on.
+    are used from ``SMALL_BATCH`` matrices on, where they beat the library calls.
     """
     if A.shape[-2] > SMALL_MAX:
         return False
+    if torch.compiler.is_compiling():
+        return True  # fused into the surrounding kernels; decided at trace time, so no switch
     mode = current_small_matrix_kernels()
     if mode != "auto":
         return mode == "unrolled"
-    if torch.compiler.is_compiling():
-        return True
     return A[..., 0, 0].numel() >= SMALL_BATCH
 
 
