@@ -403,8 +403,13 @@ class ConstrainedCKF(GaussianFilter):
         max_iter: int = 50,
         compile: bool = False,
     ) -> None:
+        # the solver's host-side convergence test splits a compiled step into several graphs,
+        # which a compiled chunk of unrolled steps cannot hold: always one compiled call per step
         super().__init__(
-            model, rule=SphericalRadialRule(3), point_variance=point_variance, compile=compile
+            model,
+            rule=SphericalRadialRule(3),
+            point_variance=point_variance,
+            compile="step" if compile else False,
         )
         if covariance not in ("paper", "corrected"):
             raise ValueError(f"covariance must be 'paper' or 'corrected', got {covariance!r}")

@@ -23,6 +23,7 @@ from torchfilt.filters.results import (
     FilterResult,
     SmootherResult,
     StepRecord,
+    concat_records,
     stack_records,
     warn_nonfinite,
 )
@@ -44,6 +45,11 @@ __all__ = ["CKF", "FilterState", "GaussianFilter", "StepFunction"]
 
 #: Steps run with Dynamo's guard checks before a compiled step may skip them (see ``scan``).
 _GUARD_WARMUP_STEPS = 2
+#: Steps per compiled chunk of the time loop (``compile=True``): the chunk is unrolled into one
+#: graph, so the per-call overhead is paid once per chunk; longer chunks compile for longer.
+DEFAULT_CHUNK = 10
+#: Compile the chunks with inductor's C++ wrapper on the CPU (see ``scripts/bench_filter.py``).
+LOOP_CPP_WRAPPER = True
 
 #: ``step(points, belief, y_t, obs_t, u_t, Q, R) -> (belief, record, aux)``: one filter step.
 StepFunction = Callable[
@@ -95,11 +101,15 @@ class GaussianFilter(nn.Module):
         point_variance: how per-point model variances (GP) enter Q and R: ``"total"`` averages them
             over the cubature points (law of total variance), ``"mean"`` evaluates them at the mean
             only.
-        compile: compile the per-step function with ``torch.compile`` (worth it for one or a few
-            sequences, where per-op overhead dominates). Under compilation a covariance that fails
+        compile: ``True`` or ``"loop"`` compiles the time loop with ``torch.compile``, in chunks of
+            ``chunk`` steps unrolled into one graph each; ``"step"`` compiles the per-step
+            function only (one compiled call per step). Worth it for one or a few sequences, where
+            per-op overhead dominates. Under compilation a covariance that fails
             its Cholesky factorisation turns the sequence to NaN instead of being jittered. The
             eager path (the default) is the one to debug with: every op runs as written, and a
             failed factorisation is retried with jitter and reported.
+        chunk: steps per compiled chunk of the time loop (``compile=True`` / ``"loop"``). A
+            recording whose length is not a multiple compiles its last, shorter chunk too.
     """
 
     def __init__(
@@ -109,7 +119,8 @@ class GaussianFilter(nn.Module):
         sqrt: bool = False,
         redraw: bool = True,
         point_variance: Literal["total", "mean"] = "total",
-        compile: bool = False,
+        compile: bool | Literal["step", "loop"] = False,
+        chunk: int = DEFAULT_CHUNK,
     ) -> None:
         super().__init__()
         if not isinstance(model, StateSpaceModel):
@@ -129,8 +140,18 @@ class GaussianFilter(nn.Module):
                 f"sqrt=True needs non-negative covariance weights; {self.rule!r} has a negative "
                 f"weight in dimension {n}"
             )
-        self._compiled = bool(compile)
+        if compile not in (False, True, "step", "loop"):
+            raise InputError(f"compile must be False, True, 'step' or 'loop', got {compile!r}")
+        if int(chunk) < 1:
+            raise InputError(f"chunk must be at least 1, got {chunk}")
+        #: None (eager), "step" (one compiled call per step) or "loop" (compiled chunks of steps)
+        self.compile_mode: Literal["step", "loop"] | None = (
+            None if compile is False else ("loop" if compile is True else compile)
+        )
+        self.chunk = int(chunk)
+        self._compiled = self.compile_mode is not None
         self._compiled_steps: dict[str, StepFunction] = {}
+        self._compiled_chunks: dict[str, Callable[..., Any]] = {}
 
     # ------------------------------------------------------------------ the step
     def step(
@@ -238,7 +259,9 @@ class GaussianFilter(nn.Module):
     def numerics_path(self, inputs: FilterInputs, execution: str | None = None) -> NumericsPath:
         """The :class:`~torchfilt.settings.NumericsPath` a :meth:`scan` of ``inputs`` takes now."""
         if execution is None:
-            execution = "compiled-step" if self._compiled else "eager"
+            execution = {None: "eager", "step": "compiled-step", "loop": "compiled-loop"}[
+                self.compile_mode
+            ]
         nan = self._compiled or no_host_sync()
         return NumericsPath(execution, self.small_kernels(inputs.batch), "nan" if nan else "jitter")
 
@@ -255,6 +278,8 @@ class GaussianFilter(nn.Module):
             One :class:`~torchfilt.filters.StepRecord` and one tuple of extra outputs per step.
         """
         if step_fn is None:
+            if self.compile_mode == "loop":
+                return self._chunked(inputs)
             step_fn = self.step_function(inputs.y.device)
         kernels = self.small_kernels(inputs.batch)
         with contextlib.ExitStack() as ctx:
@@ -266,7 +291,9 @@ class GaussianFilter(nn.Module):
         self, inp: FilterInputs, step_fn: StepFunction, ctx: contextlib.ExitStack
     ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]:
         T = inp.y.shape[-2]
-        mean, cov = inp.x0.contiguous(), inp.P0.contiguous()
+        # fresh copies: under inference_mode they are inference tensors like every later step's
+        # belief, so a compiled first step does not compile a variant of its own
+        mean, cov = inp.x0.clone(), inp.P0.clone()
         S0 = safe_cholesky(cov, name="P0")
         belief = Belief(mean, cov, S0 if self.sqrt else None)  # the plain form re-factors cov
         f, h = self.model.transition, self.model.measurement
@@ -287,6 +314,88 @@ class GaussianFilter(nn.Module):
             ut = None if inp.u is None else inp.u[..., t, :]
             belief, rec, extra = step_fn(
                 pts, belief, inp.y[..., t, :], inp.obs[..., t, :], ut, Q, R
+            )
+            records.append(rec)
+            extras.append(extra)
+        return records, extras
+
+    def run_chunk(
+        self,
+        points: UnitPoints,
+        belief: Belief,
+        y: Tensor,
+        obs: Tensor,
+        u: Tensor | None,
+        Q: tuple[Noise, ...],
+        R: tuple[Noise, ...],
+    ) -> tuple[Belief, StepRecord, tuple[Tensor, ...]]:
+        """``K`` steps of :meth:`step` in one call: the unit ``compile=True`` compiles.
+
+        Args:
+            points, belief: as in :meth:`step`.
+            y: measurements ``(..., K, m)``, missing set to 0. obs: bool ``(..., K, m)``.
+            u: inputs ``(..., K, nu)`` or ``None``. Q, R: the ``K`` steps' noises.
+
+        Returns:
+            The belief after the ``K`` steps, a :class:`~torchfilt.filters.StepRecord` whose
+            fields carry a time dimension of length ``K`` (as in a
+            :class:`~torchfilt.filters.FilterResult`) and the stacked extra outputs.
+        """
+        records: list[StepRecord] = []
+        extras: list[tuple[Tensor, ...]] = []
+        for k in range(y.shape[-2]):
+            ut = None if u is None else u[..., k, :]
+            belief, rec, extra = self.step(
+                points, belief, y[..., k, :], obs[..., k, :], ut, Q[k], R[k]
+            )
+            records.append(rec)
+            extras.append(extra)
+        res = stack_records(records, obs)
+        stacked = StepRecord(
+            **{f: getattr(res, f) for f in StepRecord._fields if f != "log_likelihood"},
+            log_likelihood=torch.stack([r.log_likelihood for r in records], dim=-1),
+        )
+        ex = tuple(torch.stack([e[i] for e in extras], dim=-1) for i in range(len(extras[0])))
+        return belief, stacked, ex
+
+    def _chunk_function(self, device: torch.device) -> Callable[..., Any]:
+        fn = self._compiled_chunks.get(device.type)
+        if fn is None:
+            cpp = device.type == "cpu" and LOOP_CPP_WRAPPER
+            options: dict[str, Any] | None = {"cpp_wrapper": True} if cpp else None
+            fn = torch.compile(self.run_chunk, dynamic=False, options=options)
+            self._compiled_chunks[device.type] = fn
+        return fn
+
+    def _chunked(self, inp: FilterInputs) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]:
+        """The time loop in compiled chunks of ``self.chunk`` steps; returns one record per chunk
+        (fields with a time dimension) for :func:`~torchfilt.filters.results.concat_records`."""
+        T = inp.y.shape[-2]
+        # fresh copies: under inference_mode they are inference tensors like every later chunk's
+        # belief, so the first chunk does not compile a variant of its own
+        mean, cov = inp.x0.clone(), inp.P0.clone()
+        S0 = safe_cholesky(cov, name="P0")
+        belief = Belief(mean, cov, S0 if self.sqrt else None)
+        f, h = self.model.transition, self.model.measurement
+        const_Q = None if f.time_varying_noise else self._noise_of(f, 0, mean)
+        const_R = None if h.time_varying_noise else self._noise_of(h, 0, mean)
+        pts = steps.unit_points(self.rule, mean.shape[-1], mean)
+        fn = self._chunk_function(inp.y.device)
+        records: list[StepRecord] = []
+        extras: list[tuple[Tensor, ...]] = []
+        for t0 in range(0, T, self.chunk):
+            t1 = min(T, t0 + self.chunk)
+            Q = tuple(
+                const_Q if const_Q is not None else self._noise_of(f, t, mean)
+                for t in range(t0, t1)
+            )
+            R = tuple(
+                const_R if const_R is not None else self._noise_of(h, t, mean)
+                for t in range(t0, t1)
+            )
+            u = None if inp.u is None else inp.u[..., t0:t1, :]
+            belief, rec, extra = fn(
+                pts, belief, inp.y[..., t0:t1, :], inp.obs[..., t0:t1, :], u, Q, R
             )
             records.append(rec)
             extras.append(extra)
@@ -337,6 +446,8 @@ class GaussianFilter(nn.Module):
         """:meth:`scan` the prepared ``inputs`` and stack the result (no divergence warning)."""
         path = self.numerics_path(inputs)
         records, _ = self.scan(inputs)
+        if self.compile_mode == "loop":
+            return concat_records(records, self._observed(inputs), path)
         return stack_records(records, self._observed(inputs), path)
 
     @staticmethod

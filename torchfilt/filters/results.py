@@ -12,7 +12,14 @@ from torch import Tensor
 from torchfilt.exceptions import DivergenceWarning
 from torchfilt.settings import NumericsPath
 
-__all__ = ["FilterResult", "SmootherResult", "StepRecord", "stack_records", "warn_nonfinite"]
+__all__ = [
+    "FilterResult",
+    "SmootherResult",
+    "StepRecord",
+    "concat_records",
+    "stack_records",
+    "warn_nonfinite",
+]
 
 
 class FilterResult(NamedTuple):
@@ -101,6 +108,19 @@ def stack_records(
         for name, dim in _TIME_DIM.items()
     }
     loglik = torch.stack([r.log_likelihood for r in records], dim=-1).sum(-1)
+    return FilterResult(**fields, observed=observed, log_likelihood=loglik, numerics=numerics)
+
+
+def concat_records(
+    chunks: Sequence[StepRecord], observed: Tensor, numerics: NumericsPath | None = None
+) -> FilterResult:
+    """Join records of consecutive chunks of steps (fields with a time dimension, the
+    log-likelihood ``(..., K)``) into a :class:`FilterResult`, field by field."""
+    fields = {
+        name: torch.cat([getattr(c, name) for c in chunks], dim=dim)
+        for name, dim in _TIME_DIM.items()
+    }
+    loglik = torch.cat([c.log_likelihood for c in chunks], dim=-1).sum(-1)
     return FilterResult(**fields, observed=observed, log_likelihood=loglik, numerics=numerics)
 
 

@@ -1,0 +1,38 @@
+"""Slow: every compiled path equals eager (per-step compile, chunked loop with a ragged last chunk,
+time-varying noise, the square-root form)."""
+
+import pytest
+import torch
+from test_ckf_linear import make_problem, t64
+
+from torchfilt import CKF, LinearGaussianModel, TimeVarying
+
+pytestmark = pytest.mark.slow
+
+#: compiled kernels reorder floating-point operations (as in tests/test_compile.py)
+COMPILE_RTOL = 1e-9
+
+
+@pytest.mark.parametrize(
+    "opts",
+    [
+        {"compile": "step"},
+        {"compile": True, "chunk": 3},
+        {"compile": True, "chunk": 3, "sqrt": True},
+    ],
+    ids=["step", "loop", "loop-sqrt"],
+)
+def test_compiled_paths_equal_eager_time_varying(opts):
+    p = make_problem(12, n=2, m=1, T=7)
+    Qt = torch.stack([t64(p["Q"]) * (1 + 0.2 * k) for k in range(7)])
+    model = LinearGaussianModel(
+        t64(p["A"]), t64(p["H"]), TimeVarying(Qt), t64(p["R"]), B=t64(p["B"])
+    )
+    kw = dict(x0=t64(p["m0"]), P0=t64(p["P0"]))
+    y, u = t64(p["y"]), t64(p["u"])
+    sqrt = opts.get("sqrt", False)
+    eager = CKF(model, sqrt=sqrt).filter(y, u, **kw)
+    got = CKF(model, **opts).filter(y, u, **kw)
+    torch.testing.assert_close(got.mean, eager.mean, rtol=COMPILE_RTOL, atol=1e-12)
+    torch.testing.assert_close(got.cov, eager.cov, rtol=1e-7, atol=1e-12)
+    torch.testing.assert_close(got.log_likelihood, eager.log_likelihood, rtol=COMPILE_RTOL, atol=0)
