@@ -48,8 +48,9 @@ _GUARD_WARMUP_STEPS = 2
 #: Steps per compiled chunk of the time loop (``compile=True``): the chunk is unrolled into one
 #: graph, so the per-call overhead is paid once per chunk; longer chunks compile for longer.
 DEFAULT_CHUNK = 10
-#: Compile the chunks with inductor's C++ wrapper on the CPU (see ``scripts/bench_filter.py``).
-LOOP_CPP_WRAPPER = True
+#: ``compile=True`` compiles the loop (in chunks) up to this many sequences, the step above: per-call
+#: overhead matters only for small batches, and a step compiles an order of magnitude faster.
+LOOP_MAX_BATCH = 64
 
 #: ``step(points, belief, y_t, obs_t, u_t, Q, R) -> (belief, record, aux)``: one filter step.
 StepFunction = Callable[
@@ -101,10 +102,11 @@ class GaussianFilter(nn.Module):
         point_variance: how per-point model variances (GP) enter Q and R: ``"total"`` averages them
             over the cubature points (law of total variance), ``"mean"`` evaluates them at the mean
             only.
-        compile: ``True`` or ``"loop"`` compiles the time loop with ``torch.compile``, in chunks of
-            ``chunk`` steps unrolled into one graph each; ``"step"`` compiles the per-step
-            function only (one compiled call per step). Worth it for one or a few sequences, where
-            per-op overhead dominates. Under compilation a covariance that fails
+        compile: ``"loop"`` compiles the time loop with ``torch.compile``, in chunks of ``chunk``
+            steps unrolled into one graph each; ``"step"`` compiles the per-step function only (one
+            compiled call per step); ``True`` (``"auto"``) takes ``"loop"`` for batches of up to
+            ``LOOP_MAX_BATCH`` (64) sequences, where per-call overhead dominates, and ``"step"``
+            above, where it does not and the step compiles an order of magnitude faster. Under compilation a covariance that fails
             its Cholesky factorisation turns the sequence to NaN instead of being jittered. The
             eager path (the default) is the one to debug with: every op runs as written, and a
             failed factorisation is retried with jitter and reported.
@@ -119,7 +121,7 @@ class GaussianFilter(nn.Module):
         sqrt: bool = False,
         redraw: bool = True,
         point_variance: Literal["total", "mean"] = "total",
-        compile: bool | Literal["step", "loop"] = False,
+        compile: bool | Literal["auto", "step", "loop"] = False,
         chunk: int = DEFAULT_CHUNK,
     ) -> None:
         super().__init__()
@@ -140,14 +142,20 @@ class GaussianFilter(nn.Module):
                 f"sqrt=True needs non-negative covariance weights; {self.rule!r} has a negative "
                 f"weight in dimension {n}"
             )
-        if compile not in (False, True, "step", "loop"):
-            raise InputError(f"compile must be False, True, 'step' or 'loop', got {compile!r}")
+        mode: Literal["auto", "step", "loop"] | None
+        if isinstance(compile, bool):
+            mode = "auto" if compile else None
+        elif compile in ("auto", "step", "loop"):
+            mode = compile
+        else:
+            raise InputError(
+                f"compile must be False, True, 'auto', 'step' or 'loop', got {compile!r}"
+            )
         if int(chunk) < 1:
             raise InputError(f"chunk must be at least 1, got {chunk}")
-        #: None (eager), "step" (one compiled call per step) or "loop" (compiled chunks of steps)
-        self.compile_mode: Literal["step", "loop"] | None = (
-            None if compile is False else ("loop" if compile is True else compile)
-        )
+        #: None (eager), "step" (one compiled call per step), "loop" (compiled chunks of steps) or
+        #: "auto" (True: "loop" up to LOOP_MAX_BATCH sequences, "step" above)
+        self.compile_mode = mode
         self.chunk = int(chunk)
         self._compiled = self.compile_mode is not None
         self._compiled_steps: dict[str, StepFunction] = {}
@@ -256,12 +264,18 @@ class GaussianFilter(nn.Module):
             return mode
         return "unrolled" if math.prod(batch) >= SMALL_BATCH else "library"
 
+    def execution(self, batch: torch.Size) -> str:
+        """The execution a run of batch shape ``batch`` takes: ``"eager"``, ``"compiled-step"`` or
+        ``"compiled-loop"``."""
+        mode = self.compile_mode
+        if mode == "auto":
+            mode = "loop" if math.prod(batch) <= LOOP_MAX_BATCH else "step"
+        return {None: "eager", "step": "compiled-step", "loop": "compiled-loop"}[mode]
+
     def numerics_path(self, inputs: FilterInputs, execution: str | None = None) -> NumericsPath:
         """The :class:`~torchfilt.settings.NumericsPath` a :meth:`scan` of ``inputs`` takes now."""
         if execution is None:
-            execution = {None: "eager", "step": "compiled-step", "loop": "compiled-loop"}[
-                self.compile_mode
-            ]
+            execution = self.execution(inputs.batch)
         nan = self._compiled or no_host_sync()
         return NumericsPath(execution, self.small_kernels(inputs.batch), "nan" if nan else "jitter")
 
@@ -278,7 +292,7 @@ class GaussianFilter(nn.Module):
             One :class:`~torchfilt.filters.StepRecord` and one tuple of extra outputs per step.
         """
         if step_fn is None:
-            if self.compile_mode == "loop":
+            if self.execution(inputs.batch) == "compiled-loop":
                 return self._chunked(inputs)
             step_fn = self.step_function(inputs.y.device)
         kernels = self.small_kernels(inputs.batch)
@@ -361,7 +375,10 @@ class GaussianFilter(nn.Module):
     def _chunk_function(self, device: torch.device) -> Callable[..., Any]:
         fn = self._compiled_chunks.get(device.type)
         if fn is None:
-            cpp = device.type == "cpu" and LOOP_CPP_WRAPPER
+            # the C++ wrapper removes the per-call Python overhead, but calls the library kernels
+            # that larger matrices need through a slow proxy (no C shim for cholesky_ex)
+            small = max(self.model.state_dim, self.model.obs_dim) <= SMALL_MAX
+            cpp = device.type == "cpu" and small
             options: dict[str, Any] | None = {"cpp_wrapper": True} if cpp else None
             fn = torch.compile(self.run_chunk, dynamic=False, options=options)
             self._compiled_chunks[device.type] = fn
@@ -446,7 +463,7 @@ class GaussianFilter(nn.Module):
         """:meth:`scan` the prepared ``inputs`` and stack the result (no divergence warning)."""
         path = self.numerics_path(inputs)
         records, _ = self.scan(inputs)
-        if self.compile_mode == "loop":
+        if path.execution == "compiled-loop":
             return concat_records(records, self._observed(inputs), path)
         return stack_records(records, self._observed(inputs), path)
 
