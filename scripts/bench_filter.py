@@ -4,8 +4,8 @@ Re-entry, analytic model, RK4 with 10 sub-steps per 1 s step, T = 60, float64 on
 thread by default). filterpy gets its fastest form: dynamics written with plain Python floats.
 dynamax (if installed) runs its UKF with alpha = 1, beta = 0, kappa = 0, which is the CKF, under
 ``jax.jit`` (``+ vmap`` for batches), in float64. torchfilt runs eager, ``compile="step"`` (one
-compiled call per step) and ``compile="loop"`` (the time loop compiled in chunks of unrolled
-steps); ``compile=True`` takes the loop up to 64 sequences and the step above.
+compiled call per step) and ``compile="loop"`` (the whole time loop compiled as one scan over the
+step); ``compile=True`` takes the loop up to 64 sequences and the step above.
 The re-entry model is timed twice: as ``torchfilt.systems.reentry`` writes it (hand-tuned) and as a
 user would (``torch.stack`` of the derivative components inside a generic RK4). A linear model
 with n = 8 at batch 256 completes the acceptance table of issue 13. Each figure is the median of

@@ -1,5 +1,5 @@
 """The one compiled-path test of the default suite: a tiny linear model, compile=True (the time loop
-compiled in chunks) equals eager; tests/test_compile.py and test_compile_loop.py have the slow ones."""
+compiled as one scan) equals eager; tests/test_compile.py and test_compile_loop.py have the slow ones."""
 
 import torch
 from test_ckf_linear import make_problem, t64
@@ -16,8 +16,8 @@ def test_compiled_loop_equals_eager_linear():
     kw = dict(x0=t64(p["m0"]), P0=t64(p["P0"]))
     y, u = t64(p["y"]), t64(p["u"])
     eager = CKF(model).filter(y, u, **kw)
-    # two chunks of two steps: one compiled graph, the belief carried from chunk to chunk
-    got = CKF(model, compile=True, chunk=2).filter(y, u, **kw)
+    # the whole loop as one compiled scan over the step
+    got = CKF(model, compile=True).filter(y, u, **kw)
     assert got.numerics.execution == "compiled-loop"
     torch.testing.assert_close(got.mean, eager.mean, rtol=COMPILE_RTOL, atol=1e-12)
     torch.testing.assert_close(got.cov, eager.cov, rtol=1e-7, atol=1e-12)

@@ -33,6 +33,31 @@ def test_compiled_paths_equal_eager_time_varying(opts):
     sqrt = opts.get("sqrt", False)
     eager = CKF(model, sqrt=sqrt).filter(y, u, **kw)
     got = CKF(model, **opts).filter(y, u, **kw)
+    assert got.numerics.execution == (
+        "compiled-step" if opts["compile"] == "step" else "compiled-loop"
+    )
     torch.testing.assert_close(got.mean, eager.mean, rtol=COMPILE_RTOL, atol=1e-12)
     torch.testing.assert_close(got.cov, eager.cov, rtol=1e-7, atol=1e-12)
+    torch.testing.assert_close(got.log_likelihood, eager.log_likelihood, rtol=COMPILE_RTOL, atol=0)
+
+
+def test_model_with_a_graph_break_falls_back_to_compiled_chunks():
+    """A model that Dynamo cannot capture whole (here an explicit graph break) cannot run inside
+    the scan; compile=True then compiles chunks of steps instead, with the same result."""
+    p = make_problem(13, n=2, m=1, T=5)
+    A = t64(p["A"])
+
+    def f(x):
+        torch._dynamo.graph_break()
+        return x @ A.mT
+
+    from torchfilt import StateSpaceModel
+
+    model = StateSpaceModel(f, lambda x: x[..., :1], Q=t64(p["Q"]), R=t64(p["R"])[:1, :1])
+    kw = dict(x0=t64(p["m0"]), P0=t64(p["P0"]))
+    y = t64(p["y"])[:, :1]
+    eager = CKF(model).filter(y, **kw)
+    got = CKF(model, compile=True, chunk=2).filter(y, **kw)
+    assert got.numerics.execution == "compiled-chunks"
+    torch.testing.assert_close(got.mean, eager.mean, rtol=COMPILE_RTOL, atol=1e-12)
     torch.testing.assert_close(got.log_likelihood, eager.log_likelihood, rtol=COMPILE_RTOL, atol=0)

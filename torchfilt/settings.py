@@ -55,9 +55,10 @@ class NumericsPath(NamedTuple):
     """Which numerics path a filter run took.
 
     Attributes:
-        execution: ``"eager"``, ``"compiled-step"`` (``compile=True``, one compiled call per
-            step), ``"compiled-loop"`` (the whole time loop compiled), ``"graphed"`` (CUDA graph
-            replay) or ``"online"`` (the step-by-step API).
+        execution: ``"eager"``, ``"compiled-step"`` (one compiled call per step),
+            ``"compiled-loop"`` (the whole time loop compiled as one scan),
+            ``"compiled-chunks"`` (the loop compiled in chunks of unrolled steps, for models the
+            scan cannot capture) or ``"graphed"`` (CUDA graph replay).
         small_kernels: ``"unrolled"`` or ``"library"``: the small-matrix kernels used.
         on_failure: ``"jitter"`` (a failing Cholesky factor is retried with jitter, then NaN) or
             ``"nan"`` (sync-free: NaN at once).
