@@ -868,7 +868,7 @@ def assemble(
             tail = 2 if k.endswith("cov") else 1
             v = v.expand(*batch, T, *v.shape[v.dim() - tail :])
         fields[k] = v
-    return cls(**fields)
+    return cls(**fields)  # type: ignore[arg-type]
 
 
 def _keep(outputs: Collection[str] | None) -> frozenset[str]:
@@ -934,7 +934,7 @@ def select_outputs(res: FilterResult, outputs: Collection[str] | None) -> Filter
         return res
     keep = _keep(outputs)
     empty = res.mean.new_empty(0)
-    return res._replace(**{k: empty for k in FIELDS if k not in keep})
+    return res._replace(**{k: empty for k in FIELDS if k not in keep})  # type: ignore[arg-type]
 
 
 # ---------------------------------------------------------------------------------- smoother
@@ -1030,7 +1030,9 @@ def smooth_steps(data: Data, steps: LinearSteps, *, sqrt: bool, parallel: bool) 
     res = filter_steps(data, steps, sqrt=sqrt, parallel=parallel)
     T = res.mean.shape[-2]
     if not sqrt and not parallel and T > 1 and _is_shared(res) and steps.A.dim() == 3:
-        grad = torch.is_grad_enabled() and any(x.requires_grad for x in res if x.numel())
+        grad = torch.is_grad_enabled() and any(
+            x.requires_grad for x in res if isinstance(x, torch.Tensor) and x.numel()
+        )
         if not grad:
             return _smooth_shared(data, steps, res)
     el = smoother_elements(res, steps)
