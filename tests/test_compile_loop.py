@@ -17,8 +17,8 @@ COMPILE_RTOL = 1e-9
     "opts",
     [
         {"compile": "step"},
-        {"compile": True, "chunk": 3},
-        {"compile": True, "chunk": 3, "sqrt": True},
+        {"compile": "loop", "chunk": 3},
+        {"compile": "loop", "chunk": 3, "sqrt": True},
     ],
     ids=["step", "loop", "loop-sqrt"],
 )
@@ -31,8 +31,8 @@ def test_compiled_paths_equal_eager_time_varying(opts):
     kw = dict(x0=t64(p["m0"]), P0=t64(p["P0"]))
     y, u = t64(p["y"]), t64(p["u"])
     sqrt = opts.get("sqrt", False)
-    eager = CKF(model, sqrt=sqrt).filter(y, u, **kw)
-    got = CKF(model, **opts).filter(y, u, **kw)
+    eager = CKF(model, sqrt=sqrt).filter(y, u, path="cubature", **kw)
+    got = CKF(model, **opts).filter(y, u, path="cubature", **kw)
     assert got.numerics.execution == (
         "compiled-step" if opts["compile"] == "step" else "compiled-loop"
     )
@@ -41,9 +41,9 @@ def test_compiled_paths_equal_eager_time_varying(opts):
     torch.testing.assert_close(got.log_likelihood, eager.log_likelihood, rtol=COMPILE_RTOL, atol=0)
 
 
-def test_model_with_a_graph_break_falls_back_to_compiled_chunks():
-    """A model that Dynamo cannot capture whole (here an explicit graph break) cannot run inside
-    the scan; compile=True then compiles chunks of steps instead, with the same result."""
+def test_model_with_a_graph_break_compiles_in_chunks():
+    """A model that Dynamo cannot capture whole (here an explicit graph break): the chunked loop
+    still compiles (in pieces), with the same result."""
     p = make_problem(13, n=2, m=1, T=5)
     A = t64(p["A"])
 
@@ -57,25 +57,27 @@ def test_model_with_a_graph_break_falls_back_to_compiled_chunks():
     kw = dict(x0=t64(p["m0"]), P0=t64(p["P0"]))
     y = t64(p["y"])[:, :1]
     eager = CKF(model).filter(y, **kw)
-    got = CKF(model, compile=True, chunk=2).filter(y, **kw)
-    assert got.numerics.execution == "compiled-chunks"
+    got = CKF(model, compile="loop", chunk=2).filter(y, **kw)
+    assert got.numerics.execution == "compiled-loop"
     torch.testing.assert_close(got.mean, eager.mean, rtol=COMPILE_RTOL, atol=1e-12)
     torch.testing.assert_close(got.log_likelihood, eager.log_likelihood, rtol=COMPILE_RTOL, atol=0)
 
 
 def test_gradient_through_the_compiled_loop_equals_eager():
-    """Likelihood training differentiates through the filter: the compiled scan's gradient is the
+    """Likelihood training differentiates through the filter: the compiled loop's gradient is the
     eager one."""
     p = make_problem(11, n=2, m=1, T=4)
 
     def grad(compile):
         A = t64(p["A"]).requires_grad_()
         model = LinearGaussianModel(A, t64(p["H"]), t64(p["Q"]), t64(p["R"]))
-        res = CKF(model, compile=compile).filter(t64(p["y"]), x0=t64(p["m0"]), P0=t64(p["P0"]))
+        res = CKF(model, compile=compile).filter(
+            t64(p["y"]), x0=t64(p["m0"]), P0=t64(p["P0"]), path="cubature"
+        )
         res.log_likelihood.backward()
         return A.grad, res.numerics.execution
 
     want, _ = grad(False)
-    got, how = grad(True)
+    got, how = grad("loop")
     assert how == "compiled-loop"
     torch.testing.assert_close(got, want, rtol=COMPILE_RTOL, atol=1e-12)

@@ -67,9 +67,6 @@ _TIME_DIMS = {
     "log_likelihood": -1,
     "cross_cov": -3,
 }
-#: ``compile=True`` compiles the loop (in chunks) up to this many sequences, the step above: per-call
-#: overhead matters only for small batches, and a step compiles an order of magnitude faster.
-LOOP_MAX_BATCH = 64
 
 #: ``step(points, belief, y_t, obs_t, u_t, Q, R) -> (belief, record, aux)``: one filter step.
 StepFunction = Callable[
@@ -121,13 +118,12 @@ class GaussianFilter(nn.Module):
         point_variance: how per-point model variances (GP) enter Q and R: ``"total"`` averages them
             over the cubature points (law of total variance), ``"mean"`` evaluates them at the mean
             only.
-        compile: ``"loop"`` compiles the whole time loop with ``torch.compile``, as one
-            ``torch._higher_order_ops.scan`` over the step (the step is traced once); a model that
-            cannot be captured whole (graph breaks, e.g. a GP) gets chunks of ``chunk`` steps
-            unrolled into one graph each instead; ``"step"`` compiles the per-step function only (one
-            compiled call per step); ``True`` (``"auto"``) takes ``"loop"`` for batches of up to
-            ``LOOP_MAX_BATCH`` (64) sequences, where per-call overhead dominates, and ``"step"``
-            above, where it does not and the step compiles an order of magnitude faster. Under compilation a covariance that fails
+        compile: ``"loop"`` compiles the time loop with ``torch.compile`` in chunks of ``chunk``
+            steps unrolled into one graph each (fast per step on one or a few sequences, but a
+            long first compile); ``"step"`` compiles the per-step function only (one compiled call
+            per step); ``True`` (``"auto"``) takes ``"step"``. (torch 2.13's scan operator, which
+            would trace the step once, is private API: torchfilt does not import it.) Under
+            compilation a covariance that fails
             its Cholesky factorisation turns the sequence to NaN instead of being jittered. The
             eager path (the default) is the one to debug with: every op runs as written, and a
             failed factorisation is retried with jitter and reported.
@@ -175,14 +171,12 @@ class GaussianFilter(nn.Module):
         if int(chunk) < 1:
             raise InputError(f"chunk must be at least 1, got {chunk}")
         #: None (eager), "step" (one compiled call per step), "loop" (compiled chunks of steps) or
-        #: "auto" (True: "loop" up to LOOP_MAX_BATCH sequences, "step" above)
+        #: "auto" (True: "step")
         self.compile_mode = mode
         self.chunk = int(chunk)
         self._compiled = self.compile_mode is not None
         self._compiled_steps: dict[str, StepFunction] = {}
         self._compiled_chunks: dict[str, Callable[..., Any]] = {}
-        self._scan_functions: dict[str, Callable[..., Any]] = {}
-        self._scan_failed: set[str] = set()
 
     # ------------------------------------------------------------------ the step
     def step(
@@ -292,7 +286,7 @@ class GaussianFilter(nn.Module):
         ``"compiled-loop"``."""
         mode = self.compile_mode
         if mode == "auto":
-            mode = "loop" if math.prod(batch) <= LOOP_MAX_BATCH else "step"
+            mode = "step"
         return {None: "eager", "step": "compiled-step", "loop": "compiled-loop"}[mode]
 
     def numerics_path(self, inputs: FilterInputs, execution: str | None = None) -> NumericsPath:
@@ -316,9 +310,6 @@ class GaussianFilter(nn.Module):
         """
         if step_fn is None:
             if self.execution(inputs.batch) == "compiled-loop":
-                scanned = self._scanned(inputs)
-                if scanned is not None:
-                    return scanned
                 return self._chunked(inputs)
             step_fn = self.step_function(inputs.y.device)
         kernels = self.small_kernels(inputs.batch)
@@ -444,104 +435,6 @@ class GaussianFilter(nn.Module):
             extras.append(extra)
         return records, extras
 
-    def _scanned(
-        self, inp: FilterInputs
-    ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]] | None:
-        """The whole time loop as one ``torch._higher_order_ops.scan``, compiled once per shape:
-        the step is traced once (a short compile) and the loop runs inside the compiled code.
-
-        Returns one record with time dimensions (as :meth:`_chunked` does), or ``None`` when
-        the step cannot be captured whole (a model with graph breaks, e.g. a GP): the chunked loop
-        is used instead, and remembered for this filter and device."""
-        device = inp.y.device.type
-        if device in self._scan_failed:
-            return None
-        T = inp.y.shape[-2]
-        mean, cov = inp.x0.clone(), inp.P0.clone()
-        S0 = safe_cholesky(cov, name="P0")
-        f, h = self.model.transition, self.model.measurement
-        Qs = [self._noise_of(f, t, mean) for t in range(T if f.time_varying_noise else 1)]
-        Rs = [self._noise_of(h, t, mean) for t in range(T if h.time_varying_noise else 1)]
-        xi, wm, wc = steps.unit_points(self.rule, mean.shape[-1], mean)
-        # everything the step reads travels as scan carry or scanned inputs (not as closures, which
-        # the higher-order op refuses when two of them alias): constants ride in the carry
-        const: dict[str, Tensor] = {"xi": xi.clone(), "wm": wm.clone(), "wc": wc.clone()}
-        per_step: dict[str, Tensor] = {"y": inp.y.movedim(-2, 0), "obs": inp.obs.movedim(-2, 0)}
-        if inp.u is not None:
-            per_step["u"] = inp.u.movedim(-2, 0)
-        for name, noises in (("Q", Qs), ("R", Rs)):
-            for part in ("cov", "sqrt"):
-                vals = [getattr(nz, part) for nz in noises]
-                if vals[0] is None:
-                    continue
-                if len(vals) == 1:
-                    const[f"{name}_{part}"] = vals[0].clone()
-                else:
-                    per_step[f"{name}_{part}"] = torch.stack(vals)
-        names_c, names_x = list(const), list(per_step)
-        carry0 = [mean, cov, *([S0.contiguous()] if self.sqrt else []), *const.values()]
-        fn = self._scan_functions.get(device)
-        if fn is None:
-            fn = self._make_scan(names_c, names_x, inp.y.device)
-            self._scan_functions[device] = fn
-        try:
-            outs = fn(carry0, list(per_step.values()))
-        except Exception as e:
-            if "torch._dynamo" not in type(e).__module__ and "HigherOrder" not in type(e).__name__:
-                raise
-            self._scan_failed.add(device)
-            return None
-        rec = StepRecord(
-            **{
-                name: o.movedim(0, _TIME_DIMS[name])
-                for name, o in zip(StepRecord._fields, outs, strict=True)
-            }
-        )
-        return [rec], [()]
-
-    def _make_scan(
-        self, names_c: list[str], names_x: list[str], device: torch.device
-    ) -> Callable[..., Any]:
-        from torch._higher_order_ops.scan import scan as scan_op
-
-        sqrt = self.sqrt
-
-        def loop(carry0: list[Tensor], xs: list[Tensor]) -> list[Tensor]:
-            def body(carry: list[Tensor], x: list[Tensor]) -> tuple[list[Tensor], list[Tensor]]:
-                k = 3 if sqrt else 2
-                c = dict(zip(names_c, carry[k:], strict=True))
-                d = dict(zip(names_x, x, strict=True))
-
-                def noise(name: str) -> Noise:
-                    cov_ = d.get(f"{name}_cov", c.get(f"{name}_cov"))
-                    sq_ = d.get(f"{name}_sqrt", c.get(f"{name}_sqrt"))
-                    return Noise(cov_, sq_)
-
-                belief = Belief(carry[0], carry[1], carry[2] if sqrt else None)
-                post, rec, _ = self.step(
-                    UnitPoints(c["xi"], c["wm"], c["wc"]),
-                    belief,
-                    d["y"],
-                    d["obs"],
-                    d.get("u"),
-                    noise("Q"),
-                    noise("R"),
-                )
-                new = [post.mean, post.cov]
-                if sqrt:
-                    assert post.sqrt is not None
-                    new.append(post.sqrt)
-                # a carry keeps its layout from step to step (tria returns a transposed factor)
-                cf = torch.contiguous_format
-                new = [t.clone(memory_format=cf) for t in new] + [t.clone() for t in carry[k:]]
-                return new, [t.clone() for t in rec]
-
-            _, outs = scan_op(body, carry0, xs)
-            return list(outs)
-
-        options: dict[str, Any] | None = {"cpp_wrapper": True} if device.type == "cpu" else None
-        return torch.compile(loop, dynamic=False, fullgraph=True, options=options)
-
     def _noise_of(self, side: nn.Module, step: int, like: Tensor) -> Noise:
         cov = model_noise(side, step, like)
         return Noise(cov, None if cov is None or not self.sqrt else steps.noise_sqrt(cov))
@@ -603,8 +496,6 @@ class GaussianFilter(nn.Module):
         path = self.numerics_path(inputs)
         records, _ = self.scan(inputs)
         if path.execution == "compiled-loop":
-            if inputs.y.device.type in self._scan_failed:
-                path = path._replace(execution="compiled-chunks")
             return concat_records(records, self._observed(inputs), path)
         return stack_records(records, self._observed(inputs), path)
 

@@ -30,7 +30,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchfilt.filters.kalman import Data, LinearSteps, SmootherElements
+from torchfilt.filters.linear_data import Data, LinearSteps, SmootherElements
 from torchfilt.numerics import cholesky_solve, safe_cholesky, symmetrize
 from torchfilt.numerics.scan import associative_scan
 
