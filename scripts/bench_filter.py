@@ -1,9 +1,16 @@
-"""Filter throughput on the re-entry problem: torchfilt's CKF against filterpy (and dynamax if present).
+"""Filter throughput: torchfilt's CKF against filterpy and dynamax, all rows in one run.
 
-Re-entry, analytic model, RK4 with 10 sub-steps per 1 s step, T = 60, float64 on the CPU. filterpy
-gets its fastest form: dynamics written with plain Python floats. Everything is timed in the same
-run; each figure is the median of ``--repeats`` timed runs after a warm-up (compile time is
-reported separately). Prints a table and writes ``results.json``.
+Re-entry, analytic model, RK4 with 10 sub-steps per 1 s step, T = 60, float64 on the CPU (one
+thread by default). filterpy gets its fastest form: dynamics written with plain Python floats.
+dynamax (if installed) runs its UKF with alpha = 1, beta = 0, kappa = 0, which is the CKF, under
+``jax.jit`` (``+ vmap`` for batches), in float64. torchfilt runs eager, ``compile="step"`` (one
+compiled call per step) and ``compile="loop"`` (the whole time loop compiled as one scan over the
+step); ``compile=True`` takes the loop up to 64 sequences and the step above.
+The re-entry model is timed twice: as ``torchfilt.systems.reentry`` writes it (hand-tuned) and as a
+user would (``torch.stack`` of the derivative components inside a generic RK4). A linear model
+with n = 8 at batch 256 completes the acceptance table of issue 13. Each figure is the median of
+``--repeats`` timed runs after a warm-up; first-call (compile) times are reported beside them.
+Prints a table and writes ``results.json``.
 
     python scripts/bench_filter.py --out out/bench_filter
 """
@@ -77,14 +84,72 @@ def filterpy_runner(y: np.ndarray) -> Callable[[], None]:
 
 
 # --------------------------------------------------------------------------- torchfilt
+def user_reentry_model(dtype: torch.dtype = torch.float64) -> torchfilt.StateSpaceModel:
+    """Re-entry as a user would write it: a ``torch.stack`` drift inside a generic RK4 loop."""
+    gamma, M, H = reentry.GAMMA, reentry.RADAR_M, reentry.RADAR_H
+    h = reentry.DT / reentry.SUBSTEPS
+
+    def drift(x: torch.Tensor) -> torch.Tensor:
+        return torch.stack(
+            [
+                -x[..., 1],
+                -torch.exp(-gamma * x[..., 0]) * x[..., 1] ** 2 * x[..., 2],
+                0 * x[..., 2],
+            ],
+            dim=-1,
+        )
+
+    def f(x: torch.Tensor) -> torch.Tensor:
+        for _ in range(reentry.SUBSTEPS):
+            k1 = drift(x)
+            k2 = drift(x + 0.5 * h * k1)
+            k3 = drift(x + 0.5 * h * k2)
+            k4 = drift(x + h * k3)
+            x = x + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        return x
+
+    def hx(x: torch.Tensor) -> torch.Tensor:
+        return torch.sqrt(M**2 + (x[..., :1] - H) ** 2)
+
+    return torchfilt.StateSpaceModel(
+        f,
+        hx,
+        Q=torch.zeros(3, 3, dtype=dtype),
+        R=torch.tensor([[reentry.R_VAR]], dtype=dtype),
+    )
+
+
+def linear_problem(n: int, m: int, batch: int, seed: int = 0) -> dict[str, Any]:
+    """A stable random linear-Gaussian model (n states, m outputs) and ``batch`` recordings."""
+    gen = torch.Generator().manual_seed(seed)
+    A = torch.randn(n, n, generator=gen, dtype=torch.float64)
+    A = 0.95 * A / torch.linalg.eigvals(A).abs().max()
+    H = torch.randn(m, n, generator=gen, dtype=torch.float64)
+    Q, R = 0.01 * torch.eye(n, dtype=torch.float64), 0.1 * torch.eye(m, dtype=torch.float64)
+    model = torchfilt.LinearGaussianModel(A, H, Q, R)
+    sim = torchfilt.simulate(
+        model, T, torch.zeros(n, dtype=torch.float64), batch_shape=(batch,), generator=gen
+    )
+    return {"A": A, "H": H, "Q": Q, "R": R, "model": model, "y": sim.measurements}
+
+
 def torchfilt_runner(
-    y: torch.Tensor, *, compile: bool, sqrt: bool = False
+    y: torch.Tensor,
+    *,
+    compile: bool | str,
+    sqrt: bool = False,
+    model: torchfilt.StateSpaceModel | None = None,
+    x0: torch.Tensor | None = None,
+    P0: torch.Tensor | None = None,
 ) -> tuple[Callable[[], None], float]:
     """A closure filtering ``y`` with torchfilt, and the time its first call took."""
     dtype, device = y.dtype, y.device
-    x0 = torch.tensor(reentry.PRIOR_MEAN, dtype=dtype, device=device)
-    P0 = reentry.prior_cov(dtype).to(device)
-    filt = torchfilt.CKF(reentry.model(dtype=dtype).to(device), sqrt=sqrt, compile=compile)
+    if x0 is None or P0 is None:
+        x0 = torch.tensor(reentry.PRIOR_MEAN, dtype=dtype, device=device)
+        P0 = reentry.prior_cov(dtype).to(device)
+    if model is None:
+        model = reentry.model(dtype=dtype).to(device)
+    filt = torchfilt.CKF(model, sqrt=sqrt, compile=compile)  # type: ignore[arg-type]
 
     def run() -> None:
         with torch.inference_mode(), warnings.catch_warnings():
@@ -122,13 +187,21 @@ def graphed_runner(y: torch.Tensor, *, compile: bool) -> tuple[Callable[[], None
 
 
 def dynamax_runner(
-    y: np.ndarray, m0: np.ndarray | None = None, P0: np.ndarray | None = None
+    y: np.ndarray,
+    m0: np.ndarray | None = None,
+    P0: np.ndarray | None = None,
+    *,
+    x64: bool = False,
+    linear: dict[str, Any] | None = None,
 ) -> tuple[Callable[[], Any], float]:
     """dynamax's UKF with alpha = 1, beta = 0, kappa = 0 (that is the CKF), jit (+ vmap).
 
-    dynamax's first step is an update of ``N(m0, P0)``; by default the paper's prior.
+    dynamax's first step is an update of ``N(m0, P0)``; by default the paper's prior. ``x64``
+    runs in float64 (the CPU rows), ``linear`` the linear problem of :func:`linear_problem`.
     """
     import jax
+
+    jax.config.update("jax_enable_x64", x64)
     import jax.numpy as jnp
     from dynamax.nonlinear_gaussian_ssm import (  # type: ignore[import-not-found]
         ParamsNLGSSM,
@@ -154,16 +227,29 @@ def dynamax_runner(
     def hx(x: Any) -> Any:
         return jnp.sqrt(M**2 + (x[:1] - H) ** 2)
 
-    params = ParamsNLGSSM(
-        initial_mean=jnp.asarray(reentry.PRIOR_MEAN if m0 is None else m0, dtype=jnp.float32),
-        initial_covariance=jnp.asarray(
-            np.diag(reentry.PRIOR_COV_DIAG) if P0 is None else P0, dtype=jnp.float32
-        ),
-        dynamics_function=f,
-        dynamics_covariance=jnp.zeros((3, 3), dtype=jnp.float32),
-        emission_function=hx,
-        emission_covariance=jnp.full((1, 1), reentry.R_VAR, dtype=jnp.float32),
-    )
+    dt = jnp.float64 if x64 else jnp.float32
+    if linear is None:
+        params = ParamsNLGSSM(
+            initial_mean=jnp.asarray(reentry.PRIOR_MEAN if m0 is None else m0, dtype=dt),
+            initial_covariance=jnp.asarray(
+                np.diag(reentry.PRIOR_COV_DIAG) if P0 is None else P0, dtype=dt
+            ),
+            dynamics_function=f,
+            dynamics_covariance=jnp.zeros((3, 3), dtype=dt),
+            emission_function=hx,
+            emission_covariance=jnp.full((1, 1), reentry.R_VAR, dtype=dt),
+        )
+    else:
+        A, Hm = (jnp.asarray(linear[k].numpy(), dtype=dt) for k in ("A", "H"))
+        n = A.shape[0]
+        params = ParamsNLGSSM(
+            initial_mean=jnp.zeros(n, dtype=dt),
+            initial_covariance=jnp.eye(n, dtype=dt),
+            dynamics_function=lambda x: A @ x,
+            dynamics_covariance=jnp.asarray(linear["Q"].numpy(), dtype=dt),
+            emission_function=lambda x: Hm @ x,
+            emission_covariance=jnp.asarray(linear["R"].numpy(), dtype=dt),
+        )
     hyper = UKFHyperParams(alpha=1.0, beta=0.0, kappa=0.0)
 
     def one(ys: Any) -> Any:
@@ -171,7 +257,7 @@ def dynamax_runner(
         return post.marginal_loglik, post.filtered_means, post.filtered_covariances
 
     fn = jax.jit(one if y.ndim == 2 else jax.vmap(one))
-    yj = jax.device_put(jnp.asarray(y, dtype=jnp.float32))
+    yj = jax.device_put(jnp.asarray(y, dtype=dt))
     t0 = time.perf_counter()
     jax.block_until_ready(fn(yj))
     first = time.perf_counter() - t0
@@ -270,9 +356,10 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("--out", type=Path, default=Path("out/bench_filter"))
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--repeats", type=int, default=9)
     ap.add_argument("--batch", type=int, default=1000)
+    ap.add_argument("--linear-batch", type=int, default=256, help="batch of the linear n = 8 rows")
     ap.add_argument(
         "--gpu-batches",
         type=int,
@@ -314,22 +401,77 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  {name:<42} {batch * T / seconds:12.4g} seq-steps/s", flush=True)
 
     variants = [(False, "eager")] + ([] if args.no_compile else [(True, "torch.compile")])
+    cpu_variants: list[tuple[bool | str, str]] = [(False, "eager")]
+    if not args.no_compile:
+        # compile=True is "auto": "loop" up to 64 sequences, "step" above
+        cpu_variants += [("step", 'compile="step"'), ("loop", 'compile="loop"')]
+    have_dynamax = not args.no_dynamax and importlib.util.find_spec("dynamax") is not None
     if not args.gpu_only:
-        print(f"Re-entry CKF, T = {T}, float64, {args.threads} CPU threads")
+        print(f"Re-entry CKF, T = {T}, float64, {args.threads} CPU thread(s)")
         fp = filterpy_runner(y1[0].numpy())
         record("filterpy CKF (Python-float dynamics)", "cpu", 1, timeit(fp, args.repeats))
-        for compile_, tag in variants:
-            run, first = torchfilt_runner(y1, compile=compile_)
-            record(f"torchfilt CKF, {tag}", "cpu", 1, timeit(run, args.repeats), first)
-        for compile_, tag in variants:
-            run, first = torchfilt_runner(yB, compile=compile_)
+        for batch, yb in ((1, y1), (args.batch, yB)):
+            reps = args.repeats if batch == 1 else max(3, args.repeats // 2)
+            for compile_, tag in cpu_variants:
+                run, first = torchfilt_runner(yb, compile=compile_)
+                record(f"torchfilt CKF, {tag}", "cpu", batch, timeit(run, reps), first)
+            if have_dynamax:
+                ynp = yb.numpy()
+                run, first = dynamax_runner(ynp[0] if batch == 1 else ynp, x64=True)
+                name = "dynamax UKF-as-CKF, jit" + (" + vmap" if batch > 1 else "")
+                record(name, "cpu", 1 if batch == 1 else batch, timeit(run, reps), first)
+        # the model as a user writes it
+        user = user_reentry_model()
+        for compile_, tag in cpu_variants:
+            run, first = torchfilt_runner(y1, compile=compile_, model=user)
             record(
-                f"torchfilt CKF, {tag}",
+                f"torchfilt CKF, user-written model, {tag}",
                 "cpu",
-                args.batch,
-                timeit(run, max(2, args.repeats // 2)),
+                1,
+                timeit(run, args.repeats),
                 first,
             )
+        # linear, n = 8, batch 256
+        lin = linear_problem(8, 4, args.linear_batch)
+        x0l, P0l = torch.zeros(8, dtype=torch.float64), torch.eye(8, dtype=torch.float64)
+        for compile_, tag in cpu_variants:
+            run, first = torchfilt_runner(
+                lin["y"], compile=compile_, model=lin["model"], x0=x0l, P0=P0l
+            )
+            record(
+                f"torchfilt CKF, linear n=8, {tag}",
+                "cpu",
+                args.linear_batch,
+                timeit(run, max(3, args.repeats // 2)),
+                first,
+            )
+        if have_dynamax:
+            run, first = dynamax_runner(lin["y"].numpy(), x64=True, linear=lin)
+            record(
+                "dynamax UKF-as-CKF, linear n=8, jit + vmap",
+                "cpu",
+                args.linear_batch,
+                timeit(run, max(3, args.repeats // 2)),
+                first,
+            )
+        # ratios to the dynamax row of the same problem and batch
+        for r in rows:
+            if r["device"] != "cpu" or r["name"].startswith("dynamax") or "filterpy" in r["name"]:
+                continue
+            lin_row = "linear" in r["name"]
+            ref = next(
+                (
+                    d
+                    for d in rows
+                    if d["name"].startswith("dynamax")
+                    and d["device"] == "cpu"
+                    and d["batch"] == r["batch"]
+                    and ("linear" in d["name"]) == lin_row
+                ),
+                None,
+            )
+            if ref is not None:
+                r["ratio_to_dynamax"] = r["sequence_steps_per_s"] / ref["sequence_steps_per_s"]
 
     gpu: dict[str, Any] = {}
     if torch.cuda.is_available():

@@ -9,6 +9,7 @@ PKG = Path(__file__).resolve().parents[1] / "torchfilt"
 LAYERS = {
     "_version": 0,
     "exceptions": 0,
+    "settings": 0,
     "numerics": 1,
     "cubature": 2,
     "models": 3,
@@ -55,4 +56,105 @@ def test_no_upward_imports():
                     continue
                 if layer_of(name) > own:
                     bad.append(f"{module} (layer {own}) imports {name} (layer {layer_of(name)})")
+    assert not bad, "\n".join(bad)
+
+
+def _modules() -> dict[str, Path]:
+    """Every module of the package by dotted name (a package by its ``__init__``)."""
+    out = {}
+    for path in PKG.rglob("*.py"):
+        parts = path.relative_to(PKG.parent).with_suffix("").parts
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = path
+    return out
+
+
+def _imports(path: Path, modules: dict[str, Path]) -> list[tuple[str, str]]:
+    """``(module, name)`` for every ``torchfilt`` import anywhere in the file (inside functions and
+    ``TYPE_CHECKING`` blocks too): ``name`` is the imported attribute, or ``""`` for a module."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            for a in node.names:
+                sub = f"{node.module}.{a.name}"
+                out.append((sub, "") if sub in modules else (node.module, a.name))
+        elif isinstance(node, ast.Import):
+            out.extend((a.name, "") for a in node.names)
+    return [(m, n) for m, n in out if m == "torchfilt" or m.startswith("torchfilt.")]
+
+
+def _package(module: str, modules: dict[str, Path]) -> str:
+    """The sub-package a module belongs to: ``torchfilt.filters`` for ``torchfilt.filters.x``."""
+    parts = module.split(".")
+    return ".".join(parts[:2]) if len(parts) > 1 else module
+
+
+def test_no_import_cycles():
+    """No module imports, directly or through others, a module that imports it back (imports
+    inside functions and ``TYPE_CHECKING`` blocks count: they hide a cycle, they do not remove it).
+    Edges into a package's own ``__init__`` from its submodules are not counted when the
+    ``__init__`` only re-exports (the usual layout); every other cycle is."""
+    modules = _modules()
+    graph: dict[str, set[str]] = {m: set() for m in modules}
+    for mod, path in modules.items():
+        for target, _ in _imports(path, modules):
+            if target not in modules or target == mod:
+                continue
+            if mod.startswith(target + "."):
+                continue  # a submodule reading its package's re-exports
+            if target.startswith(mod + ".") and modules[mod].name == "__init__.py":
+                continue  # a package re-exporting its submodules
+            graph[mod].add(target)
+    # Tarjan's strongly connected components
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    cycles: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                cycles.append(sorted(comp))
+
+    for v in graph:
+        if v not in index:
+            visit(v)
+    assert not cycles, "import cycles:\n" + "\n".join(" <-> ".join(c) for c in cycles)
+
+
+def test_no_private_imports_across_packages():
+    """A name or module starting with ``_`` is private to its sub-package (``torchfilt.filters``,
+    ``torchfilt.numerics``, ...): no other sub-package imports it."""
+    modules = _modules()
+    bad = []
+    for mod, path in modules.items():
+        own = _package(mod, modules)
+        for target, name in _imports(path, modules):
+            if _package(target, modules) == own:
+                continue
+            private_module = any(
+                p.startswith("_") and not p.startswith("__") for p in target.split(".")
+            )
+            if (name.startswith("_") and not name.startswith("__")) or (
+                private_module and target != "torchfilt._version"
+            ):
+                bad.append(f"{mod} imports {target}{'.' + name if name else ''}")
     assert not bad, "\n".join(bad)

@@ -363,14 +363,15 @@ def test_x0_outside_the_box(small):
         filt.filter(y, x0=t([0.5, -0.1, 0.5]), P0=P0)
 
 
-def test_bad_options_and_no_smoother(small):
+def test_bad_options(small):
     model, y, P0 = small
     with pytest.raises(ValueError, match="covariance must be"):
         ConstrainedCKF(model, 0.0, 1.0, covariance="joseph")
     with pytest.raises(ValueError, match="theta must be"):
         ConstrainedCKF(model, 0.0, 1.0, theta="sd")
-    with pytest.raises(NotImplementedError, match="respect the bounds"):
-        ConstrainedCKF(model, 0.0, 1.0).smooth(y, x0=torch.zeros(3, dtype=D) + 0.5, P0=P0)
+    # smooth() exists now (issue 13): its means respect the bounds (tests/test_constrained_paths.py)
+    sm = ConstrainedCKF(model, 0.0, 1.0).smooth(y, x0=torch.zeros(3, dtype=D) + 0.5, P0=P0)
+    assert ((sm.mean >= 0.0) & (sm.mean <= 1.0)).all()
 
 
 def test_measurement_noise_must_be_positive_definite():

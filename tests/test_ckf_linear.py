@@ -61,7 +61,7 @@ def test_filter_and_smoother_equal_kalman(rule, sqrt, seed):
     msm, Psm = rts_smoother(p["A"], ms, Ps, mps, Pps)
     model = LinearGaussianModel(t64(p["A"]), t64(p["H"]), t64(p["Q"]), t64(p["R"]), B=t64(p["B"]))
     filt = CKF(model, rule=rule, sqrt=sqrt)
-    sm = filt.smooth(t64(p["y"]), t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]))
+    sm = filt.smooth(t64(p["y"]), t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]), path="cubature")
     res = sm.filtered
     assert_close(res.mean, ms, "filtered mean")
     assert_close(res.cov, Ps, "filtered cov")
@@ -83,8 +83,8 @@ def test_mask_equals_nan(sqrt):
     model = LinearGaussianModel(t64(p["A"]), t64(p["H"]), t64(p["Q"]), t64(p["R"]), B=t64(p["B"]))
     filt = CKF(model, sqrt=sqrt)
     kw = dict(x0=t64(p["m0"]), P0=t64(p["P0"]))
-    a = filt.filter(t64(p["y"]), t64(p["u"]), mask=torch.tensor(mask), **kw)
-    b = filt.filter(t64(y_nan), t64(p["u"]), **kw)
+    a = filt.filter(t64(p["y"]), t64(p["u"]), mask=torch.tensor(mask), **kw, path="cubature")
+    b = filt.filter(t64(y_nan), t64(p["u"]), **kw, path="cubature")
     assert torch.allclose(a.mean, b.mean, rtol=TIGHT, atol=0)
     assert torch.allclose(a.log_likelihood, b.log_likelihood, rtol=TIGHT)
     ms, *_, ll = kalman_filter(
@@ -102,7 +102,9 @@ def test_time_varying_noise_equals_kalman():
     model = LinearGaussianModel(
         t64(p["A"]), t64(p["H"]), TimeVarying(t64(Qt)), t64(p["R"]), B=t64(p["B"])
     )
-    res = CKF(model).filter(t64(p["y"]), t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]))
+    res = CKF(model).filter(
+        t64(p["y"]), t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]), path="cubature"
+    )
     ms, Ps, *_ = kalman_filter(p["A"], p["H"], Qt, p["R"], p["y"], p["m0"], p["P0"], p["B"], p["u"])
     assert_close(res.mean, ms, "mean")
     assert_close(res.cov, Ps, "cov")
@@ -117,10 +119,10 @@ def test_batched_equals_loop(batch, sqrt):
     gen = torch.Generator().manual_seed(7)
     y = t64(p["y"]) + torch.randn(*batch, *p["y"].shape, generator=gen, dtype=torch.float64)
     x0 = torch.randn(*batch, 3, generator=gen, dtype=torch.float64)
-    sm = filt.smooth(y, t64(p["u"]), x0=x0, P0=t64(p["P0"]))
+    sm = filt.smooth(y, t64(p["u"]), x0=x0, P0=t64(p["P0"]), path="cubature")
     assert sm.mean.shape == (*batch, 15, 3) and sm.filtered.log_likelihood.shape == batch
     for idx in np.ndindex(*batch):
-        one = filt.smooth(y[idx], t64(p["u"]), x0=x0[idx], P0=t64(p["P0"]))
+        one = filt.smooth(y[idx], t64(p["u"]), x0=x0[idx], P0=t64(p["P0"]), path="cubature")
         assert torch.allclose(sm.filtered.mean[idx], one.filtered.mean, rtol=TIGHT, atol=1e-12)
         assert torch.allclose(sm.filtered.cov[idx], one.filtered.cov, rtol=TIGHT, atol=1e-12)
         assert torch.allclose(sm.mean[idx], one.mean, rtol=TIGHT, atol=1e-12)
@@ -134,7 +136,9 @@ def test_batch_of_models_via_noise_batch():
     p = make_problem(5, missing=0.0)
     Qs = torch.stack([t64(p["Q"]) * s for s in (0.5, 1.0, 2.0)])
     model = LinearGaussianModel(t64(p["A"]), t64(p["H"]), Qs, t64(p["R"]), B=t64(p["B"]))
-    res = CKF(model).filter(t64(p["y"]), t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]))
+    res = CKF(model).filter(
+        t64(p["y"]), t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]), path="cubature"
+    )
     assert res.mean.shape == (3, 15, 3)
     for i, s in enumerate((0.5, 1.0, 2.0)):
         ms, *_ = kalman_filter(
@@ -146,8 +150,12 @@ def test_batch_of_models_via_noise_batch():
 def test_float32_runs_and_is_close_to_float64():
     p = make_problem(6, missing=0.0)
     model64 = LinearGaussianModel(t64(p["A"]), t64(p["H"]), t64(p["Q"]), t64(p["R"]), B=t64(p["B"]))
-    r64 = CKF(model64).filter(t64(p["y"]), t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]))
+    r64 = CKF(model64).filter(
+        t64(p["y"]), t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]), path="cubature"
+    )
     f32 = lambda a: torch.tensor(a, dtype=torch.float32)  # noqa: E731
-    r32 = CKF(model64).filter(f32(p["y"]), f32(p["u"]), x0=f32(p["m0"]), P0=f32(p["P0"]))
+    r32 = CKF(model64).filter(
+        f32(p["y"]), f32(p["u"]), x0=f32(p["m0"]), P0=f32(p["P0"]), path="cubature"
+    )
     assert r32.mean.dtype == torch.float32
     assert torch.allclose(r32.mean.double(), r64.mean, rtol=1e-4, atol=1e-4)

@@ -3,9 +3,15 @@
 Layers (each imports only from those before it):
 ``numerics`` -> ``cubature`` -> ``models`` -> ``filters`` -> ``systems``/``dmc`` -> ``io`` ->
 ``training``/``plots`` -> ``pipeline`` -> ``cli``.
+
+The light core (numerics, cubature, models, filters, systems, dmc, io) is imported with the
+package. The GP models (gpytorch), training, the pipeline and the plots (matplotlib) are imported on
+first use of one of their names, so that ``import torchfilt`` stays fast.
 """
 
-from torchfilt import cubature, dmc, exceptions, filters, models, numerics, systems
+from typing import TYPE_CHECKING, Any
+
+from torchfilt import cubature, dmc, exceptions, filters, models, numerics, settings, systems
 from torchfilt._version import __version__
 from torchfilt.cubature import GaussHermiteRule, SphericalRadialRule, UnscentedRule
 from torchfilt.dmc import (
@@ -60,7 +66,6 @@ from torchfilt.models import (
     StateSpaceModel,
     TimeVarying,
 )
-from torchfilt.models.gp import FitState, GPMeasurement, GPModel, GPTransition
 from torchfilt.numerics import (
     Box,
     LeastSquaresResult,
@@ -69,16 +74,53 @@ from torchfilt.numerics import (
     solve_dare,
     steady_state_kalman,
 )
-from torchfilt.pipeline import evaluate_outputs, filter_recordings
 from torchfilt.systems import simulate
-from torchfilt.training import (
-    Sequences,
-    calibrate,
-    fit_likelihood,
-    load_bundle,
-    load_model,
-    train_recipe,
-)
+
+if TYPE_CHECKING:
+    from torchfilt.models.gp import FitState, GPMeasurement, GPModel, GPTransition
+    from torchfilt.pipeline import evaluate_outputs, filter_recordings
+    from torchfilt.training import (
+        Sequences,
+        calibrate,
+        fit_likelihood,
+        load_bundle,
+        load_model,
+        train_recipe,
+    )
+
+#: Names whose modules need gpytorch or matplotlib: imported on first access (PEP 562).
+_LAZY = {
+    "FitState": "torchfilt.models.gp",
+    "GPMeasurement": "torchfilt.models.gp",
+    "GPModel": "torchfilt.models.gp",
+    "GPTransition": "torchfilt.models.gp",
+    "evaluate_outputs": "torchfilt.pipeline",
+    "filter_recordings": "torchfilt.pipeline",
+    "Sequences": "torchfilt.training",
+    "calibrate": "torchfilt.training",
+    "fit_likelihood": "torchfilt.training",
+    "load_bundle": "torchfilt.training",
+    "load_model": "torchfilt.training",
+    "train_recipe": "torchfilt.training",
+}
+_LAZY_MODULES = ("pipeline", "plots", "training")
+
+
+def __getattr__(name: str) -> Any:
+    import importlib
+
+    if name in _LAZY_MODULES:
+        return importlib.import_module(f"torchfilt.{name}")
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'torchfilt' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY) | set(_LAZY_MODULES))
+
 
 __all__ = [
     "CKF",
@@ -151,6 +193,7 @@ __all__ = [
     "read_recording",
     "rmse",
     "rts_smooth",
+    "settings",
     "simulate",
     "simulate_dataset",
     "solve_dare",

@@ -15,6 +15,7 @@ __all__ = [
     "DivergenceWarning",
     "InfeasibleError",
     "InputError",
+    "InputTypeError",
     "ModelError",
     "NotDetectableError",
     "NumericsWarning",
@@ -61,6 +62,10 @@ class TorchfiltError(Exception):
 
 class InputError(TorchfiltError, ValueError):
     """An argument of a public function is invalid (value, dtype, option)."""
+
+
+class InputTypeError(InputError, TypeError):
+    """An argument has the wrong type or dtype (also a ``TypeError``)."""
 
 
 class ShapeError(InputError):

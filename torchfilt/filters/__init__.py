@@ -1,23 +1,71 @@
-"""Filters and smoothers: the batched cubature Gaussian filter, RTS smoothing and metrics."""
+"""Filters and smoothers: the batched cubature Gaussian filter, the exact and parallel-in-time
+Kalman filter for linear models, RTS and iterated smoothing, and metrics.
 
-from torchfilt.filters.constrained import ConstrainedCKF, ConstrainedInfo
-from torchfilt.filters.gaussian import CKF, GaussianFilter
+The filter is a scan of two pure steps, :func:`predict` and :func:`update` (and, for the
+constrained CKF, :func:`constrained_predict` and :func:`constrained_update`), over a
+:class:`Belief`; :class:`GaussianFilter` binds a model and options to them.
+"""
+
+from torchfilt.filters.constrained import (
+    ConstrainedCKF,
+    ConstrainedInfo,
+    SolverInfo,
+    constrained_predict,
+    constrained_update,
+)
+from torchfilt.filters.gaussian import CKF, FilterState, GaussianFilter
 from torchfilt.filters.graphed import GraphedFilter
+from torchfilt.filters.inputs import FilterInputs
+from torchfilt.filters.iterated import iterated_smoother
+from torchfilt.filters.kalman import kalman_filter, kalman_smoother
 from torchfilt.filters.metrics import coverage, nees, nis, rmse
-from torchfilt.filters.results import FilterResult, SmootherResult
+from torchfilt.filters.results import (
+    FilterResult,
+    KalmanFilterResult,
+    ParallelFilterResult,
+    SmootherResult,
+    StepRecord,
+)
 from torchfilt.filters.smoother import rts_smooth
+from torchfilt.filters.steps import (
+    Belief,
+    Noise,
+    PredictCache,
+    UnitPoints,
+    UpdateStats,
+    predict,
+    update,
+)
 
 __all__ = [
     "CKF",
+    "Belief",
     "ConstrainedCKF",
     "ConstrainedInfo",
+    "FilterInputs",
     "FilterResult",
+    "FilterState",
     "GaussianFilter",
     "GraphedFilter",
+    "KalmanFilterResult",
+    "Noise",
+    "ParallelFilterResult",
+    "PredictCache",
     "SmootherResult",
+    "SolverInfo",
+    "StepRecord",
+    "UnitPoints",
+    "UpdateStats",
+    "constrained_predict",
+    "constrained_update",
     "coverage",
+    "iterated_smoother",
+    "kalman_filter",
+    "kalman_smoother",
     "nees",
     "nis",
+    "predict",
     "rmse",
     "rts_smooth",
+    "update",
 ]

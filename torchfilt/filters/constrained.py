@@ -39,9 +39,25 @@ from torch import Tensor
 
 from torchfilt.cubature import SphericalRadialRule, constrained_points
 from torchfilt.cubature.constrained import ThetaReading
-from torchfilt.exceptions import ConvergenceWarning, ShapeError
-from torchfilt.filters.gaussian import GaussianFilter, _add, _Inputs, _point_noise, _Step
-from torchfilt.filters.results import FilterResult, SmootherResult
+from torchfilt.exceptions import ConvergenceWarning, InputError, ModelError, ShapeError
+from torchfilt.filters.gaussian import FilterState, GaussianFilter
+from torchfilt.filters.inputs import FilterInputs
+from torchfilt.filters.results import (
+    FilterResult,
+    SmootherResult,
+    StepRecord,
+    stack_records,
+    warn_nonfinite,
+)
+from torchfilt.filters.steps import (
+    Belief,
+    Noise,
+    PredictCache,
+    UnitPoints,
+    UpdateStats,
+    add,
+    point_noise,
+)
 from torchfilt.models import ConditionalModel, Prediction, StateSpaceModel
 from torchfilt.numerics import (
     Box,
@@ -53,7 +69,13 @@ from torchfilt.numerics import (
     symmetrize,
 )
 
-__all__ = ["ConstrainedCKF", "ConstrainedInfo"]
+__all__ = [
+    "ConstrainedCKF",
+    "ConstrainedInfo",
+    "SolverInfo",
+    "constrained_predict",
+    "constrained_update",
+]
 
 CovarianceForm = Literal["paper", "corrected"]
 
@@ -76,7 +98,15 @@ class ConstrainedInfo(NamedTuple):
     projected: Tensor
 
 
-class _Diag(NamedTuple):
+class SolverInfo(NamedTuple):
+    """Diagnostics of one :func:`constrained_update`.
+
+    Attributes:
+        iterations: NDDR solver iterations per cubature point, ``(..., 2n)``.
+        status: :class:`~torchfilt.numerics.SolverStatus` codes, ``(..., 2n)``.
+        projected: whether the predicted mean left the box and was projected, ``(...)``.
+    """
+
     iterations: Tensor
     status: Tensor
     projected: Tensor
@@ -99,6 +129,211 @@ def _observed_block(A: Tensor, obs_f: Tensor, fill: float) -> Tensor:
     """``A`` on the observed components, ``fill`` on the diagonal of the others (``(..., m, m)``)."""
     keep = obs_f.unsqueeze(-1) * obs_f.unsqueeze(-2)
     return A * keep + fill * torch.diag_embed(1.0 - obs_f)
+
+
+def _variances(
+    side: ConditionalModel,
+    X: Tensor,
+    w: Tensor,
+    center: Tensor,
+    uP: Tensor | None,
+    pred: Prediction,
+    point_variance: Literal["total", "mean"],
+) -> tuple[Tensor | None, Tensor | None]:
+    """Weighted model variance ``sum_i w_i V(X_i)`` and per-point ``V(X_i)`` (``(..., P, d, d)``).
+
+    With ``point_variance="mean"`` both are the variance at ``center``.
+    """
+    if pred.var is None and pred.cov is None:
+        return None, None
+    if point_variance == "mean":
+        pm = side.predict(center.unsqueeze(-2), None if uP is None else uP[..., :1, :])
+        per = _per_point_noise(pm)
+        assert per is not None
+        return per.squeeze(-3), per
+    return point_noise(pred, w), _per_point_noise(pred)
+
+
+def constrained_predict(
+    belief: Belief,
+    model: StateSpaceModel,
+    u: Tensor | None,
+    box: Box,
+    *,
+    theta: ThetaReading = DEFAULT_THETA,
+    point_variance: Literal["total", "mean"] = "total",
+    noise: Noise | None = None,
+) -> tuple[Belief, PredictCache]:
+    """The CCKF prediction from constrained cubature points of the filtered belief (spec s.2).
+
+    Args:
+        belief: filtered ``mean (..., n)`` inside the box and ``cov (..., n, n)``.
+        model: the state-space model (its transition).
+        u: inputs ``(..., nu)`` or ``None``.
+        box: the bounds, in the belief's dtype and device.
+        theta: reading of theta in the weights (see :class:`ConstrainedCKF`).
+        point_variance: ``"total"`` or ``"mean"``.
+        noise: the process noise ``Q`` of the step (``None``: none).
+
+    Returns:
+        The predicted belief (its mean not yet projected onto the box) and a
+        :class:`~torchfilt.filters.steps.PredictCache` (propagated points, cross-covariance).
+    """
+    f = model.transition
+    mean, cov = belief.mean, belief.cov
+    # the reconciled points' spread is exactly singular when they all share a bound
+    # (certainty at the bound): factor it with the tiny jitter, without a warning
+    S = safe_cholesky(cov, name="filtered covariance", warn=False)
+    cp = constrained_points(mean, S, box, theta=theta)
+    X, w = cp.points, cp.weights
+    uP = None if u is None else u.unsqueeze(-2).expand(*X.shape[:-1], u.shape[-1])
+    pf = f.predict(X, uP)
+    Xs = pf.mean
+    m_pred = _wmean(w, Xs)
+    D = Xs - m_pred.unsqueeze(-2)
+    Dw = D * w.unsqueeze(-1)
+    cross = (X - _wmean(w, X).unsqueeze(-2)).mT @ Dw
+    Vf, _ = _variances(f, X, w, mean, uP, pf, point_variance)
+    P_pred = symmetrize(add(D.mT @ Dw, Vf, None if noise is None else noise.cov))
+    return Belief(m_pred, P_pred), PredictCache(Xs, D, cross, None)
+
+
+def constrained_update(
+    belief: Belief,
+    y: Tensor,
+    obs: Tensor | None,
+    model: StateSpaceModel,
+    box: Box,
+    *,
+    u: Tensor | None = None,
+    theta: ThetaReading = DEFAULT_THETA,
+    point_variance: Literal["total", "mean"] = "total",
+    covariance: CovarianceForm = "paper",
+    noise: Noise | None = None,
+    tol: float | None = None,
+    max_iter: int = 50,
+) -> tuple[Belief, UpdateStats, SolverInfo]:
+    """The CCKF update: project the prediction, reconcile every constrained point (NDDR).
+
+    Equations in the module docstring. A step with no observed component keeps the (projected)
+    prediction.
+
+    Args:
+        belief: the predicted belief ``mean (..., n)``, ``cov (..., n, n)``.
+        y: measurement ``(..., m)``; non-finite entries are missing.
+        obs: bool ``(..., m)``, False where missing, or ``None`` (the finite entries).
+        model: the state-space model (its measurement side).
+        box: the bounds, in the belief's dtype and device.
+        u: inputs ``(..., nu)`` or ``None``.
+        theta, point_variance, covariance, tol, max_iter: as in :class:`ConstrainedCKF`.
+        noise: the measurement noise ``R`` of the step (``None``: none).
+
+    Returns:
+        The filtered belief (the projected prediction where nothing was observed; its mean is
+        the projected prediction's only there), the step's
+        :class:`~torchfilt.filters.steps.UpdateStats` (from the constrained update points) and a
+        :class:`SolverInfo`.
+
+    Raises:
+        ModelError: the measurement noise (plus any per-point variance) is not positive definite.
+    """
+    h = model.measurement
+    m_pred, P_pred = belief.mean, belief.cov
+    R = None if noise is None else noise.cov
+    if obs is None:
+        obs = torch.isfinite(y)
+    y = torch.where(obs, y, torch.zeros((), dtype=y.dtype, device=y.device))
+    m_proj = box.project(m_pred)
+    projected = (m_proj != m_pred).any(-1)
+    S_pred = safe_cholesky(P_pred, name="predicted covariance")
+    cu = constrained_points(m_proj, S_pred, box, theta=theta)
+    Xu, wu = cu.points, cu.weights
+    uP = None if u is None else u.unsqueeze(-2).expand(*Xu.shape[:-1], u.shape[-1])
+    ph = h.predict(Xu, uP)
+    Ys = ph.mean
+    y_mean = _wmean(wu, Ys)
+    E = Ys - y_mean.unsqueeze(-2)
+    Ew = E * wu.unsqueeze(-1)
+    Vh, Vh_pts = _variances(h, Xu, wu, m_proj, uP, ph, point_variance)
+    if R is None and Vh is None:
+        raise ModelError(
+            "ConstrainedCKF needs a positive-definite measurement noise R (or a measurement "
+            "model with a predictive variance): the reconciliation weighs the measurement by "
+            "its inverse"
+        )
+    R_tot = add(Vh, R)
+    P_yy = symmetrize(E.mT @ Ew + R_tot)
+    P_xy = (Xu - _wmean(wu, Xu).unsqueeze(-2)).mT @ Ew  # (..., n, m)
+
+    obs_f = obs.to(m_pred.dtype)
+    L_yy = safe_cholesky(_observed_block(P_yy, obs_f, 1.0), name="innovation covariance")
+    innov = y - y_mean
+    e = innov * obs_f
+    ll = gaussian_log_prob(e, L_yy, dim=obs_f.sum(-1))
+
+    # ---- NDDR: one bounded least-squares problem per batch element and cubature point
+    R_pts = add(None if Vh_pts is None else Vh_pts, None if R is None else R.unsqueeze(-3))
+    L_R, bad = torch.linalg.cholesky_ex(_observed_block(R_pts, obs_f.unsqueeze(-2), 1.0))
+    if bool((bad > 0).any()):
+        raise ModelError(
+            "the measurement noise R (plus the model's per-point variance) is not positive "
+            "definite: the reconciliation weighs the measurement by its inverse"
+        )
+    L_P = S_pred.unsqueeze(-3)
+    z = y.unsqueeze(-2)
+    o = obs_f.unsqueeze(-2)
+
+    # whitening by the inverse Cholesky factors, formed once per step (triangular solves of the
+    # identity) so that the solver's many residual calls are cheap products
+    n, m = m_pred.shape[-1], y.shape[-1]
+    W_P = torch.linalg.solve_triangular(
+        L_P, torch.eye(n, dtype=m_pred.dtype, device=m_pred.device), upper=False
+    )  # (..., 1, n, n): also the (constant) Jacobian of the prior residual
+    W_R = torch.linalg.solve_triangular(
+        L_R, torch.eye(m, dtype=m_pred.dtype, device=m_pred.device), upper=False
+    )  # (..., 1 or 2n, m, m)
+
+    ones_n, ones_m = m_pred.new_ones(n), m_pred.new_ones(m)
+
+    def h_mean(x: Tensor) -> Tensor:  # the solver needs the mean only
+        return h.predict_mean(x, uP)
+
+    def residual(x: Tensor) -> Tensor:  # (..., 2n, n) -> (..., 2n, n + m)
+        # W v as (W * v) @ 1: much faster than a batched matmul for tiny matrices on CPU
+        rp = (W_P * (x - Xu).unsqueeze(-2)) @ ones_n
+        rm = (W_R * ((z - h_mean(x)) * o).unsqueeze(-2)) @ ones_m
+        return torch.cat([rp, rm], dim=-1)
+
+    def jacobian(x: Tensor) -> Tensor:  # (..., 2n, n + m, n); autograd only through h
+        _, Jh = batched_jacobian(h_mean, x)
+        Jm = -W_R @ (Jh * o.unsqueeze(-1))
+        return torch.cat([W_P.expand(*Jm.shape[:-2], n, n), Jm], dim=-2)
+
+    sol = bounded_least_squares(
+        residual,
+        Xu,
+        box.unsqueeze(-2),
+        jacobian=jacobian,
+        tol=tol,
+        max_iter=max_iter,
+        warn=False,
+    )
+    Xk = sol.x
+    x_upd = box.project(_wmean(wu, Xk))  # a convex combination; projection only removes round-off
+    Dk = Xk - x_upd.unsqueeze(-2)
+    P_upd = Dk.mT @ (Dk * wu.unsqueeze(-1))
+    if covariance == "corrected":
+        K = torch.cholesky_solve((P_xy * obs_f.unsqueeze(-2)).mT, L_yy).mT
+        P_upd = P_upd + K @ _observed_block(R_tot, obs_f, 0.0) @ K.mT
+    any_obs = obs.any(-1)
+    mean_new = torch.where(any_obs.unsqueeze(-1), x_upd, m_proj)
+    cov_new = torch.where(any_obs[..., None, None], symmetrize(P_upd), P_pred)
+    innov_out = torch.where(obs, innov, torch.full_like(innov, math.nan))
+    return (
+        Belief(mean_new, cov_new),
+        UpdateStats(y_mean, innov_out, P_yy, ll),
+        SolverInfo(sol.iterations, sol.status, projected),
+    )
 
 
 class ConstrainedCKF(GaussianFilter):
@@ -140,6 +375,10 @@ class ConstrainedCKF(GaussianFilter):
         tol: NDDR solver tolerance (``sqrt(delta)``, the remaining Gauss-Newton step in the
             ``J^T J`` metric, i.e. roughly in prior standard deviations); default ``sqrt(eps)``.
         max_iter: NDDR solver iteration limit.
+        compile: compile the step (:func:`constrained_predict` + :func:`constrained_update`) with
+            ``torch.compile``. The solver's convergence test runs on the host, so the compiled
+            step is split into several graphs; as with the CKF, a covariance that fails its
+            Cholesky factorisation then turns the sequence to NaN instead of being jittered.
 
     Example:
         >>> from torchfilt.filters import ConstrainedCKF
@@ -162,8 +401,16 @@ class ConstrainedCKF(GaussianFilter):
         point_variance: Literal["total", "mean"] = "total",
         tol: float | None = None,
         max_iter: int = 50,
+        compile: bool = False,
     ) -> None:
-        super().__init__(model, rule=SphericalRadialRule(3), point_variance=point_variance)
+        # the solver's host-side convergence test splits a compiled step into several graphs,
+        # which a compiled chunk of unrolled steps cannot hold: always one compiled call per step
+        super().__init__(
+            model,
+            rule=SphericalRadialRule(3),
+            point_variance=point_variance,
+            compile="step" if compile else False,
+        )
         if covariance not in ("paper", "corrected"):
             raise ValueError(f"covariance must be 'paper' or 'corrected', got {covariance!r}")
         if theta not in ("paper", "std"):
@@ -175,9 +422,89 @@ class ConstrainedCKF(GaussianFilter):
         self.theta: ThetaReading = theta
         self.tol = tol
         self.max_iter = int(max_iter)
+        self._boxes: dict[tuple[torch.dtype, torch.device], Box] = {}
+
+    # ------------------------------------------------------------------ the step
+    def _box_for(self, like: Tensor) -> Box:
+        key = (like.dtype, like.device)
+        box = self._boxes.get(key)
+        if box is None:
+            box = self.box.to(dtype=like.dtype, device=like.device)
+            self._boxes[key] = box
+        return box
+
+    def step(
+        self,
+        points: UnitPoints,
+        belief: Belief,
+        y: Tensor,
+        obs: Tensor,
+        u: Tensor | None,
+        Q: Noise,
+        R: Noise,
+    ) -> tuple[Belief, StepRecord, tuple[Tensor, ...]]:
+        """One CCKF step: :func:`constrained_predict` then :func:`constrained_update`.
+
+        Arguments as in :meth:`GaussianFilter.step <torchfilt.filters.GaussianFilter.step>`
+        (``points`` is unused: the constrained points are built from each belief). The extra
+        outputs are the :class:`SolverInfo` fields ``(iterations, status, projected)``.
+        """
+        box = self._box_for(belief.mean)
+        pred, cache = constrained_predict(
+            belief,
+            self.model,
+            u,
+            box,
+            theta=self.theta,
+            point_variance=self.point_variance,
+            noise=Q,
+        )
+        post, stats, info = constrained_update(
+            pred,
+            y,
+            obs,
+            self.model,
+            box,
+            u=u,
+            theta=self.theta,
+            point_variance=self.point_variance,
+            covariance=self.covariance,
+            noise=R,
+            tol=self.tol,
+            max_iter=self.max_iter,
+        )
+        record = StepRecord(
+            mean=post.mean,
+            cov=post.cov,
+            predicted_mean=box.project(pred.mean),
+            predicted_cov=pred.cov,
+            measurement_mean=stats.measurement_mean,
+            innovation=stats.innovation,
+            innovation_cov=stats.innovation_cov,
+            log_likelihood=stats.log_likelihood,
+            cross_cov=cache.cross_cov,
+        )
+        return post, record, (info.iterations, info.status, info.projected)
+
+    def prepare(
+        self,
+        y: Tensor,
+        u: Tensor | None = None,
+        *,
+        x0: Tensor,
+        P0: Tensor,
+        mask: Tensor | None = None,
+    ) -> FilterInputs:
+        """Check a recording as :meth:`GaussianFilter.prepare
+        <torchfilt.filters.GaussianFilter.prepare>` does, broadcast it against the bounds'
+        batch shape and check that ``x0`` lies in the box."""
+        inp = super().prepare(y, u, x0=x0, P0=P0, mask=mask)
+        box = self._box_for(inp.x0)
+        return self._with_box(inp, box)
 
     # ------------------------------------------------------------------ public API
-    def filter(
+    # no exact Kalman path here (path=, parallel=, outputs= of GaussianFilter.filter)
+    def filter(  # type: ignore[override]
         self,
         y: Tensor,
         u: Tensor | None = None,
@@ -195,7 +522,7 @@ class ConstrainedCKF(GaussianFilter):
         ``innovation_cov`` come from the constrained update points, and ``log_likelihood`` is the
         Gaussian approximation ``sum_k log N(z_k; z-_k, P_zz)`` built from them.
         """
-        return self._run(y, u, x0, P0, mask, stacklevel=4)[0]
+        return self._run(y, u, x0, P0, mask, stacklevel=3)[0]
 
     def filter_with_info(
         self,
@@ -207,13 +534,123 @@ class ConstrainedCKF(GaussianFilter):
         mask: Tensor | None = None,
     ) -> tuple[FilterResult, ConstrainedInfo]:
         """:meth:`filter`, plus the solver's iterations and status per step and point."""
-        return self._run(y, u, x0, P0, mask, stacklevel=4)
+        return self._run(y, u, x0, P0, mask, stacklevel=3)
 
-    def smooth(self, *args: Any, **kwargs: Any) -> SmootherResult:
-        """Not available: the RTS smoother would not keep the smoothed means inside the box."""
-        raise NotImplementedError(
-            "ConstrainedCKF has no smoother: a Rauch-Tung-Striebel pass would not respect the bounds"
+    def smooth(  # type: ignore[override]
+        self,
+        y: Tensor,
+        u: Tensor | None = None,
+        *,
+        x0: Tensor,
+        P0: Tensor,
+        mask: Tensor | None = None,
+    ) -> SmootherResult:
+        """Filter under the bounds, then the cubature RTS smoother, projected onto the box.
+
+        The backward pass is :func:`~torchfilt.filters.rts_smooth` over this filter's result (its
+        cross-covariances come from the constrained prediction points). A Gaussian smoother does
+        not know the bounds, so each smoothed mean is then projected onto the box (the
+        covariances are left as the RTS pass gives them). For a linear model with no bound in
+        reach and ``covariance="corrected"`` this is the CKF's smoother exactly.
+
+        Arguments as in :meth:`filter`.
+        """
+        from torchfilt.filters.smoother import rts_smooth
+
+        sm = rts_smooth(self.filter(y, u, x0=x0, P0=P0, mask=mask))
+        box = self._box_for(sm.mean)
+        return sm._replace(mean=box.project(sm.mean.movedim(-2, 0)).movedim(0, -2))
+
+    def graphed(
+        self,
+        y: Tensor,
+        u: Tensor | None = None,
+        *,
+        x0: Tensor,
+        P0: Tensor,
+        warmup: int = 2,
+    ) -> Any:
+        """Not available: refused, rather than capturing the plain CKF's step.
+
+        Raises:
+            ModelError: always. The NDDR solver decides on the host, every iteration, which
+                reconciliation problems have converged; a CUDA graph cannot hold that loop. Use
+                :meth:`filter` (or ``compile=True``).
+        """
+        raise ModelError(
+            "ConstrainedCKF.graphed: the constrained step cannot be captured into a CUDA graph "
+            "(the NDDR solver decides on the host when each reconciliation has converged); use "
+            "filter(), or ConstrainedCKF(..., compile=True)"
         )
+
+    # ------------------------------------------------------------------ online use
+    def init(self, x0: Tensor, P0: Tensor) -> FilterState:
+        """Start an online constrained filter; ``x0 (..., n)`` must lie in the box."""
+        state = super().init(x0, P0)
+        box = self._box_for(state.mean)
+        self._check_in_box(state.mean, box)
+        return state
+
+    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+        """:func:`constrained_predict` of an online state (arguments as in
+        :meth:`GaussianFilter.predict <torchfilt.filters.GaussianFilter.predict>`). The predicted
+        mean is projected onto the box by the next :meth:`update`."""
+        self._check_state(state, "predict")
+        u = self._step_input("u", u, -1, state.mean)
+        t = state.t + 1
+        Q = self._noise_of(self.model.transition, t, state.mean)
+        box = self._box_for(state.mean)
+        pred, cache = constrained_predict(
+            state.belief,
+            self.model,
+            u,
+            box,
+            theta=self.theta,
+            point_variance=self.point_variance,
+            noise=Q,
+        )
+        return FilterState(pred.mean, pred.cov, None, t, True, cache)
+
+    def update(
+        self,
+        state: FilterState,
+        y: Tensor,
+        u: Tensor | None = None,
+        *,
+        mask: Tensor | None = None,
+    ) -> tuple[FilterState, UpdateStats]:
+        """:func:`constrained_update` of an online state (arguments as in
+        :meth:`GaussianFilter.update <torchfilt.filters.GaussianFilter.update>`)."""
+        self._check_state(state, "update")
+        if not state.predicted:
+            raise InputError("state: update needs a predicted state; call predict(state, u) first")
+        y, obs = self._measurement(y, mask, state.mean)
+        u = self._step_input("u", u, -1, state.mean)
+        try:
+            batch = torch.broadcast_shapes(state.mean.shape[:-1], obs.shape[:-1])
+        except RuntimeError:
+            raise ShapeError(
+                f"y: batch shape {tuple(obs.shape[:-1])} does not broadcast with the state's "
+                f"{tuple(state.mean.shape[:-1])}"
+            ) from None
+        R = self._noise_of(self.model.measurement, state.t, state.mean)
+        box = self._box_for(state.mean)
+        m = self.model.obs_dim
+        post, stats, _ = constrained_update(
+            self._expand(state, batch),
+            y.expand(*batch, m),
+            obs.expand(*batch, m),
+            self.model,
+            box,
+            u=u,
+            theta=self.theta,
+            point_variance=self.point_variance,
+            covariance=self.covariance,
+            noise=R,
+            tol=self.tol,
+            max_iter=self.max_iter,
+        )
+        return FilterState(post.mean, post.cov, None, state.t, False), stats
 
     # ------------------------------------------------------------------ internals
     def _run(
@@ -226,36 +663,16 @@ class ConstrainedCKF(GaussianFilter):
         *,
         stacklevel: int,
     ) -> tuple[FilterResult, ConstrainedInfo]:
-        inp = self._check(y, u, x0, P0, mask)
-        box = self.box.to(dtype=inp.x0.dtype, device=inp.x0.device)
-        inp = self._with_box(inp, box)
-        diags: list[_Diag] = []
-
-        def step(
-            xi: Tensor,
-            wm: Tensor,
-            wc: Tensor,
-            mean: Tensor,
-            cov: Tensor,
-            sqrt: Tensor,
-            yt: Tensor,
-            obs: Tensor,
-            ut: Tensor | None,
-            Q: Tensor | None,
-            Qs: Tensor | None,
-            R: Tensor | None,
-            Rs: Tensor | None,
-        ) -> _Step:
-            st, d = self._cstep(box, mean, cov, yt, obs, ut, Q, R)
-            diags.append(d)
-            return st
-
-        outs = self._scan(inp, step)
-        res = self._assemble(inp, outs, stacklevel=stacklevel)
+        """``stacklevel`` counts from this method (as in :func:`warnings.warn`)."""
+        inp = self.prepare(y, u, x0=x0, P0=P0, mask=mask)
+        path = self.numerics_path(inp)
+        records, extras = self.scan(inp)
+        res = stack_records(records, self._observed(inp), path)
+        warn_nonfinite(res, stacklevel=stacklevel + 1)
         info = ConstrainedInfo(
-            solver_iterations=torch.stack([d.iterations for d in diags], dim=-2),
-            solver_status=torch.stack([d.status for d in diags], dim=-2),
-            projected=torch.stack([d.projected for d in diags], dim=-1),
+            solver_iterations=torch.stack([e[0] for e in extras], dim=-2),
+            solver_status=torch.stack([e[1] for e in extras], dim=-2),
+            projected=torch.stack([e[2] for e in extras], dim=-1),
         )
         failed = info.solver_status <= 0
         if bool(failed.any()):
@@ -267,11 +684,11 @@ class ConstrainedCKF(GaussianFilter):
                 f"ConstrainedCKF: {int(failed.sum())} of {failed.numel()} reconciliation problems "
                 f"did not converge ({detail}); their last iterates (inside the box) were used",
                 ConvergenceWarning,
-                stacklevel=stacklevel - 1,
+                stacklevel=stacklevel,
             )
         return res, info
 
-    def _with_box(self, inp: _Inputs, box: Box) -> _Inputs:
+    def _with_box(self, inp: FilterInputs, box: Box) -> FilterInputs:
         """Broadcast the inputs against the bounds' batch shape and check the prior mean."""
         try:
             batch = torch.broadcast_shapes(inp.batch, box.batch_shape)
@@ -285,154 +702,17 @@ class ConstrainedCKF(GaussianFilter):
             inp = inp._replace(
                 x0=inp.x0.expand(*batch, n), P0=inp.P0.expand(*batch, n, n), batch=batch
             )
-        outside = ~((inp.x0 >= box.lower) & (inp.x0 <= box.upper))
+        self._check_in_box(inp.x0, box)
+        return inp
+
+    @staticmethod
+    def _check_in_box(x0: Tensor, box: Box) -> None:
+        outside = ~((x0 >= box.lower) & (x0 <= box.upper))
         if bool(outside.any()):
             idx = outside.nonzero()[0].tolist()
             raise ValueError(
-                f"x0 lies outside the box at index {idx}: x0 = {float(inp.x0[tuple(idx)])}, bounds "
-                f"[{float(box.lower.expand_as(inp.x0)[tuple(idx)])}, "
-                f"{float(box.upper.expand_as(inp.x0)[tuple(idx)])}]; project it first with "
+                f"x0 lies outside the box at index {idx}: x0 = {float(x0[tuple(idx)])}, bounds "
+                f"[{float(box.lower.expand_as(x0)[tuple(idx)])}, "
+                f"{float(box.upper.expand_as(x0)[tuple(idx)])}]; project it first with "
                 "filt.box.project(x0) if that is intended"
             )
-        return inp
-
-    def _variances(
-        self,
-        side: ConditionalModel,
-        X: Tensor,
-        w: Tensor,
-        center: Tensor,
-        uP: Tensor | None,
-        pred: Prediction,
-    ) -> tuple[Tensor | None, Tensor | None]:
-        """Weighted model variance ``sum_i w_i V(X_i)`` and per-point ``V(X_i)`` (``(..., P, d, d)``).
-
-        With ``point_variance="mean"`` both are the variance at ``center``.
-        """
-        if pred.var is None and pred.cov is None:
-            return None, None
-        if self.point_variance == "mean":
-            pm = side.predict(center.unsqueeze(-2), None if uP is None else uP[..., :1, :])
-            per = _per_point_noise(pm)
-            assert per is not None
-            return per.squeeze(-3), per
-        return _point_noise(pred, w), _per_point_noise(pred)
-
-    def _cstep(
-        self,
-        box: Box,
-        mean: Tensor,
-        cov: Tensor,
-        y: Tensor,
-        obs: Tensor,
-        u: Tensor | None,
-        Q: Tensor | None,
-        R: Tensor | None,
-    ) -> tuple[_Step, _Diag]:
-        f, h = self.model.transition, self.model.measurement
-        # ---- predict (constrained points of the filtered Gaussian)
-        # the reconciled points' spread is exactly singular when they all share a bound
-        # (certainty at the bound): factor it with the tiny jitter, without a warning
-        S = safe_cholesky(cov, name="filtered covariance", warn=False)
-        cp = constrained_points(mean, S, box, theta=self.theta)
-        X, w = cp.points, cp.weights
-        uP = None if u is None else u.unsqueeze(-2).expand(*X.shape[:-1], u.shape[-1])
-        pf = f.predict(X, uP)
-        Xs = pf.mean
-        m_pred = _wmean(w, Xs)
-        D = Xs - m_pred.unsqueeze(-2)
-        Dw = D * w.unsqueeze(-1)
-        cross = (X - _wmean(w, X).unsqueeze(-2)).mT @ Dw
-        Vf, _ = self._variances(f, X, w, mean, uP, pf)
-        P_pred = symmetrize(_add(D.mT @ Dw, Vf, Q))
-
-        # ---- update: project the prediction, constrained points of N(x-, P-)
-        m_proj = box.project(m_pred)
-        projected = (m_proj != m_pred).any(-1)
-        S_pred = safe_cholesky(P_pred, name="predicted covariance")
-        cu = constrained_points(m_proj, S_pred, box, theta=self.theta)
-        Xu, wu = cu.points, cu.weights
-        ph = h.predict(Xu, uP)
-        Ys = ph.mean
-        y_mean = _wmean(wu, Ys)
-        E = Ys - y_mean.unsqueeze(-2)
-        Ew = E * wu.unsqueeze(-1)
-        Vh, Vh_pts = self._variances(h, Xu, wu, m_proj, uP, ph)
-        if R is None and Vh is None:
-            raise ValueError(
-                "ConstrainedCKF needs a positive-definite measurement noise R (or a measurement "
-                "model with a predictive variance): the reconciliation weighs the measurement by "
-                "its inverse"
-            )
-        R_tot = _add(Vh, R)
-        P_yy = symmetrize(E.mT @ Ew + R_tot)
-        P_xy = (Xu - _wmean(wu, Xu).unsqueeze(-2)).mT @ Ew  # (..., n, m)
-
-        obs_f = obs.to(mean.dtype)
-        L_yy = safe_cholesky(_observed_block(P_yy, obs_f, 1.0), name="innovation covariance")
-        innov = y - y_mean
-        e = innov * obs_f
-        ll = gaussian_log_prob(e, L_yy, dim=obs_f.sum(-1))
-
-        # ---- NDDR: one bounded least-squares problem per batch element and cubature point
-        R_pts = _add(None if Vh_pts is None else Vh_pts, None if R is None else R.unsqueeze(-3))
-        L_R, bad = torch.linalg.cholesky_ex(_observed_block(R_pts, obs_f.unsqueeze(-2), 1.0))
-        if bool((bad > 0).any()):
-            raise ValueError(
-                "the measurement noise R (plus the model's per-point variance) is not positive "
-                "definite: the reconciliation weighs the measurement by its inverse"
-            )
-        L_P = S_pred.unsqueeze(-3)
-        z = y.unsqueeze(-2)
-        o = obs_f.unsqueeze(-2)
-
-        # whitening by the inverse Cholesky factors, formed once per step (triangular solves of the
-        # identity) so that the solver's many residual calls are cheap products
-        n, m = mean.shape[-1], y.shape[-1]
-        W_P = torch.linalg.solve_triangular(
-            L_P, torch.eye(n, dtype=mean.dtype, device=mean.device), upper=False
-        )  # (..., 1, n, n): also the (constant) Jacobian of the prior residual
-        W_R = torch.linalg.solve_triangular(
-            L_R, torch.eye(m, dtype=mean.dtype, device=mean.device), upper=False
-        )  # (..., 1 or 2n, m, m)
-
-        ones_n, ones_m = mean.new_ones(n), mean.new_ones(m)
-
-        def h_mean(x: Tensor) -> Tensor:  # the solver needs the mean only
-            return h.predict_mean(x, uP)
-
-        def residual(x: Tensor) -> Tensor:  # (..., 2n, n) -> (..., 2n, n + m)
-            # W v as (W * v) @ 1: much faster than a batched matmul for tiny matrices on CPU
-            rp = (W_P * (x - Xu).unsqueeze(-2)) @ ones_n
-            rm = (W_R * ((z - h_mean(x)) * o).unsqueeze(-2)) @ ones_m
-            return torch.cat([rp, rm], dim=-1)
-
-        def jacobian(x: Tensor) -> Tensor:  # (..., 2n, n + m, n); autograd only through h
-            _, Jh = batched_jacobian(h_mean, x)
-            Jm = -W_R @ (Jh * o.unsqueeze(-1))
-            return torch.cat([W_P.expand(*Jm.shape[:-2], n, n), Jm], dim=-2)
-
-        sol = bounded_least_squares(
-            residual,
-            Xu,
-            box.unsqueeze(-2),
-            jacobian=jacobian,
-            tol=self.tol,
-            max_iter=self.max_iter,
-            warn=False,
-        )
-        Xk = sol.x
-        x_upd = box.project(
-            _wmean(wu, Xk)
-        )  # a convex combination; projection only removes round-off
-        Dk = Xk - x_upd.unsqueeze(-2)
-        P_upd = Dk.mT @ (Dk * wu.unsqueeze(-1))
-        if self.covariance == "corrected":
-            K = torch.cholesky_solve((P_xy * obs_f.unsqueeze(-2)).mT, L_yy).mT
-            P_upd = P_upd + K @ _observed_block(R_tot, obs_f, 0.0) @ K.mT
-        any_obs = obs.any(-1)
-        mean_new = torch.where(any_obs.unsqueeze(-1), x_upd, m_proj)
-        cov_new = torch.where(any_obs[..., None, None], symmetrize(P_upd), P_pred)
-        innov_out = torch.where(obs, innov, torch.full_like(innov, math.nan))
-        st = _Step(mean_new, cov_new, S_pred, m_proj, P_pred, y_mean, innov_out, P_yy, ll, cross)
-        return st, _Diag(sol.iterations, sol.status, projected)

@@ -1,155 +1,103 @@
-"""The batched cubature (sigma-point) Gaussian filter.
+"""The batched cubature (sigma-point) Gaussian filter: a scan of pure predict and update steps.
 
-    predict:  X_i = m + S xi_i,   X*_i = f(X_i, u),   m^- = sum wm_i X*_i,
-              P^- = sum wc_i (X*_i - m^-)(X*_i - m^-)^T + sum wc_i V_f(X_i) + Q
-    update:   X_i = m^- + S^- xi_i (re-drawn),   Y_i = h(X_i, u),   y^- = sum wm_i Y_i,
-              P_yy = sum wc_i (Y_i - y^-)(Y_i - y^-)^T + sum wc_i V_h(X_i) + R,
-              P_xy = sum wc_i (X_i - m^-)(Y_i - y^-)^T,
-              K = P_xy P_yy^{-1} (Cholesky solve),  m = m^- + K (y - y^-),  P = P^- - K P_yy K^T
-
-(Arasaratnam & Haykin, IEEE TAC 54(6), 2009; the V terms are the law of total variance over the
-cubature points for models with a per-point variance, e.g. Gaussian processes.) The square-root form
-propagates ``S`` with QR triangularisation instead of ``P``.
+The steps and their equations are in :mod:`torchfilt.filters.steps`. :class:`GaussianFilter` binds a
+model, a cubature rule and the options, and offers the whole-recording ``filter`` / ``smooth`` /
+``graphed`` and the online ``init`` / ``predict`` / ``update``.
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
-import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
 import torch
 from torch import Tensor, nn
 
-from torchfilt.cubature import CubatureRule, SphericalRadialRule, sigma_points
-from torchfilt.exceptions import DivergenceWarning, ShapeError
-from torchfilt.filters.results import FilterResult, SmootherResult
-from torchfilt.models import Prediction, StateSpaceModel
-from torchfilt.numerics import cholesky_solve, gaussian_log_prob, safe_cholesky, symmetrize, tria
-from torchfilt.numerics.linalg import _compiling
+from torchfilt.cubature import CubatureRule, SphericalRadialRule
+from torchfilt.exceptions import InputError, ShapeError
+from torchfilt.filters import steps
+from torchfilt.filters.inputs import FilterInputs, check_inputs, check_prior, model_noise, observed
+from torchfilt.filters.kalman import (
+    Path,
+    kalman_filter,
+    kalman_smoother,
+    select_outputs,
+    select_path,
+)
+from torchfilt.filters.results import (
+    FilterResult,
+    SmootherResult,
+    StepRecord,
+    concat_records,
+    stack_records,
+    warn_nonfinite,
+)
+from torchfilt.filters.steps import Belief, Noise, PredictCache, UnitPoints, UpdateStats
+from torchfilt.models import StateSpaceModel
+from torchfilt.numerics import no_host_sync, safe_cholesky
+from torchfilt.numerics.small import SMALL_BATCH, SMALL_MAX
+from torchfilt.settings import (
+    NumericsPath,
+    current_skip_guard_checks,
+    current_small_matrix_kernels,
+    small_matrix_kernels,
+)
 
 if TYPE_CHECKING:
     from torchfilt.filters.graphed import GraphedFilter
 
-__all__ = ["CKF", "GaussianFilter"]
+__all__ = ["CKF", "FilterState", "GaussianFilter", "StepFunction"]
 
-_LOG_2PI = math.log(2.0 * math.pi)
-#: Steps run with Dynamo's guard checks before a compiled step skips them (see ``_scan``).
+#: Steps run with Dynamo's guard checks before a compiled step may skip them (see ``scan``).
 _GUARD_WARMUP_STEPS = 2
+#: Steps per compiled chunk of the time loop (``compile=True``): the chunk is unrolled into one
+#: graph, so the per-call overhead is paid once per chunk; longer chunks compile for longer.
+DEFAULT_CHUNK = 10
+#: Where each :class:`StepRecord` field has its time dimension in a :class:`FilterResult`.
+_TIME_DIMS = {
+    "mean": -2,
+    "cov": -3,
+    "predicted_mean": -2,
+    "predicted_cov": -3,
+    "measurement_mean": -2,
+    "innovation": -2,
+    "innovation_cov": -3,
+    "log_likelihood": -1,
+    "cross_cov": -3,
+}
+
+#: ``step(points, belief, y_t, obs_t, u_t, Q, R) -> (belief, record, aux)``: one filter step.
+StepFunction = Callable[
+    [UnitPoints, Belief, Tensor, Tensor, "Tensor | None", Noise, Noise],
+    "tuple[Belief, StepRecord, tuple[Tensor, ...]]",
+]
 
 
-class _Inputs(NamedTuple):
-    y: Tensor  # (..., T, m), NaN replaced by 0
-    obs: Tensor  # (..., T, m) bool
-    u: Tensor | None  # (..., T, nu)
-    x0: Tensor  # (B..., n)
-    P0: Tensor  # (B..., n, n)
-    batch: torch.Size
+class FilterState(NamedTuple):
+    """The belief of an online filter (:meth:`GaussianFilter.init`) and its time index.
 
-
-def _observed(y: Tensor, mask: Tensor | None) -> Tensor:
-    """Which components of ``y`` are observed: finite, and ``mask`` True where given.
-
-    Args:
-        y: measurements ``(..., T, m)``.
-        mask: bool ``(..., T, m)`` broadcastable with ``y``, or ``None``.
-
-    Returns:
-        Bool tensor of the broadcast shape.
+    Attributes:
+        mean: ``(..., n)``. cov: ``(..., n, n)``.
+        sqrt: lower factor of ``cov`` ``(..., n, n)`` (propagated by the square-root form).
+        t: time index of the belief: ``-1`` for the prior, ``t`` after the ``t``-th prediction
+            (0-based) and its update. Time-varying noise is read at this index.
+        predicted: whether the belief is a prediction not yet updated.
+        cache: what the prediction computed for the update (its propagated points), or None.
     """
-    obs = torch.isfinite(y)
-    if mask is None:
-        return obs
-    mask = torch.as_tensor(mask, device=y.device)
-    if mask.dtype != torch.bool:
-        raise TypeError(f"mask must be a bool tensor, got {mask.dtype}")
-    try:
-        return obs & mask
-    except RuntimeError:
-        raise ShapeError(
-            f"mask: shape {tuple(mask.shape)} does not broadcast with y {tuple(y.shape)}"
-        ) from None
 
-
-def _warn_nonfinite(res: FilterResult, *, stacklevel: int) -> None:
-    """Emit a :class:`DivergenceWarning` if some sequences of ``res`` are non-finite.
-
-    ``stacklevel`` counts from this function (as in :func:`warnings.warn`)."""
-    finite = torch.isfinite(res.mean).all(-1).all(-1)
-    if not bool(finite.all()):
-        bad = int((~finite).sum())
-        warnings.warn(
-            f"{bad} of {finite.numel()} sequences produced non-finite estimates "
-            "(covariance lost definiteness or the model returned non-finite values)",
-            DivergenceWarning,
-            stacklevel=stacklevel,
-        )
-
-
-class _Step(NamedTuple):
     mean: Tensor
     cov: Tensor
-    sqrt: Tensor
-    pred_mean: Tensor
-    pred_cov: Tensor
-    y_mean: Tensor
-    innovation: Tensor
-    innov_cov: Tensor
-    loglik: Tensor
-    cross: Tensor
+    sqrt: Tensor | None
+    t: int
+    predicted: bool
+    cache: PredictCache | None = None
 
-
-def _point_noise(pred: Prediction, wc: Tensor) -> Tensor | None:
-    """``sum_i wc_i V(X_i)`` as a matrix ``(..., d, d)``, or None when the model has none.
-
-    ``wc`` is ``(P,)`` or batched ``(..., P)``.
-    """
-    out = None
-    if pred.var is not None:
-        out = torch.diag_embed(torch.einsum("...p,...pd->...d", wc, pred.var))
-    if pred.cov is not None:
-        c = torch.einsum("...p,...pij->...ij", wc, pred.cov)
-        out = c if out is None else out + c
-    return out
-
-
-def _noise_sqrt(A: Tensor) -> Tensor:
-    """A square root of a PSD noise matrix (Cholesky if definite, else eigen-decomposition).
-
-    Where no host synchronisation is allowed (``torch.compile``, ``sync_free``) the choice
-    cannot be made on the host: the Cholesky factor of ``A + eps * mean|diag A| * I`` is used.
-    """
-    if _compiling():
-        n = A.shape[-1]
-        eye = torch.eye(n, dtype=A.dtype, device=A.device)
-        scale = A.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(A.dtype).tiny)
-        jitter = 16.0 * torch.finfo(A.dtype).eps * scale
-        return torch.linalg.cholesky_ex(A + jitter[..., None, None] * eye).L
-    if not bool(A.any()):
-        return torch.zeros_like(A)
-    L, info = torch.linalg.cholesky_ex(A)
-    if bool((info == 0).all()):
-        return L
-    evals, evecs = torch.linalg.eigh(symmetrize(A))
-    return evecs * evals.clamp_min(0.0).sqrt().unsqueeze(-2)
-
-
-def _cat_cols(*mats: Tensor | None) -> Tensor:
-    """Concatenate matrices ``(..., n, k_j)`` along columns after broadcasting batch dims."""
-    ms = [m for m in mats if m is not None]
-    batch = torch.broadcast_shapes(*(m.shape[:-2] for m in ms))
-    return torch.cat([m.expand(*batch, *m.shape[-2:]) for m in ms], dim=-1)
-
-
-def _add(*terms: Tensor | None) -> Tensor:
-    out: Tensor | None = None
-    for t in terms:
-        if t is not None:
-            out = t if out is None else out + t
-    assert out is not None
-    return out
+    @property
+    def belief(self) -> Belief:
+        """The state's :class:`~torchfilt.filters.steps.Belief`."""
+        return Belief(self.mean, self.cov, self.sqrt)
 
 
 class GaussianFilter(nn.Module):
@@ -170,9 +118,17 @@ class GaussianFilter(nn.Module):
         point_variance: how per-point model variances (GP) enter Q and R: ``"total"`` averages them
             over the cubature points (law of total variance), ``"mean"`` evaluates them at the mean
             only.
-        compile: compile the per-step function with ``torch.compile`` (worth it for one or a few
-            sequences, where per-op overhead dominates). Under compilation a covariance that fails
-            its Cholesky factorisation turns the sequence to NaN instead of being jittered.
+        compile: ``"loop"`` compiles the time loop with ``torch.compile`` in chunks of ``chunk``
+            steps unrolled into one graph each (fast per step on one or a few sequences, but a
+            long first compile); ``"step"`` compiles the per-step function only (one compiled call
+            per step); ``True`` (``"auto"``) takes ``"step"``. (torch 2.13's scan operator, which
+            would trace the step once, is private API: torchfilt does not import it.) Under
+            compilation a covariance that fails
+            its Cholesky factorisation turns the sequence to NaN instead of being jittered. The
+            eager path (the default) is the one to debug with: every op runs as written, and a
+            failed factorisation is retried with jitter and reported.
+        chunk: steps per compiled chunk of the time loop, where the scan cannot be used. A
+            recording whose length is not a multiple compiles its last, shorter chunk too.
     """
 
     def __init__(
@@ -182,7 +138,8 @@ class GaussianFilter(nn.Module):
         sqrt: bool = False,
         redraw: bool = True,
         point_variance: Literal["total", "mean"] = "total",
-        compile: bool = False,
+        compile: bool | Literal["auto", "step", "loop"] = False,
+        chunk: int = DEFAULT_CHUNK,
     ) -> None:
         super().__init__()
         if not isinstance(model, StateSpaceModel):
@@ -202,196 +159,286 @@ class GaussianFilter(nn.Module):
                 f"sqrt=True needs non-negative covariance weights; {self.rule!r} has a negative "
                 f"weight in dimension {n}"
             )
-        self._compiled = bool(compile)
-        self._compiled_steps: dict[str, Callable[..., _Step]] = {}
+        mode: Literal["auto", "step", "loop"] | None
+        if isinstance(compile, bool):
+            mode = "auto" if compile else None
+        elif compile in ("auto", "step", "loop"):
+            mode = compile
+        else:
+            raise InputError(
+                f"compile must be False, True, 'auto', 'step' or 'loop', got {compile!r}"
+            )
+        if int(chunk) < 1:
+            raise InputError(f"chunk must be at least 1, got {chunk}")
+        #: None (eager), "step" (one compiled call per step), "loop" (compiled chunks of steps) or
+        #: "auto" (True: "step")
+        self.compile_mode = mode
+        self.chunk = int(chunk)
+        self._compiled = self.compile_mode is not None
+        self._compiled_steps: dict[str, StepFunction] = {}
+        self._compiled_chunks: dict[str, Callable[..., Any]] = {}
 
-    def _step_for(self, device: torch.device) -> Callable[..., _Step]:
-        """The per-step function: compiled (once per device type) when ``compile=True``."""
+    # ------------------------------------------------------------------ the step
+    def step(
+        self,
+        points: UnitPoints,
+        belief: Belief,
+        y: Tensor,
+        obs: Tensor,
+        u: Tensor | None,
+        Q: Noise,
+        R: Noise,
+    ) -> tuple[Belief, StepRecord, tuple[Tensor, ...]]:
+        """One filter step: :func:`~torchfilt.filters.steps.predict` then
+        :func:`~torchfilt.filters.steps.update`, with this filter's options.
+
+        This is the function that :meth:`scan` runs, ``compile=True`` compiles and
+        :class:`~torchfilt.filters.GraphedFilter` captures. A subclass with a different step
+        (:class:`~torchfilt.filters.ConstrainedCKF`) overrides it.
+
+        Args:
+            points: the rule's unit points in the run's dtype and device.
+            belief: the filtered belief about ``x_{t-1}``, ``mean (..., n)``, ``cov (..., n, n)``.
+            y: measurement ``(..., m)``, missing entries set to 0. obs: bool ``(..., m)``.
+            u: inputs ``(..., nu)`` or ``None``.
+            Q: process noise of the step. R: measurement noise of the step.
+
+        Returns:
+            The filtered belief about ``x_t``, the step's :class:`~torchfilt.filters.StepRecord`
+            and extra per-step outputs (none here).
+        """
+        pred, cache = steps.predict(
+            belief,
+            self.model,
+            u,
+            points,
+            sqrt=self.sqrt,
+            point_variance=self.point_variance,
+            noise=Q,
+        )
+        post, stats = steps.update(
+            pred,
+            y,
+            obs,
+            self.model,
+            points,
+            u=u,
+            sqrt=self.sqrt,
+            redraw=self.redraw,
+            point_variance=self.point_variance,
+            noise=R,
+            cache=cache,
+        )
+        record = StepRecord(
+            mean=post.mean,
+            cov=post.cov,
+            predicted_mean=pred.mean,
+            predicted_cov=pred.cov,
+            measurement_mean=stats.measurement_mean,
+            innovation=stats.innovation,
+            innovation_cov=stats.innovation_cov,
+            log_likelihood=stats.log_likelihood,
+            cross_cov=cache.cross_cov,
+        )
+        return post, record, ()
+
+    def step_function(self, device: torch.device) -> StepFunction:
+        """The per-step function :meth:`step`, compiled (once per device type) when ``compile=True``."""
         if not self._compiled:
-            return self._step
+            return self.step
         fn = self._compiled_steps.get(device.type)
         if fn is None:
             # On the CPU a C++ wrapper around the generated kernels removes most of the per-call
             # Python overhead, which dominates when few sequences are filtered.
             options: dict[str, Any] | None = {"cpp_wrapper": True} if device.type == "cpu" else None
-            fn = torch.compile(self._step, dynamic=False, options=options)
+            fn = torch.compile(self.step, dynamic=False, options=options)
             self._compiled_steps[device.type] = fn
         return fn
 
-    # ------------------------------------------------------------------ input checking
-    def _check(
-        self, y: Tensor, u: Tensor | None, x0: Tensor, P0: Tensor, mask: Tensor | None
-    ) -> _Inputs:
-        n, m = self.model.state_dim, self.model.obs_dim
-        if not isinstance(y, Tensor):
-            raise TypeError(f"y must be a torch.Tensor, got {type(y).__name__}")
-        if y.dim() < 2 or y.shape[-1] != m:
-            raise ShapeError(f"y: expected shape (..., T, m) with m = {m}, got {tuple(y.shape)}")
-        if not y.is_floating_point():
-            raise TypeError(f"y must be floating point, got {y.dtype}")
-        dtype, device = y.dtype, y.device
-        T = y.shape[-2]
-        x0 = torch.as_tensor(x0, device=device)
-        P0 = torch.as_tensor(P0, device=device)
-        dtype = torch.promote_types(dtype, x0.dtype) if x0.is_floating_point() else dtype
-        dtype = torch.promote_types(dtype, P0.dtype) if P0.is_floating_point() else dtype
-        y, x0, P0 = y.to(dtype), x0.to(dtype), P0.to(dtype)
-        if x0.dim() < 1 or x0.shape[-1] != n:
-            raise ShapeError(f"x0: expected shape (..., n) with n = {n}, got {tuple(x0.shape)}")
-        if P0.dim() < 2 or P0.shape[-2:] != (n, n):
-            raise ShapeError(f"P0: expected shape (..., n, n) with n = {n}, got {tuple(P0.shape)}")
-        if not bool(torch.isfinite(x0).all()):
-            raise ValueError("x0 contains non-finite entries")
-        if not bool(torch.isfinite(P0).all()):
-            raise ValueError("P0 contains non-finite entries")
-        if not torch.allclose(P0, P0.mT, rtol=1e-8, atol=0.0):
-            raise ValueError("P0 is not symmetric")
-        evals = torch.linalg.eigvalsh(P0)
-        tol = evals.abs().amax(-1) * math.sqrt(torch.finfo(dtype).eps)
-        if bool((evals[..., 0] < -tol).any()) or bool((evals[..., -1] <= 0).any()):
-            raise ValueError(
-                f"P0 is not positive semi-definite: smallest eigenvalue {float(evals[..., 0].min()):.3e}"
-            )
-        shapes = {"y": y.shape[:-2], "x0": x0.shape[:-1], "P0": P0.shape[:-2]}
-        if u is not None:
-            u = torch.as_tensor(u, device=device).to(dtype)
-            if u.dim() < 2 or u.shape[-2] != T:
-                raise ShapeError(
-                    f"u: expected shape (..., T, nu) with T = {T}, got {tuple(u.shape)}"
-                )
-            if not bool(torch.isfinite(u).all()):
-                raise ValueError("u contains non-finite entries; inputs cannot be missing")
-            shapes["u"] = u.shape[:-2]
-        obs = _observed(y, mask)
-        shapes["mask"] = obs.shape[:-2]  # y's batch shape broadcast with the mask's
-        for name, side in (("Q", self.model.transition), ("R", self.model.measurement)):
-            if side.time_varying_noise:
-                noise = side.noise_cov(0)
-                assert noise is not None
-                shapes[name] = noise.shape[:-2]
-            else:
-                noise = side.noise_cov()
-                if noise is not None:
-                    shapes[name] = noise.shape[:-2]
-        try:
-            batch = torch.broadcast_shapes(*shapes.values())
-        except RuntimeError:
-            desc = ", ".join(f"{k} {tuple(v)}" for k, v in shapes.items())
-            raise ShapeError(f"batch shapes do not broadcast: {desc}") from None
-        y = torch.where(obs, y, torch.zeros((), dtype=dtype, device=device))
-        x0 = x0.expand(*batch, n)
-        P0 = P0.expand(*batch, n, n)
-        return _Inputs(y, obs, u, x0, P0, batch)
-
-    # ------------------------------------------------------------------ noise access
-    def _noise(self, side: nn.Module, step: int, like: Tensor) -> Tensor | None:
-        noise = side.noise_cov(step) if side.time_varying_noise else side.noise_cov()  # type: ignore[operator]
-        return None if noise is None else noise.to(dtype=like.dtype, device=like.device)
-
-    # ------------------------------------------------------------------ one step
-    def _step(
+    # ------------------------------------------------------------------ whole recordings
+    def prepare(
         self,
-        xi: Tensor,
-        wm: Tensor,
-        wc: Tensor,
-        mean: Tensor,
-        cov: Tensor,
-        sqrt: Tensor,
+        y: Tensor,
+        u: Tensor | None = None,
+        *,
+        x0: Tensor,
+        P0: Tensor,
+        mask: Tensor | None = None,
+    ) -> FilterInputs:
+        """Check and broadcast a recording (arguments as in :meth:`filter`) for :meth:`scan`."""
+        return check_inputs(self.model, y, u, x0, P0, mask)
+
+    def small_kernels(self, batch: torch.Size) -> str:
+        """The small-matrix kernels a run of batch shape ``batch`` uses: ``"unrolled"`` or
+        ``"library"`` (``settings.small_matrix_kernels``; ``"auto"`` resolved once per run)."""
+        n, m = self.model.state_dim, self.model.obs_dim
+        if max(n, m) > SMALL_MAX:
+            return "library"
+        if self._compiled:
+            return "unrolled"  # what tracing always chooses
+        mode = current_small_matrix_kernels()
+        if mode != "auto":
+            return mode
+        return "unrolled" if math.prod(batch) >= SMALL_BATCH else "library"
+
+    def execution(self, batch: torch.Size) -> str:
+        """The execution a run of batch shape ``batch`` takes: ``"eager"``, ``"compiled-step"`` or
+        ``"compiled-loop"``."""
+        mode = self.compile_mode
+        if mode == "auto":
+            mode = "step"
+        return {None: "eager", "step": "compiled-step", "loop": "compiled-loop"}[mode]
+
+    def numerics_path(self, inputs: FilterInputs, execution: str | None = None) -> NumericsPath:
+        """The :class:`~torchfilt.settings.NumericsPath` a :meth:`scan` of ``inputs`` takes now."""
+        if execution is None:
+            execution = self.execution(inputs.batch)
+        nan = self._compiled or no_host_sync()
+        return NumericsPath(execution, self.small_kernels(inputs.batch), "nan" if nan else "jitter")
+
+    def scan(
+        self, inputs: FilterInputs, step_fn: StepFunction | None = None
+    ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]:
+        """Run the step over time from the prior, handing it each step's data and noise.
+
+        Args:
+            inputs: from :meth:`prepare`.
+            step_fn: the step to run; default :meth:`step_function` for the data's device.
+
+        Returns:
+            One :class:`~torchfilt.filters.StepRecord` and one tuple of extra outputs per step.
+        """
+        if step_fn is None:
+            if self.execution(inputs.batch) == "compiled-loop":
+                return self._chunked(inputs)
+            step_fn = self.step_function(inputs.y.device)
+        kernels = self.small_kernels(inputs.batch)
+        with contextlib.ExitStack() as ctx:
+            if not self._compiled:
+                ctx.enter_context(small_matrix_kernels(kernels))  # type: ignore[arg-type]
+            return self._loop(inputs, step_fn, ctx)
+
+    def _loop(
+        self, inp: FilterInputs, step_fn: StepFunction, ctx: contextlib.ExitStack
+    ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]:
+        T = inp.y.shape[-2]
+        # fresh copies: under inference_mode they are inference tensors like every later step's
+        # belief, so a compiled first step does not compile a variant of its own
+        mean, cov = inp.x0.clone(), inp.P0.clone()
+        S0 = safe_cholesky(cov, name="P0")
+        belief = Belief(mean, cov, S0 if self.sqrt else None)  # the plain form re-factors cov
+        f, h = self.model.transition, self.model.measurement
+        const_Q = None if f.time_varying_noise else self._noise_of(f, 0, mean)
+        const_R = None if h.time_varying_noise else self._noise_of(h, 0, mean)
+        pts = steps.unit_points(self.rule, mean.shape[-1], mean)
+        # A compiled step sees tensors of identical shape, dtype, device and strides at every step
+        # once the first steps have fixed the strides, so Dynamo's guard checks (~0.1 ms per call)
+        # can be skipped from then on, when settings.skip_guard_checks allows it.
+        skip = step_fn in self._compiled_steps.values() and current_skip_guard_checks()
+        records: list[StepRecord] = []
+        extras: list[tuple[Tensor, ...]] = []
+        for t in range(T):
+            if skip and t == _GUARD_WARMUP_STEPS:
+                ctx.enter_context(torch.compiler.set_stance(skip_guard_eval_unsafe=True))
+            Q = const_Q if const_Q is not None else self._noise_of(f, t, mean)
+            R = const_R if const_R is not None else self._noise_of(h, t, mean)
+            ut = None if inp.u is None else inp.u[..., t, :]
+            belief, rec, extra = step_fn(
+                pts, belief, inp.y[..., t, :], inp.obs[..., t, :], ut, Q, R
+            )
+            records.append(rec)
+            extras.append(extra)
+        return records, extras
+
+    def run_chunk(
+        self,
+        points: UnitPoints,
+        belief: Belief,
         y: Tensor,
         obs: Tensor,
         u: Tensor | None,
-        Q: Tensor | None,
-        Q_sqrt: Tensor | None,
-        R: Tensor | None,
-        R_sqrt: Tensor | None,
-    ) -> _Step:
-        """One predict + update; ``xi (P, n)``, ``wm (P,)``, ``wc (P,)`` are the rule's unit points."""
-        f, h = self.model.transition, self.model.measurement
-        if not self.sqrt:
-            sqrt = safe_cholesky(cov, name="filtered covariance")
+        Q: tuple[Noise, ...],
+        R: tuple[Noise, ...],
+    ) -> tuple[Belief, StepRecord, tuple[Tensor, ...]]:
+        """``K`` steps of :meth:`step` in one call: the unit ``compile=True`` compiles.
 
-        # ---- predict
-        X = sigma_points(mean, sqrt, xi)  # (..., P, n)
-        uP = None if u is None else u.unsqueeze(-2).expand(*X.shape[:-1], u.shape[-1])
-        pf = f.predict(X, uP)
-        Xs = pf.mean
-        m_pred = wm @ Xs
-        D = Xs - m_pred.unsqueeze(-2)  # (..., P, n)
-        Dw = D * wc.unsqueeze(-1)
-        cross = (X - mean.unsqueeze(-2)).mT @ Dw  # Cov(x_{t-1}, x_t)
-        if self.point_variance == "mean" and (pf.var is not None or pf.cov is not None):
-            pm = f.predict(mean.unsqueeze(-2), None if uP is None else uP[..., :1, :])
-            Vf = _point_noise(pm, wc.new_ones(1))
-        else:
-            Vf = _point_noise(pf, wc)
-        if not self.sqrt:
-            P_pred = symmetrize(_add(D.mT @ Dw, Vf, Q))
-            S_pred = safe_cholesky(P_pred, name="predicted covariance")
-            extra_sqrt = None
-        else:
-            extra_sqrt = None
-            if Vf is not None or Q_sqrt is not None:
-                Vf_sqrt = None if Vf is None else _noise_sqrt(Vf)
-                extra_sqrt = _cat_cols(Vf_sqrt, Q_sqrt)
-            S_pred = tria(_cat_cols((D * wc.sqrt().unsqueeze(-1)).mT, extra_sqrt))
-            P_pred = S_pred @ S_pred.mT
+        Args:
+            points, belief: as in :meth:`step`.
+            y: measurements ``(..., K, m)``, missing set to 0. obs: bool ``(..., K, m)``.
+            u: inputs ``(..., K, nu)`` or ``None``. Q, R: the ``K`` steps' noises.
 
-        # ---- update
-        if self.redraw:
-            Xu = sigma_points(m_pred, S_pred, xi)
-            Xd = Xu - m_pred.unsqueeze(-2)
-        else:
-            Xu, Xd = Xs, D
-        ph = h.predict(Xu, uP)
-        Ys = ph.mean
-        y_mean = wm @ Ys
-        E = Ys - y_mean.unsqueeze(-2)  # (..., P, m)
-        Ew = E * wc.unsqueeze(-1)
-        if self.point_variance == "mean" and (ph.var is not None or ph.cov is not None):
-            pm = h.predict(m_pred.unsqueeze(-2), None if uP is None else uP[..., :1, :])
-            Vh = _point_noise(pm, wc.new_ones(1))
-        else:
-            Vh = _point_noise(ph, wc)
-        R_tot = _add(Vh, R) if (Vh is not None or R is not None) else None
-        P_yy = E.mT @ Ew if R_tot is None else E.mT @ Ew + R_tot
-        P_yy = symmetrize(P_yy)
-        P_xy = Xd.mT @ Ew  # (..., n, m)
-
-        obs_f = obs.to(mean.dtype)
-        unobs_diag = torch.diag_embed(1.0 - obs_f)
-        if not self.sqrt:
-            # Restrict P_yy to the observed components (identity on the others): the gain then has
-            # zero columns for missing components and the likelihood counts observed ones only.
-            P_yy_m = P_yy * (obs_f.unsqueeze(-1) * obs_f.unsqueeze(-2)) + unobs_diag
-            L_yy = safe_cholesky(P_yy_m, name="innovation covariance")
-            R_sqrt_tot = None
-        else:
-            R_sqrt_tot = None
-            if R_tot is not None:
-                R_sqrt_tot = R_sqrt if Vh is None and R_sqrt is not None else _noise_sqrt(R_tot)
-            rows = obs_f.unsqueeze(-1)
-            Z = (E * wc.sqrt().unsqueeze(-1)).mT * rows  # (..., m, P)
-            L_yy = tria(_cat_cols(Z, None if R_sqrt_tot is None else R_sqrt_tot * rows, unobs_diag))
-        P_xy_m = P_xy * obs_f.unsqueeze(-2)
-        K = cholesky_solve(P_xy_m.mT, L_yy).mT  # (..., n, m)
-        innov = y - y_mean
-        e = innov * obs_f
-        mean_new = m_pred + (K @ e.unsqueeze(-1)).squeeze(-1)
-        if not self.sqrt:
-            cov_new = symmetrize(P_pred - K @ P_yy_m @ K.mT)
-            sqrt_new = S_pred  # unused: the plain form re-factors cov at the next step
-        else:
-            A = (Xd - E @ K.mT) * wc.sqrt().unsqueeze(-1)  # (..., P, n)
-            KR = None if R_sqrt_tot is None else K @ R_sqrt_tot
-            sqrt_new = tria(_cat_cols(A.mT, KR, None if self.redraw else extra_sqrt))
-            cov_new = sqrt_new @ sqrt_new.mT
-        ll = gaussian_log_prob(e, L_yy, dim=obs_f.sum(-1))
-        innov_out = torch.where(obs, innov, torch.full_like(innov, float("nan")))
-        return _Step(
-            mean_new, cov_new, sqrt_new, m_pred, P_pred, y_mean, innov_out, P_yy, ll, cross
+        Returns:
+            The belief after the ``K`` steps, a :class:`~torchfilt.filters.StepRecord` whose
+            fields carry a time dimension of length ``K`` (as in a
+            :class:`~torchfilt.filters.FilterResult`) and the stacked extra outputs.
+        """
+        records: list[StepRecord] = []
+        extras: list[tuple[Tensor, ...]] = []
+        for k in range(y.shape[-2]):
+            ut = None if u is None else u[..., k, :]
+            belief, rec, extra = self.step(
+                points, belief, y[..., k, :], obs[..., k, :], ut, Q[k], R[k]
+            )
+            records.append(rec)
+            extras.append(extra)
+        res = stack_records(records, obs)
+        stacked = StepRecord(
+            **{f: getattr(res, f) for f in StepRecord._fields if f != "log_likelihood"},
+            log_likelihood=torch.stack([r.log_likelihood for r in records], dim=-1),
         )
+        ex = tuple(torch.stack([e[i] for e in extras], dim=-1) for i in range(len(extras[0])))
+        return belief, stacked, ex
 
-    # ------------------------------------------------------------------ public API
+    def _chunk_function(self, device: torch.device) -> Callable[..., Any]:
+        fn = self._compiled_chunks.get(device.type)
+        if fn is None:
+            # the C++ wrapper removes the per-call Python overhead, but calls the library kernels
+            # that larger matrices need through a slow proxy (no C shim for cholesky_ex)
+            small = max(self.model.state_dim, self.model.obs_dim) <= SMALL_MAX
+            cpp = device.type == "cpu" and small
+            options: dict[str, Any] | None = {"cpp_wrapper": True} if cpp else None
+            fn = torch.compile(self.run_chunk, dynamic=False, options=options)
+            self._compiled_chunks[device.type] = fn
+        return fn
+
+    def _chunked(self, inp: FilterInputs) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]:
+        """The time loop in compiled chunks of ``self.chunk`` steps; returns one record per chunk
+        (fields with a time dimension) for :func:`~torchfilt.filters.results.concat_records`."""
+        T = inp.y.shape[-2]
+        # fresh copies: under inference_mode they are inference tensors like every later chunk's
+        # belief, so the first chunk does not compile a variant of its own
+        mean, cov = inp.x0.clone(), inp.P0.clone()
+        S0 = safe_cholesky(cov, name="P0")
+        belief = Belief(mean, cov, S0 if self.sqrt else None)
+        f, h = self.model.transition, self.model.measurement
+        const_Q = None if f.time_varying_noise else self._noise_of(f, 0, mean)
+        const_R = None if h.time_varying_noise else self._noise_of(h, 0, mean)
+        pts = steps.unit_points(self.rule, mean.shape[-1], mean)
+        fn = self._chunk_function(inp.y.device)
+        records: list[StepRecord] = []
+        extras: list[tuple[Tensor, ...]] = []
+        for t0 in range(0, T, self.chunk):
+            t1 = min(T, t0 + self.chunk)
+            Q = tuple(
+                const_Q if const_Q is not None else self._noise_of(f, t, mean)
+                for t in range(t0, t1)
+            )
+            R = tuple(
+                const_R if const_R is not None else self._noise_of(h, t, mean)
+                for t in range(t0, t1)
+            )
+            u = None if inp.u is None else inp.u[..., t0:t1, :]
+            belief, rec, extra = fn(
+                pts, belief, inp.y[..., t0:t1, :], inp.obs[..., t0:t1, :], u, Q, R
+            )
+            records.append(rec)
+            extras.append(extra)
+        return records, extras
+
+    def _noise_of(self, side: nn.Module, step: int, like: Tensor) -> Noise:
+        cov = model_noise(side, step, like)
+        return Noise(cov, None if cov is None or not self.sqrt else steps.noise_sqrt(cov))
+
     def filter(
         self,
         y: Tensor,
@@ -400,6 +447,9 @@ class GaussianFilter(nn.Module):
         x0: Tensor,
         P0: Tensor,
         mask: Tensor | None = None,
+        path: Path = "auto",
+        parallel: bool = False,
+        outputs: Collection[str] | None = None,
     ) -> FilterResult:
         """Filter measurement sequences.
 
@@ -411,85 +461,47 @@ class GaussianFilter(nn.Module):
             u: inputs, shape ``(..., T, nu)``, or ``None``.
             x0: prior mean, shape ``(..., n)``.
             P0: prior covariance, shape ``(..., n, n)``, symmetric positive definite.
-            mask: optional boolean ``(..., T, m)``; ``False`` marks a component as missing.
+            mask: optional boolean ``(..., T, m)``; ``False`` marks a component as missing. Its
+                trailing ``(T, m)`` must equal ``y``'s.
+            path: ``"auto"`` (default) runs the closed-form Kalman filter
+                (:mod:`torchfilt.filters.kalman`) for a linear-Gaussian model and the sigma-point
+                filter otherwise; ``"kalman"`` or ``"cubature"`` forces one (for testing).
+            parallel: run the parallel-in-time (associative scan) Kalman filter; linear models
+                only.
+            outputs: names of the result fields to return (e.g. ``("mean", "log_likelihood")``);
+                the others are empty tensors. On the exact path the others are never stored.
 
         Returns:
-            A :class:`~torchfilt.filters.FilterResult`. A step with no observed component is a
+            A :class:`~torchfilt.filters.FilterResult` (its ``path`` says which path ran). A step with no observed component is a
             pure prediction (its log-likelihood term is 0). A sequence whose covariance cannot be
-            factored even with jitter becomes NaN from that step on and a
+            factored even with jitter (or, in the square-root form, whose factor loses
+            definiteness) becomes NaN from that step on and a
             :class:`~torchfilt.exceptions.DivergenceWarning` is emitted; the rest of the batch is
-            unaffected.
+            unaffected. ``numerics`` says which path ran.
         """
-        inp = self._check(y, u, x0, P0, mask)
-        outs = self._scan(inp, self._step_for(inp.y.device))
-        return self._assemble(inp, outs, stacklevel=3)
+        # -- exact Kalman path for linear models (torchfilt.filters.kalman) -------------------
+        if select_path(self.model, path=path, parallel=parallel, redraw=self.redraw):
+            return kalman_filter(
+                self.model, y, u, x0=x0, P0=P0, mask=mask, sqrt=self.sqrt, parallel=parallel,
+                outputs=outputs,
+            )  # fmt: skip
+        # -------------------------------------------------------------------------------------
+        inputs = self.prepare(y, u, x0=x0, P0=P0, mask=mask)
+        res = self.run(inputs)
+        warn_nonfinite(res, stacklevel=3)
+        return select_outputs(res, outputs)
 
-    def _scan(self, inp: _Inputs, step_fn: Callable[..., _Step]) -> list[_Step]:
-        """Run ``step_fn`` over time from the prior, handing it each step's data and noise."""
-        T = inp.y.shape[-2]
-        if T == 0:
-            raise ShapeError("y: the time dimension T must be at least 1")
-        mean, cov = inp.x0.contiguous(), inp.P0.contiguous()
-        sqrt = safe_cholesky(cov, name="P0")
-        f, h = self.model.transition, self.model.measurement
-        const_Q = None if f.time_varying_noise else self._noise(f, 0, mean)
-        const_R = None if h.time_varying_noise else self._noise(h, 0, mean)
-        const_Qs = None if const_Q is None or not self.sqrt else _noise_sqrt(const_Q)
-        const_Rs = None if const_R is None or not self.sqrt else _noise_sqrt(const_R)
-        pts = self.rule.unit_points(mean.shape[-1], dtype=mean.dtype, device=mean.device)
-        # A compiled step sees tensors of identical shape, dtype, device and strides at every step
-        # once the first steps have fixed the strides, so Dynamo's guard checks (~0.1 ms per call)
-        # can be skipped from then on: the model is not modified inside this loop.
-        compiled = step_fn in self._compiled_steps.values()
-        outs: list[_Step] = []
-        with contextlib.ExitStack() as stance:
-            for t in range(T):
-                if compiled and t == _GUARD_WARMUP_STEPS:
-                    stance.enter_context(torch.compiler.set_stance(skip_guard_eval_unsafe=True))
-                if f.time_varying_noise:
-                    Q = self._noise(f, t, mean)
-                    Qs = None if Q is None or not self.sqrt else _noise_sqrt(Q)
-                else:
-                    Q, Qs = const_Q, const_Qs
-                if h.time_varying_noise:
-                    R = self._noise(h, t, mean)
-                    Rs = None if R is None or not self.sqrt else _noise_sqrt(R)
-                else:
-                    R, Rs = const_R, const_Rs
-                ut = None if inp.u is None else inp.u[..., t, :]
-                st = step_fn(
-                    *pts, mean, cov, sqrt, inp.y[..., t, :], inp.obs[..., t, :], ut, Q, Qs, R, Rs
-                )
-                outs.append(st)
-                mean, cov, sqrt = st.mean, st.cov, st.sqrt
-        return outs
-
-    def _assemble(self, inp: _Inputs, outs: list[_Step], *, stacklevel: int) -> FilterResult:
-        """Stack per-step outputs into a :class:`FilterResult`; warn about non-finite sequences."""
-        res = self._stack(inp, outs)
-        _warn_nonfinite(res, stacklevel=stacklevel + 1)
-        return res
+    def run(self, inputs: FilterInputs) -> FilterResult:
+        """:meth:`scan` the prepared ``inputs`` and stack the result (no divergence warning)."""
+        path = self.numerics_path(inputs)
+        records, _ = self.scan(inputs)
+        if path.execution == "compiled-loop":
+            return concat_records(records, self._observed(inputs), path)
+        return stack_records(records, self._observed(inputs), path)
 
     @staticmethod
-    def _stack(inp: _Inputs, outs: list[_Step]) -> FilterResult:
-        """Stack per-step outputs into a :class:`FilterResult` (no host synchronisation)."""
-
-        def stack(i: int, dim: int) -> Tensor:
-            return torch.stack([o[i] for o in outs], dim=dim)
-
-        res = FilterResult(
-            mean=stack(0, -2),
-            cov=stack(1, -3),
-            predicted_mean=stack(3, -2),
-            predicted_cov=stack(4, -3),
-            measurement_mean=stack(5, -2),
-            innovation=stack(6, -2),
-            innovation_cov=stack(7, -3),
-            observed=inp.obs.expand(*inp.batch, *inp.obs.shape[-2:]),
-            log_likelihood=torch.stack([o.loglik for o in outs], dim=-1).sum(-1),
-            cross_cov=stack(9, -3),
-        )
-        return res
+    def _observed(inp: FilterInputs) -> Tensor:
+        return inp.obs.expand(*inp.batch, *inp.obs.shape[-2:])
 
     def graphed(
         self,
@@ -524,15 +536,176 @@ class GaussianFilter(nn.Module):
         x0: Tensor,
         P0: Tensor,
         mask: Tensor | None = None,
+        path: Path = "auto",
+        parallel: bool = False,
     ) -> SmootherResult:
-        """Filter, then run the cubature Rauch-Tung-Striebel smoother backwards.
+        """Filter, then run the Rauch-Tung-Striebel smoother backwards (cubature RTS; for a
+        linear-Gaussian model the exact smoother, sequential or with ``parallel=True`` by
+        associative scan).
 
         Arguments as in :meth:`filter`. Returns a :class:`~torchfilt.filters.SmootherResult` with
         smoothed means ``(..., T, n)`` and covariances ``(..., T, n, n)``.
         """
         from torchfilt.filters.smoother import rts_smooth
 
-        return rts_smooth(self.filter(y, u, x0=x0, P0=P0, mask=mask))
+        # -- exact Kalman path for linear models (torchfilt.filters.kalman) -------------------
+        if select_path(self.model, path=path, parallel=parallel, redraw=self.redraw):
+            return kalman_smoother(
+                self.model, y, u, x0=x0, P0=P0, mask=mask, sqrt=self.sqrt, parallel=parallel
+            )
+        return rts_smooth(self.filter(y, u, x0=x0, P0=P0, mask=mask, path="cubature"))
+
+    # ------------------------------------------------------------------ online use
+    def init(self, x0: Tensor, P0: Tensor) -> FilterState:
+        """Start an online filter from the prior ``N(x0, P0)`` (the belief about ``x_{-1}``).
+
+        Args:
+            x0: prior mean ``(..., n)``. P0: prior covariance ``(..., n, n)``, symmetric PSD.
+
+        Returns:
+            A :class:`FilterState` at ``t = -1``. Call :meth:`predict` then :meth:`update` for each
+            measurement; with the same data this gives :meth:`filter`'s estimates.
+        """
+        x0 = torch.as_tensor(x0)
+        P0 = torch.as_tensor(P0, device=x0.device)
+        if not x0.is_floating_point():
+            raise TypeError(f"x0 must be floating point, got {x0.dtype}")
+        dtype = torch.promote_types(x0.dtype, P0.dtype) if P0.is_floating_point() else x0.dtype
+        x0, P0 = x0.to(dtype), P0.to(dtype)
+        check_prior(x0, P0, self.model.state_dim)
+        try:
+            batch = torch.broadcast_shapes(x0.shape[:-1], P0.shape[:-2])
+        except RuntimeError:
+            raise ShapeError(
+                f"x0 {tuple(x0.shape)} and P0 {tuple(P0.shape)}: batch shapes do not broadcast"
+            ) from None
+        n = self.model.state_dim
+        mean = x0.expand(*batch, n).contiguous()
+        cov = P0.expand(*batch, n, n).contiguous()
+        return FilterState(mean, cov, safe_cholesky(cov, name="P0"), -1, False)
+
+    def _check_state(self, state: FilterState, what: str) -> None:
+        if not isinstance(state, FilterState):
+            raise InputError(
+                f"state: {what} needs the FilterState of init/predict/update, got "
+                f"{type(state).__name__}"
+            )
+
+    def _step_input(self, name: str, v: Tensor | None, dim: int, like: Tensor) -> Tensor | None:
+        if v is None:
+            return None
+        v = torch.as_tensor(v, device=like.device)
+        if not v.is_floating_point():
+            raise TypeError(f"{name} must be floating point, got {v.dtype}")
+        v = v.to(like.dtype)
+        if v.dim() < 1 or (dim >= 0 and v.shape[-1] != dim):
+            raise ShapeError(f"{name}: expected shape (..., {dim}), got {tuple(v.shape)}")
+        return v
+
+    @staticmethod
+    def _expand(state: FilterState, batch: torch.Size) -> Belief:
+        """The state's belief expanded to ``batch`` (a batched measurement of an unbatched state)."""
+        n = state.mean.shape[-1]
+        if state.mean.shape[:-1] == batch:
+            return state.belief
+        sq = None if state.sqrt is None else state.sqrt.expand(*batch, n, n)
+        return Belief(state.mean.expand(*batch, n), state.cov.expand(*batch, n, n), sq)
+
+    def _measurement(self, y: Tensor, mask: Tensor | None, like: Tensor) -> tuple[Tensor, Tensor]:
+        """One step's measurement ``(..., m)`` in ``like``'s dtype and which components are
+        observed (finite and ``mask``)."""
+        if not isinstance(y, Tensor):
+            raise TypeError(f"y must be a torch.Tensor, got {type(y).__name__}")
+        v = self._step_input("y", y, self.model.obs_dim, like)
+        assert v is not None
+        m = None if mask is None else torch.as_tensor(mask).unsqueeze(-2)
+        return v, observed(v.unsqueeze(-2), m).squeeze(-2)
+
+    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+        """Predict the next state: the belief about ``x_{t+1}`` from the one about ``x_t``.
+
+        Args:
+            state: from :meth:`init` or :meth:`update` (or :meth:`predict`: predicting twice skips
+                a measurement).
+            u: inputs ``(..., nu)`` driving this step, or ``None``.
+
+        Returns:
+            The predicted :class:`FilterState` at ``t + 1``.
+        """
+        self._check_state(state, "predict")
+        u = self._step_input("u", u, -1, state.mean)
+        if u is not None and not bool(torch.isfinite(u).all()):
+            raise ValueError("u contains non-finite entries; inputs cannot be missing")
+        t = state.t + 1
+        Q = self._noise_of(self.model.transition, t, state.mean)
+        pts = steps.unit_points(self.rule, self.model.state_dim, state.mean)
+        batch = torch.broadcast_shapes(state.mean.shape[:-1], () if u is None else u.shape[:-1])
+        with small_matrix_kernels(self.small_kernels(batch)):  # type: ignore[arg-type]
+            pred, cache = steps.predict(
+                state.belief,
+                self.model,
+                u,
+                pts,
+                sqrt=self.sqrt,
+                point_variance=self.point_variance,
+                noise=Q,
+            )
+        return FilterState(pred.mean, pred.cov, pred.sqrt, t, True, cache)
+
+    def update(
+        self,
+        state: FilterState,
+        y: Tensor,
+        u: Tensor | None = None,
+        *,
+        mask: Tensor | None = None,
+    ) -> tuple[FilterState, UpdateStats]:
+        """Condition the predicted state on one measurement ``y_t``.
+
+        Args:
+            state: the predicted :class:`FilterState` (from :meth:`predict`).
+            y: measurement ``(..., m)``; NaN components are missing (an all-NaN ``y`` leaves the
+                state as predicted).
+            u: the inputs ``(..., nu)`` of this step, if the measurement model takes them.
+            mask: optional bool ``(..., m)``; ``False`` marks a component missing.
+
+        Returns:
+            The filtered :class:`FilterState` and the step's
+            :class:`~torchfilt.filters.steps.UpdateStats` (predicted measurement, innovation
+            and its covariance, log-likelihood term).
+        """
+        self._check_state(state, "update")
+        if not state.predicted:
+            raise InputError(
+                "state: update needs a predicted state; call predict(state, u) first (the prior "
+                "of init is the belief about x_{-1}, as in filter())"
+            )
+        y, obs = self._measurement(y, mask, state.mean)
+        u = self._step_input("u", u, -1, state.mean)
+        try:
+            batch = torch.broadcast_shapes(state.mean.shape[:-1], obs.shape[:-1])
+        except RuntimeError:
+            raise ShapeError(
+                f"y: batch shape {tuple(obs.shape[:-1])} does not broadcast with the state's "
+                f"{tuple(state.mean.shape[:-1])}"
+            ) from None
+        R = self._noise_of(self.model.measurement, state.t, state.mean)
+        pts = steps.unit_points(self.rule, self.model.state_dim, state.mean)
+        with small_matrix_kernels(self.small_kernels(batch)):  # type: ignore[arg-type]
+            post, stats = steps.update(
+                self._expand(state, batch),
+                y,
+                obs,
+                self.model,
+                pts,
+                u=u,
+                sqrt=self.sqrt,
+                redraw=self.redraw,
+                point_variance=self.point_variance,
+                noise=R,
+                cache=state.cache,
+            )
+        return FilterState(post.mean, post.cov, post.sqrt, state.t, False), stats
 
 
 class CKF(GaussianFilter):

@@ -19,19 +19,44 @@ Constraints of a captured run (checked where possible):
 from __future__ import annotations
 
 import warnings
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Protocol
 
 import torch
 from torch import Tensor
 
 from torchfilt.exceptions import ShapeError
-from torchfilt.filters.results import FilterResult
-from torchfilt.numerics.linalg import sync_free
+from torchfilt.filters.inputs import FilterInputs, observed
+from torchfilt.filters.results import FilterResult, StepRecord, stack_records, warn_nonfinite
+from torchfilt.settings import NumericsPath, sync_free
 
 if TYPE_CHECKING:
-    from torchfilt.filters.gaussian import GaussianFilter
+    from collections.abc import Callable
 
-__all__ = ["GraphedFilter"]
+
+class Scannable(Protocol):
+    """What :class:`GraphedFilter` needs of a filter: its public scan interface
+    (:class:`~torchfilt.filters.GaussianFilter` provides it)."""
+
+    def prepare(
+        self,
+        y: Tensor,
+        u: Tensor | None = None,
+        *,
+        x0: Tensor,
+        P0: Tensor,
+        mask: Tensor | None = None,
+    ) -> FilterInputs: ...
+
+    def step_function(self, device: torch.device) -> Callable[..., Any]: ...
+
+    def scan(
+        self, inputs: FilterInputs, step_fn: Callable[..., Any] | None = None
+    ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]: ...
+
+    def numerics_path(self, inputs: FilterInputs, execution: str | None = None) -> NumericsPath: ...
+
+
+__all__ = ["GraphedFilter", "Scannable"]
 
 
 class GraphedFilter:
@@ -57,7 +82,7 @@ class GraphedFilter:
 
     def __init__(
         self,
-        filt: GaussianFilter,
+        filt: Scannable,
         y: Tensor,
         u: Tensor | None = None,
         *,
@@ -74,7 +99,7 @@ class GraphedFilter:
         if warmup < 1:
             raise ValueError(f"warmup must be at least 1, got {warmup}")
         self.filter_ = filt
-        inp = filt._check(y, u, x0, P0, None)
+        inp = filt.prepare(y, u, x0=x0, P0=P0)
         # Static buffers: later runs copy their data into these before each replay.
         shape = (*inp.batch, *y.shape[-2:])
         self._y = inp.y.expand(shape).contiguous()
@@ -86,21 +111,23 @@ class GraphedFilter:
         self.shape = shape
         self.dtype = inp.y.dtype
         self.device = inp.y.device
-        step_fn = filt._step_for(self.device)
+        step_fn = filt.step_function(self.device)
 
         side = torch.cuda.Stream(device=self.device)
         side.wait_stream(torch.cuda.current_stream(self.device))
         with torch.cuda.stream(side), warnings.catch_warnings(), sync_free():
             warnings.simplefilter("ignore")
             for _ in range(warmup):
-                filt._scan(self._inp, step_fn)
+                filt.scan(self._inp, step_fn)
         torch.cuda.current_stream(self.device).wait_stream(side)
 
         self.graph = torch.cuda.CUDAGraph()
         try:
             with torch.cuda.graph(self.graph), sync_free():
-                outs = filt._scan(self._inp, step_fn)
-                self._out = filt._stack(self._inp, outs)
+                path = filt.numerics_path(self._inp, "graphed")
+                records, _ = filt.scan(self._inp, step_fn)
+                observed_all = self._obs.expand(*inp.batch, *self._obs.shape[-2:])
+                self._out = stack_records(records, observed_all, path)
         except RuntimeError as e:
             raise RuntimeError(
                 "GraphedFilter: capturing the filter into a CUDA graph failed; a step must not "
@@ -128,8 +155,6 @@ class GraphedFilter:
         Returns:
             A :class:`~torchfilt.filters.FilterResult`, as :meth:`GaussianFilter.filter` gives.
         """
-        from torchfilt.filters.gaussian import _observed, _warn_nonfinite
-
         if not isinstance(y, Tensor):
             raise TypeError(f"y must be a torch.Tensor, got {type(y).__name__}")
         if tuple(y.shape) != tuple(self.shape):
@@ -147,7 +172,7 @@ class GraphedFilter:
                 + ("without" if self._u is None else "with")
                 + " inputs"
             )
-        obs = _observed(y, mask)
+        obs = observed(y, mask)
         if obs.shape != self._obs.shape:
             raise ShapeError(
                 f"mask: shape {tuple(obs.shape)} after broadcasting, the graph was captured for "
@@ -168,6 +193,9 @@ class GraphedFilter:
         self.graph.replay()
         out = self._out
         if clone:
-            out = FilterResult(*(v.clone() if isinstance(v, Tensor) else v for v in out))
-        _warn_nonfinite(out, stacklevel=2)
+            clones: dict[str, Any] = {
+                k: v.clone() for k, v in out._asdict().items() if isinstance(v, Tensor)
+            }
+            out = out._replace(**clones)
+        warn_nonfinite(out, stacklevel=2)
         return out

@@ -2,11 +2,26 @@
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Sequence
 from typing import NamedTuple
 
+import torch
 from torch import Tensor
 
-__all__ = ["FilterResult", "SmootherResult"]
+from torchfilt.exceptions import DivergenceWarning
+from torchfilt.settings import NumericsPath
+
+__all__ = [
+    "FilterResult",
+    "KalmanFilterResult",
+    "ParallelFilterResult",
+    "SmootherResult",
+    "StepRecord",
+    "concat_records",
+    "stack_records",
+    "warn_nonfinite",
+]
 
 
 class FilterResult(NamedTuple):
@@ -29,6 +44,9 @@ class FilterResult(NamedTuple):
         log_likelihood: ``sum_t log N(y_t; y^-_t, P_yy)`` over observed components, shape ``(...)``.
         cross_cov: ``Cov(x_{t-1}, x_t | y_{1:t-1})`` from the prediction (``x_{-1}`` is the prior),
             which the RTS smoother needs, shape ``(..., T, n, n)``.
+        numerics: which numerics path the run took (:class:`torchfilt.settings.NumericsPath`:
+            eager, compiled or graphed; small-matrix kernels; jitter or NaN on a failed
+            factorisation), or ``None`` for a result built by hand.
     """
 
     mean: Tensor
@@ -41,6 +59,114 @@ class FilterResult(NamedTuple):
     observed: Tensor
     log_likelihood: Tensor
     cross_cov: Tensor
+    numerics: NumericsPath | None = None
+
+    @property
+    def path(self) -> str:
+        """Which computation produced the result: ``"cubature"`` (sigma points), ``"kalman"``
+        (the closed-form recursion of a linear model) or ``"parallel"`` (its associative scan)."""
+        return "cubature"
+
+
+class StepRecord(NamedTuple):
+    """What one filter step contributes to a :class:`FilterResult` (shapes without ``T``).
+
+    Attributes:
+        mean: ``(..., n)``. cov: ``(..., n, n)``. predicted_mean: ``(..., n)``.
+        predicted_cov: ``(..., n, n)``. measurement_mean: ``(..., m)``. innovation: ``(..., m)``.
+        innovation_cov: ``(..., m, m)``. log_likelihood: ``(...)``. cross_cov: ``(..., n, n)``.
+    """
+
+    mean: Tensor
+    cov: Tensor
+    predicted_mean: Tensor
+    predicted_cov: Tensor
+    measurement_mean: Tensor
+    innovation: Tensor
+    innovation_cov: Tensor
+    log_likelihood: Tensor
+    cross_cov: Tensor
+
+
+#: Where each :class:`StepRecord` field is stacked over time: vectors at -2, matrices at -3.
+_TIME_DIM = {
+    "mean": -2,
+    "cov": -3,
+    "predicted_mean": -2,
+    "predicted_cov": -3,
+    "measurement_mean": -2,
+    "innovation": -2,
+    "innovation_cov": -3,
+    "cross_cov": -3,
+}
+
+
+def stack_records(
+    records: Sequence[StepRecord], observed: Tensor, numerics: NumericsPath | None = None
+) -> FilterResult:
+    """Stack per-step records into a :class:`FilterResult`, field by field (no host sync).
+
+    Args:
+        records: one :class:`StepRecord` per step, ``T`` of them.
+        observed: bool ``(..., T, m)``, expanded to the run's batch shape.
+        numerics: the run's numerics path.
+    """
+    fields = {
+        name: torch.stack([getattr(r, name) for r in records], dim=dim)
+        for name, dim in _TIME_DIM.items()
+    }
+    loglik = torch.stack([r.log_likelihood for r in records], dim=-1).sum(-1)
+    return FilterResult(**fields, observed=observed, log_likelihood=loglik, numerics=numerics)
+
+
+def concat_records(
+    chunks: Sequence[StepRecord], observed: Tensor, numerics: NumericsPath | None = None
+) -> FilterResult:
+    """Join records of consecutive chunks of steps (fields with a time dimension, the
+    log-likelihood ``(..., K)``) into a :class:`FilterResult`, field by field."""
+    fields = {
+        name: torch.cat([getattr(c, name) for c in chunks], dim=dim)
+        for name, dim in _TIME_DIM.items()
+    }
+    loglik = torch.cat([c.log_likelihood for c in chunks], dim=-1).sum(-1)
+    return FilterResult(**fields, observed=observed, log_likelihood=loglik, numerics=numerics)
+
+
+def warn_nonfinite(res: FilterResult, *, stacklevel: int) -> None:
+    """Emit a :class:`DivergenceWarning` if some sequences of ``res`` are non-finite.
+
+    ``stacklevel`` counts from this function (as in :func:`warnings.warn`)."""
+    finite = torch.isfinite(res.mean).all(-1).all(-1)
+    if not bool(finite.all()):
+        bad = int((~finite).sum())
+        warnings.warn(
+            f"{bad} of {finite.numel()} sequences produced non-finite estimates "
+            "(covariance lost definiteness or the model returned non-finite values)",
+            DivergenceWarning,
+            stacklevel=stacklevel,
+        )
+
+
+class KalmanFilterResult(FilterResult):
+    """A :class:`FilterResult` computed by the closed-form Kalman recursion (``path ==
+    "kalman"``). Same fields; a field left out with ``outputs=`` is an empty tensor."""
+
+    __slots__ = ()
+
+    @property
+    def path(self) -> str:
+        return "kalman"
+
+
+class ParallelFilterResult(FilterResult):
+    """A :class:`FilterResult` computed by the parallel-in-time (associative scan) Kalman filter
+    (``path == "parallel"``)."""
+
+    __slots__ = ()
+
+    @property
+    def path(self) -> str:
+        return "parallel"
 
 
 class SmootherResult(NamedTuple):
@@ -57,3 +183,8 @@ class SmootherResult(NamedTuple):
     cov: Tensor
     gain: Tensor
     filtered: FilterResult
+
+    @property
+    def path(self) -> str:
+        """The path of the forward pass (see :attr:`FilterResult.path`)."""
+        return self.filtered.path

@@ -15,7 +15,12 @@ from torchfilt.models.base import (
 from torchfilt.models.calibrated import CalibratedModel
 from torchfilt.models.functional import FunctionModel, StateSpaceModel, as_conditional
 from torchfilt.models.integrate import rk4
-from torchfilt.models.linear import LinearGaussianModel, LinearModel
+from torchfilt.models.linear import (
+    LinearGaussianModel,
+    LinearModel,
+    LinearSystem,
+    linear_system,
+)
 from torchfilt.models.params import (
     Bounded,
     CholeskyCovariance,
@@ -35,6 +40,7 @@ __all__ = [
     "FunctionModel",
     "LinearGaussianModel",
     "LinearModel",
+    "LinearSystem",
     "Positive",
     "Prediction",
     "ScalarCovariance",
@@ -43,5 +49,6 @@ __all__ = [
     "as_conditional",
     "check_output",
     "check_prediction",
+    "linear_system",
     "rk4",
 ]

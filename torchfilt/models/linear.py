@@ -1,16 +1,79 @@
-"""Linear-Gaussian models."""
+"""Linear-Gaussian models, and how a model declares that it is linear.
+
+A model is linear when :func:`linear_system` returns its matrices: a
+:class:`LinearGaussianModel`, a :class:`StateSpaceModel` built from two :class:`LinearModel`
+maps, or any :class:`StateSpaceModel` with a ``linear_system()`` method returning a
+:class:`LinearSystem`. The filters then run the closed-form Kalman recursions on it instead of
+pushing cubature points through the maps.
+"""
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import InputError, ShapeError
-from torchfilt.models.base import Prediction, TimeVarying
-from torchfilt.models.functional import FunctionModel, StateSpaceModel
+from torchfilt.exceptions import InputError, ModelError, ShapeError
+from torchfilt.models.base import ConditionalModel, Prediction, TimeVarying
+from torchfilt.models.functional import FunctionModel, StateSpaceModel, WithNoise
 from torchfilt.numerics.dtypes import check_real_tensor
 
-__all__ = ["LinearGaussianModel", "LinearModel"]
+__all__ = ["LinearGaussianModel", "LinearModel", "LinearSystem", "linear_system"]
+
+
+class LinearSystem(NamedTuple):
+    """The matrices of a linear state-space model (its noise stays with the model's maps).
+
+        x_t = A x_{t-1} + B u_t + w_t,   y_t = H x_t + D u_t + v_t
+
+    Attributes:
+        A: transition matrix ``(..., n, n)``.
+        H: measurement matrix ``(..., m, n)``.
+        B: input matrix ``(..., n, nu)`` or ``None``.
+        D: feed-through matrix ``(..., m, nu)`` or ``None``.
+    """
+
+    A: Tensor
+    H: Tensor
+    B: Tensor | None = None
+    D: Tensor | None = None
+
+
+def _linear_map(side: ConditionalModel) -> LinearModel | None:
+    """The :class:`LinearModel` behind ``side`` (possibly with extra noise), else ``None``."""
+    if isinstance(side, WithNoise):
+        side = side.base
+    return side if isinstance(side, LinearModel) else None
+
+
+def linear_system(model: StateSpaceModel) -> LinearSystem | None:
+    """The matrices of ``model`` if it is linear-Gaussian, else ``None``.
+
+    A model declares itself linear with a ``linear_system()`` method returning a
+    :class:`LinearSystem` (its maps must then compute exactly ``A x + B u`` and ``H x + D u``);
+    a model whose transition and measurement are :class:`LinearModel` maps is recognised without
+    one.
+
+    Args:
+        model: any state-space model.
+
+    Returns:
+        A :class:`LinearSystem`, or ``None`` for a model that is not known to be linear.
+    """
+    declared = getattr(model, "linear_system", None)
+    if callable(declared):
+        out = declared()
+        if out is not None and not isinstance(out, LinearSystem):
+            raise ModelError(
+                f"{type(model).__name__}.linear_system() must return a LinearSystem, got "
+                f"{type(out).__name__}"
+            )
+        return out
+    f, h = _linear_map(model.transition), _linear_map(model.measurement)
+    if f is None or h is None:
+        return None
+    return LinearSystem(A=f.C, H=h.C, B=f.D, D=h.D)
 
 
 def _as_tensor(value: Tensor | object, name: str) -> Tensor:
@@ -126,6 +189,10 @@ class LinearGaussianModel(StateSpaceModel):
             LinearModel(H, R, D, name="measurement", noise_name="R"),
         )
 
+    def linear_system(self) -> LinearSystem:
+        """The matrices ``A, H, B, D`` (see :func:`linear_system`)."""
+        return LinearSystem(A=self.A, H=self.H, B=self.B, D=self.D)
+
     @property
     def A(self) -> Tensor:
         return self.transition.C  # type: ignore[return-value]
@@ -137,3 +204,7 @@ class LinearGaussianModel(StateSpaceModel):
     @property
     def B(self) -> Tensor | None:
         return self.transition.D  # type: ignore[return-value]
+
+    @property
+    def D(self) -> Tensor | None:
+        return self.measurement.D  # type: ignore[return-value]

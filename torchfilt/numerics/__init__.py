@@ -8,6 +8,7 @@ from torchfilt.numerics.box import Box
 from torchfilt.numerics.dtypes import COMPUTE_DTYPES, check_compute_dtype, check_real_tensor
 from torchfilt.numerics.linalg import (
     cholesky_ok,
+    no_host_sync,
     psd_solve,
     safe_cholesky,
     symmetrize,
@@ -44,6 +45,7 @@ __all__ = [
     "cholesky_ok",
     "cholesky_solve",
     "gaussian_log_prob",
+    "no_host_sync",
     "observed",
     "psd_solve",
     "safe_cholesky",

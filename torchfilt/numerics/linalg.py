@@ -6,10 +6,7 @@ Filters never form an explicit inverse: gains come from :func:`psd_solve`, squar
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import warnings
-from collections.abc import Iterator
 from typing import Literal
 
 import torch
@@ -17,8 +14,17 @@ from torch import Tensor
 
 from torchfilt.exceptions import CholeskyJitterWarning, InputError
 from torchfilt.numerics import small
+from torchfilt.settings import is_sync_free, sync_free
 
-__all__ = ["cholesky_ok", "psd_solve", "safe_cholesky", "symmetrize", "tria"]
+__all__ = [
+    "cholesky_ok",
+    "no_host_sync",
+    "psd_solve",
+    "safe_cholesky",
+    "symmetrize",
+    "sync_free",
+    "tria",
+]
 
 #: Jitter added on the k-th retry is ``eps(dtype) * mean|diag| * JITTER_BASE**(k+1)``.
 JITTER_BASE = 10.0
@@ -38,30 +44,10 @@ def symmetrize(A: Tensor) -> Tensor:
     return 0.5 * (A + A.mT)
 
 
-_SYNC_FREE: contextvars.ContextVar[bool] = contextvars.ContextVar(
-    "torchfilt_sync_free", default=False
-)
-
-
-@contextlib.contextmanager
-def sync_free() -> Iterator[None]:
-    """Run the numerics' host-synchronisation-free paths inside this block.
-
-    Used around CUDA-graph warm-up and capture (:class:`~torchfilt.filters.GraphedFilter`) so that
-    the warm-up runs exactly the code that is captured (a compiled step must not see new guards,
-    and so recompile, during capture).
-    """
-    token = _SYNC_FREE.set(True)
-    try:
-        yield
-    finally:
-        _SYNC_FREE.reset(token)
-
-
-def _compiling() -> bool:
+def no_host_sync() -> bool:
     """True where a host synchronisation is not allowed: under ``torch.compile`` tracing, or
-    inside :func:`sync_free` (CUDA-graph warm-up and capture)."""
-    return torch.compiler.is_compiling() or _SYNC_FREE.get()
+    inside :func:`torchfilt.settings.sync_free` (CUDA-graph warm-up and capture)."""
+    return torch.compiler.is_compiling() or is_sync_free()
 
 
 def safe_cholesky(
@@ -80,7 +66,7 @@ def safe_cholesky(
     Elements that still fail (or contain non-finite values) are set to NaN (``on_failure="nan"``,
     the default, so one bad sequence does not stop a batch) or raise ``ValueError``.
 
-    Inside ``torch.compile`` and :func:`sync_free` (CUDA-graph capture) the retries (which need a
+    Inside ``torch.compile`` and :func:`~torchfilt.settings.sync_free` (CUDA-graph capture) the retries (which need a
     host synchronisation) are skipped and failed factors are NaN.
 
     Args:
@@ -95,7 +81,7 @@ def safe_cholesky(
         Lower-triangular ``L`` with ``L L^T = A (+ jitter I)``, shape ``(..., n, n)``.
     """
     L, info = small.cholesky_ex(A)
-    if _compiling():
+    if no_host_sync():
         bad = info > 0
         return torch.where(bad[..., None, None], torch.full_like(L, float("nan")), L)
     finite = torch.isfinite(A).all(dim=-1).all(dim=-1)

@@ -14,6 +14,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchfilt.settings import current_small_matrix_kernels
+
 __all__ = [
     "SMALL_BATCH",
     "SMALL_MAX",
@@ -31,11 +33,19 @@ SMALL_BATCH = 64
 
 
 def use_unrolled(A: Tensor) -> bool:
-    """Whether the unrolled kernels beat the library calls for ``A`` of shape ``(..., n, k)``."""
+    """Whether to use the unrolled kernels for ``A`` of shape ``(..., n, k)``.
+
+    Under ``torch.compile`` they always are. Otherwise
+    :func:`torchfilt.settings.small_matrix_kernels` chooses; under ``"auto"`` (the default) they
+    are used from ``SMALL_BATCH`` matrices on, where they beat the library calls.
+    """
     if A.shape[-2] > SMALL_MAX:
         return False
     if torch.compiler.is_compiling():
-        return True
+        return True  # fused into the surrounding kernels; decided at trace time, so no switch
+    mode = current_small_matrix_kernels()
+    if mode != "auto":
+        return mode == "unrolled"
     return A[..., 0, 0].numel() >= SMALL_BATCH
 
 

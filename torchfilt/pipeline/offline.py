@@ -307,7 +307,7 @@ def _write_one(
         from torchfilt.plots import plot_recording
 
         matplotlib.use("Agg", force=False)
-        one = type(res)(*(f[b] for f in res))
+        one = type(res)(*(f[b] if isinstance(f, torch.Tensor) else f for f in res))
         one_sm = None
         if sm is not None:
             one_sm = type(sm)(sm.mean[b], sm.cov[b], sm.gain[b], one)

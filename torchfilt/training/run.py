@@ -323,8 +323,26 @@ def _run(
     stream: TextIO,
     log: _Log,
 ) -> Path:
+    """Run the recipe with its thread count, restoring the caller's afterwards."""
+    threads = torch.get_num_threads()
     if r.threads is not None:
         torch.set_num_threads(r.threads)
+    try:
+        return _run_recipe(r, ds, prior, out, resume, progress, stream, log)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _run_recipe(
+    r: Recipe,
+    ds: Dataset,
+    prior: tuple[Tensor, Tensor, str],
+    out: Path,
+    resume: bool,
+    progress: bool,
+    stream: TextIO,
+    log: _Log,
+) -> Path:
     dtype = torch.float64 if r.dtype == "float64" else torch.float32
     dlog = ds.log()
     ds_path = out / "dataset.json"

@@ -1,0 +1,161 @@
+"""Checking a filter's inputs at the boundary: shapes, dtypes, the prior, which components are observed."""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from torchfilt.exceptions import ShapeError
+from torchfilt.models import StateSpaceModel
+
+__all__ = ["FilterInputs", "check_inputs", "check_prior", "model_noise", "observed"]
+
+
+class FilterInputs(NamedTuple):
+    """A recording checked and broadcast for a filter run.
+
+    Attributes:
+        y: measurements ``(..., T, m)`` with the missing entries replaced by 0.
+        obs: which components are observed, bool ``(..., T, m)`` (batch dims broadcast with ``y``).
+        u: inputs ``(..., T, nu)`` or ``None``.
+        x0: prior mean ``(B..., n)``, expanded to the run's batch shape.
+        P0: prior covariance ``(B..., n, n)``, expanded likewise.
+        batch: the run's batch shape ``B``.
+    """
+
+    y: Tensor
+    obs: Tensor
+    u: Tensor | None
+    x0: Tensor
+    P0: Tensor
+    batch: torch.Size
+
+
+def observed(y: Tensor, mask: Tensor | None) -> Tensor:
+    """Which components of ``y`` are observed: finite, and ``mask`` True where given.
+
+    The mask may add leading batch dimensions, but its trailing ``(T, m)`` must equal ``y``'s: a
+    mask never stretches the measurements in time or over components.
+
+    Args:
+        y: measurements ``(..., T, m)``.
+        mask: bool ``(..., T, m)`` whose batch dims broadcast with ``y``'s, or ``None``.
+
+    Returns:
+        Bool tensor of the broadcast shape ``(..., T, m)``.
+
+    Raises:
+        TypeError: ``mask`` is not boolean.
+        ShapeError: ``mask``'s trailing ``(T, m)`` differ from ``y``'s, or its batch dims do not
+            broadcast with ``y``'s.
+    """
+    obs = torch.isfinite(y)
+    if mask is None:
+        return obs
+    mask = torch.as_tensor(mask, device=y.device)
+    if mask.dtype != torch.bool:
+        raise TypeError(f"mask must be a bool tensor, got {mask.dtype}")
+    if mask.dim() < 2 or tuple(mask.shape[-2:]) != tuple(y.shape[-2:]):
+        raise ShapeError(
+            f"mask: shape {tuple(mask.shape)} does not match y {tuple(y.shape)}: its trailing "
+            f"(T, m) must equal y's {tuple(y.shape[-2:])} (a mask may add batch dimensions only)"
+        )
+    try:
+        return obs & mask
+    except RuntimeError:
+        raise ShapeError(
+            f"mask: shape {tuple(mask.shape)} does not broadcast with y {tuple(y.shape)}"
+        ) from None
+
+
+def check_prior(x0: Tensor, P0: Tensor, n: int) -> None:
+    """Check a prior ``x0 (..., n)``, ``P0 (..., n, n)``: shapes, finiteness, symmetry, PSD.
+
+    Raises:
+        ShapeError: wrong shapes. ValueError: non-finite, asymmetric or indefinite ``P0``.
+    """
+    if x0.dim() < 1 or x0.shape[-1] != n:
+        raise ShapeError(f"x0: expected shape (..., n) with n = {n}, got {tuple(x0.shape)}")
+    if P0.dim() < 2 or P0.shape[-2:] != (n, n):
+        raise ShapeError(f"P0: expected shape (..., n, n) with n = {n}, got {tuple(P0.shape)}")
+    if not bool(torch.isfinite(x0).all()):
+        raise ValueError("x0 contains non-finite entries")
+    if not bool(torch.isfinite(P0).all()):
+        raise ValueError("P0 contains non-finite entries")
+    if not torch.allclose(P0, P0.mT, rtol=1e-8, atol=0.0):
+        raise ValueError("P0 is not symmetric")
+    evals = torch.linalg.eigvalsh(P0)
+    tol = evals.abs().amax(-1) * math.sqrt(torch.finfo(P0.dtype).eps)
+    if bool((evals[..., 0] < -tol).any()) or bool((evals[..., -1] <= 0).any()):
+        raise ValueError(
+            f"P0 is not positive semi-definite: smallest eigenvalue {float(evals[..., 0].min()):.3e}"
+        )
+
+
+def model_noise(side: nn.Module, step: int, like: Tensor) -> Tensor | None:
+    """The additive noise covariance ``(..., d, d)`` of a model side at ``step`` (or None)."""
+    noise = side.noise_cov(step) if side.time_varying_noise else side.noise_cov()  # type: ignore[operator]
+    return None if noise is None else noise.to(dtype=like.dtype, device=like.device)
+
+
+def check_inputs(
+    model: StateSpaceModel,
+    y: Tensor,
+    u: Tensor | None,
+    x0: Tensor,
+    P0: Tensor,
+    mask: Tensor | None,
+) -> FilterInputs:
+    """Check and broadcast a recording for a filter run of ``model``.
+
+    Args:
+        model: the state-space model (its ``state_dim``, ``obs_dim`` and noise batch shapes).
+        y: measurements ``(..., T, m)``; NaN entries are missing.
+        u: inputs ``(..., T, nu)`` or ``None``.
+        x0: prior mean ``(..., n)``. P0: prior covariance ``(..., n, n)``.
+        mask: optional bool ``(..., T, m)``; ``False`` marks a component missing.
+
+    Returns:
+        The :class:`FilterInputs` of the run.
+    """
+    n, m = model.state_dim, model.obs_dim
+    if not isinstance(y, Tensor):
+        raise TypeError(f"y must be a torch.Tensor, got {type(y).__name__}")
+    if y.dim() < 2 or y.shape[-1] != m:
+        raise ShapeError(f"y: expected shape (..., T, m) with m = {m}, got {tuple(y.shape)}")
+    if not y.is_floating_point():
+        raise TypeError(f"y must be floating point, got {y.dtype}")
+    dtype, device = y.dtype, y.device
+    T = y.shape[-2]
+    x0 = torch.as_tensor(x0, device=device)
+    P0 = torch.as_tensor(P0, device=device)
+    dtype = torch.promote_types(dtype, x0.dtype) if x0.is_floating_point() else dtype
+    dtype = torch.promote_types(dtype, P0.dtype) if P0.is_floating_point() else dtype
+    y, x0, P0 = y.to(dtype), x0.to(dtype), P0.to(dtype)
+    check_prior(x0, P0, n)
+    shapes = {"y": y.shape[:-2], "x0": x0.shape[:-1], "P0": P0.shape[:-2]}
+    if u is not None:
+        u = torch.as_tensor(u, device=device).to(dtype)
+        if u.dim() < 2 or u.shape[-2] != T:
+            raise ShapeError(f"u: expected shape (..., T, nu) with T = {T}, got {tuple(u.shape)}")
+        if not bool(torch.isfinite(u).all()):
+            raise ValueError("u contains non-finite entries; inputs cannot be missing")
+        shapes["u"] = u.shape[:-2]
+    obs = observed(y, mask)
+    shapes["mask"] = obs.shape[:-2]  # y's batch shape broadcast with the mask's
+    for name, side in (("Q", model.transition), ("R", model.measurement)):
+        noise = side.noise_cov(0) if side.time_varying_noise else side.noise_cov()
+        if noise is not None:
+            shapes[name] = noise.shape[:-2]
+    try:
+        batch = torch.broadcast_shapes(*shapes.values())
+    except RuntimeError:
+        desc = ", ".join(f"{k} {tuple(v)}" for k, v in shapes.items())
+        raise ShapeError(f"batch shapes do not broadcast: {desc}") from None
+    if T == 0:
+        raise ShapeError("y: the time dimension T must be at least 1")
+    y = torch.where(obs, y, torch.zeros((), dtype=dtype, device=device))
+    return FilterInputs(y, obs, u, x0.expand(*batch, n), P0.expand(*batch, n, n), batch)
