@@ -10,6 +10,7 @@ from test_ckf_linear import make_problem, t64
 import torchfilt
 from torchfilt import CKF, LinearGaussianModel, StateSpaceModel, TimeVarying
 from torchfilt.exceptions import InputError, ModelError
+from torchfilt.filters.kalman import FIELDS
 from torchfilt.filters.kalman import kalman_filter as exact_filter
 from torchfilt.models import LinearModel, LinearSystem
 
@@ -33,7 +34,7 @@ def assert_same(a, b, what, tol=EXACT_TOL):
 
 
 def assert_results_equal(got, want, tol=EXACT_TOL):
-    for name in want._fields:
+    for name in FIELDS:
         a, b = getattr(got, name), getattr(want, name)
         if b.dtype == torch.bool:
             assert torch.equal(a.expand_as(b), b), name
@@ -261,7 +262,7 @@ def test_outputs_option(sqrt, grad):
         ("innovation", "log_likelihood"),
     ):
         part = filt.filter(*args, **kw, outputs=outputs)
-        for name in full._fields:
+        for name in FIELDS:
             if name in outputs:
                 assert_same(getattr(part, name), getattr(full, name), f"{outputs}: {name}")
             else:

@@ -44,19 +44,27 @@ def test_steps_equal_kalman_reference(sqrt):
 
 def test_result_is_built_by_field_name_and_reports_its_path():
     p = make_problem(0)
-    res = CKF(linear(p)).filter(t64(p["y"]), t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]))
+    res = CKF(linear(p)).filter(
+        t64(p["y"]), t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]), path="cubature"
+    )
     assert isinstance(res, FilterResult)
     assert res.numerics == NumericsPath("eager", "library", "jitter")
     batch = t64(p["y"]).expand(64, *p["y"].shape)
-    res64 = CKF(linear(p)).filter(batch, t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]))
+    res64 = CKF(linear(p)).filter(
+        batch, t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]), path="cubature"
+    )
     assert res64.numerics.small_kernels == "unrolled"  # "auto" resolved once for the run
     with settings.small_matrix_kernels("library"):
-        lib = CKF(linear(p)).filter(batch, t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]))
+        lib = CKF(linear(p)).filter(
+            batch, t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]), path="cubature"
+        )
     assert lib.numerics.small_kernels == "library"
     # the two kernels agree to round-off
     torch.testing.assert_close(lib.mean, res64.mean, rtol=TIGHT, atol=TIGHT)
     with settings.sync_free():
-        sf = CKF(linear(p)).filter(t64(p["y"]), t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]))
+        sf = CKF(linear(p)).filter(
+            t64(p["y"]), t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]), path="cubature"
+        )
     assert sf.numerics.on_failure == "nan"
     torch.testing.assert_close(sf.mean, res.mean, rtol=TIGHT, atol=TIGHT)
     assert settings.current_small_matrix_kernels() == "auto" and not settings.is_sync_free()
@@ -102,13 +110,13 @@ def test_sqrt_filter_reports_lost_definiteness():
     """Regression (issue 12): the float32 square-root filter lost definiteness here silently."""
     model, y, x0, P0 = poorly_observable(torch.float32)
     with pytest.warns(DivergenceWarning, match="non-finite estimates"):
-        res = CKF(model, sqrt=True).filter(y, x0=x0, P0=P0)
+        res = CKF(model, sqrt=True).filter(y, x0=x0, P0=P0, path="cubature")
     assert not torch.isfinite(res.mean[-1]).all()
     # in float64 the same problem is resolved: no warning, finite estimates
     model64, y64, x064, P064 = poorly_observable(torch.float64)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        ok = CKF(model64, sqrt=True).filter(y64, x0=x064, P0=P064)
+        ok = CKF(model64, sqrt=True).filter(y64, x0=x064, P0=P064, path="cubature")
     assert torch.isfinite(ok.mean).all()
 
 

@@ -36,7 +36,6 @@ def _kw(dtype: torch.dtype = D) -> dict[str, torch.Tensor]:
     return dict(x0=torch.zeros(2, dtype=dtype), P0=torch.eye(2, dtype=dtype))
 
 
-@core
 def test_mask_cannot_stretch_y():
     """Today: y (1, 1) with a mask (3, 7, 5) runs 7 steps on 5 components."""
     with pytest.raises(ShapeError, match="mask"):
@@ -45,7 +44,6 @@ def test_mask_cannot_stretch_y():
         )
 
 
-@core
 def test_mask_with_more_steps_than_y():
     with pytest.raises(ShapeError, match="mask"):
         CKF(_model()).filter(
@@ -118,7 +116,6 @@ def test_rts_smooth_needs_a_filter_result():
         rts_smooth(None)  # type: ignore[arg-type]
 
 
-@core
 def test_constrained_ckf_graphed_is_refused_or_constrained():
     """Today: graphed() builds a GraphedFilter around the plain CKF step (the constrained step
     lives in a closure it never sees). On the CPU the capture is unavailable, so the refusal must

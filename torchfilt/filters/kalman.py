@@ -54,7 +54,8 @@ __all__ = [
 ]
 
 _LOG_2PI = math.log(2.0 * math.pi)
-FIELDS = FilterResult._fields
+#: The tensor fields of a filter result (``numerics`` describes the run, it is not a tensor).
+FIELDS = tuple(f for f in FilterResult._fields if f != "numerics")
 Path = Literal["auto", "cubature", "kalman"]
 
 
@@ -282,6 +283,11 @@ def _check(
         mask = torch.as_tensor(mask, device=device)
         if mask.dtype != torch.bool:
             raise InputTypeError(f"mask must be a bool tensor, got {mask.dtype}")
+        if mask.dim() < 2 or tuple(mask.shape[-2:]) != tuple(y.shape[-2:]):
+            raise ShapeError(
+                f"mask: shape {tuple(mask.shape)} does not match y {tuple(y.shape)}: its trailing "
+                f"(T, m) must equal y's {tuple(y.shape[-2:])} (a mask may add batch dimensions only)"
+            )
         try:
             obs = obs & mask
         except RuntimeError:
