@@ -202,7 +202,7 @@ def test_force_discards_the_old_run_only(data, tmp_path):
     write_recipe(recipe, data, iters=4)
     train_recipe(recipe, run, force=True, progress=False)
     lines = (run / "metrics.jsonl").read_text().splitlines()
-    gp_lines = [ln for ln in lines if "\"calibrate\"" not in ln]
+    gp_lines = [ln for ln in lines if '"calibrate"' not in ln]
     assert len(gp_lines) == 8 and (run / "notes.txt").read_text() == "mine"
 
 

@@ -44,6 +44,8 @@ __all__ = [
 #: Initial floor, relative to the side's typical variance: small, but reachable in a few dozen
 #: Adam steps on its log (a floor started at 1e-9 would need hundreds).
 FLOOR_INIT = 1e-2
+#: The floor's reference variance of an output that has none (a noise-free state).
+NEGLIGIBLE_VARIANCE = 1e-12
 
 
 @dataclass
@@ -83,8 +85,15 @@ def _typical_variance(side: ConditionalModel, x: Tensor, u: Tensor | None) -> Te
                     var = var + pred.var.reshape(-1, d).mean(0)
                 if pred.cov is not None:
                     var = var + pred.cov.reshape(-1, d, d).diagonal(dim1=-2, dim2=-1).mean(0)
-    tiny = torch.finfo(var.dtype).tiny
-    return torch.where(var > tiny, var, torch.ones_like(var))
+        # an output without noise (a noise-free state of the dynamics): its variance at the
+        # mean, and if that is zero too, a negligible start (the floor then stays negligible
+        # unless the likelihood asks for it)
+        tiny = torch.finfo(var.dtype).tiny
+        if not bool((var > tiny).all()):
+            pred = side.predict(x[:1].unsqueeze(0), None if u is None else u[:1].unsqueeze(0))
+            at_mean = pred.var.reshape(-1, d)[0] if pred.var is not None else torch.zeros_like(var)
+            var = torch.where(var > tiny, var, at_mean.to(var))
+    return torch.where(var > tiny, var, torch.full_like(var, NEGLIGIBLE_VARIANCE))
 
 
 def _sequences(data: Sequence[Recording] | Sequences, name: str) -> tuple[Any, Any, Any, Any]:
