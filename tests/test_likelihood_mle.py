@@ -10,12 +10,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from statsmodels.tsa.statespace import mlemodel as sm_mlemodel
 
 import torchfilt
 from torchfilt.models.params import CholeskyCovariance, DiagonalCovariance, ScalarCovariance
 from torchfilt.training.likelihood import fit_likelihood
-
-sm_mlemodel = pytest.importorskip("statsmodels.tsa.statespace.mlemodel")
 
 DT = torch.float64
 #: relative agreement of the two maximisers (the issue's acceptance figure)

@@ -42,7 +42,7 @@ class _LogPositive(nn.Module):
         return self.raw.exp()
 
 
-__all__ = ["DriftModel", "with_sensor_drift"]
+__all__ = ["DriftMeasurement", "DriftModel", "DriftTransition", "with_sensor_drift"]
 
 
 def _block(a: Tensor | None, b: Tensor) -> Tensor:
@@ -57,7 +57,7 @@ def _block(a: Tensor | None, b: Tensor) -> Tensor:
     return out
 
 
-class _DriftTransition(ConditionalModel):
+class DriftTransition(ConditionalModel):
     """``[f(x), a b]`` with noise ``blockdiag(Q_f, sd^2 (1 - a^2))``."""
 
     def __init__(
@@ -99,7 +99,7 @@ class _DriftTransition(ConditionalModel):
         return self.base.time_varying_noise
 
 
-class _DriftMeasurement(ConditionalModel):
+class DriftMeasurement(ConditionalModel):
     """``h(x) + S b`` with ``S`` the selection of the drifting channels."""
 
     _sel: Tensor
@@ -148,8 +148,8 @@ class DriftModel(StateSpaceModel):
     ) -> None:
         n = base.state_dim
         super().__init__(
-            _DriftTransition(base.transition, n, len(channels), tau, sd, dt),
-            _DriftMeasurement(base.measurement, n, channels),
+            DriftTransition(base.transition, n, len(channels), tau, sd, dt),
+            DriftMeasurement(base.measurement, n, channels),
         )
         self.base_state_dim = n
         self.channels = list(channels)
@@ -157,18 +157,18 @@ class DriftModel(StateSpaceModel):
     @property
     def time_constant(self) -> Tensor:
         """The drifts' time constants ``(k,)``."""
-        assert isinstance(self.transition, _DriftTransition)
+        assert isinstance(self.transition, DriftTransition)
         return self.transition.tau()
 
     @property
     def drift_sd(self) -> Tensor:
         """The drifts' stationary standard deviations ``(k,)``."""
-        assert isinstance(self.transition, _DriftTransition)
+        assert isinstance(self.transition, DriftTransition)
         return self.transition.sd()
 
     def drift_parameters(self) -> list[nn.Parameter]:
         """The learnable drift parameters (``log tau`` and ``log sd``)."""
-        assert isinstance(self.transition, _DriftTransition)
+        assert isinstance(self.transition, DriftTransition)
         return [*self.transition.tau.parameters(), *self.transition.sd.parameters()]
 
     def prior(self, x0: Tensor, P0: Tensor) -> tuple[Tensor, Tensor]:

@@ -26,7 +26,7 @@ from torchfilt.exceptions import InputError
 from torchfilt.filters import CKF, coverage, nees, nis
 from torchfilt.io import Recording
 from torchfilt.models import CalibratedModel, ConditionalModel, StateSpaceModel
-from torchfilt.models.drift import DriftModel, _DriftMeasurement, _DriftTransition
+from torchfilt.models.drift import DriftMeasurement, DriftModel, DriftTransition
 from torchfilt.training.likelihood import (
     LikelihoodFit,
     LikelihoodState,
@@ -216,7 +216,7 @@ def calibrate(
     if drift is not None:
         # calibrate the original sides inside the drift wrappers; the drift parameters are copied
         # and fitted with the scales and floors
-        assert isinstance(base_f, _DriftTransition) and isinstance(base_h, _DriftMeasurement)
+        assert isinstance(base_f, DriftTransition) and isinstance(base_h, DriftMeasurement)
         f = wrap(base_f.base, "transition", u0)
         h = wrap(base_h.base, "measurement", None)
         calibrated: StateSpaceModel = DriftModel(
