@@ -59,14 +59,7 @@ test_fuzz_io, test_fuzz_io_long = property_tests(check_io, short=6, long=400)
 @pytest.mark.parametrize(
     "suffix",
     [
-        pytest.param(
-            ".csv",
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="io (CLI/IO engineer): write_recording writes inf to CSV as 'nan', so an "
-                "infinite value silently becomes 'not observed'; refuse it or keep it",
-            ),
-        ),
+        ".csv",
         ".npz",
     ],
 )

@@ -17,7 +17,6 @@ from torchfilt.filters import ConstrainedCKF, rts_smooth
 from torchfilt.filters.metrics import coverage, rmse
 
 D = torch.float64
-core = pytest.mark.xfail(strict=True, reason="filter core")
 
 
 def _model(dtype: torch.dtype = D) -> StateSpaceModel:
@@ -51,7 +50,6 @@ def test_mask_with_more_steps_than_y():
         )
 
 
-@core
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
 def test_half_precision_is_refused_by_the_dtype_rule(dtype):
     """Today: NotImplementedError "linalg_eigh_cpu" not implemented for 'Half' from torch."""
@@ -60,7 +58,6 @@ def test_half_precision_is_refused_by_the_dtype_rule(dtype):
         CKF(_model(torch.float32)).filter(y, **_kw(dtype))
 
 
-@core
 @pytest.mark.parametrize(
     "y",
     [
@@ -76,13 +73,11 @@ def test_bad_measurement_types_are_input_errors(y):
         CKF(_model()).filter(y, **_kw())
 
 
-@core
 def test_non_bool_mask_is_an_input_error():
     with pytest.raises(InputError, match="mask"):
         CKF(_model()).filter(torch.zeros(5, 1, dtype=D), mask=torch.ones(5, 1), **_kw())
 
 
-@core
 @pytest.mark.parametrize(
     "P0",
     [torch.zeros(2, 2, dtype=D), torch.full((2, 2), float("nan"), dtype=D)],
@@ -94,14 +89,12 @@ def test_bad_prior_covariance_is_an_input_error(P0):
         CKF(_model()).filter(torch.zeros(5, 1, dtype=D), x0=torch.zeros(2, dtype=D), P0=P0)
 
 
-@core
 def test_rmse_shape_mismatch_is_a_shape_error():
     """Today: RuntimeError from torch's broadcasting."""
     with pytest.raises(ShapeError):
         rmse(torch.zeros(3, 2, dtype=D), torch.zeros(4, 3, dtype=D))
 
 
-@core
 def test_coverage_errors_are_torchfilt_errors():
     x = torch.zeros(3, 2, dtype=D)
     with pytest.raises(ShapeError):
@@ -110,7 +103,6 @@ def test_coverage_errors_are_torchfilt_errors():
         coverage(x, x, torch.eye(2, dtype=D).expand(3, 2, 2), 1.5)
 
 
-@core
 def test_rts_smooth_needs_a_filter_result():
     with pytest.raises(InputError, match="FilterResult"):
         rts_smooth(None)  # type: ignore[arg-type]

@@ -8,8 +8,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from torchfilt.exceptions import ShapeError
+from torchfilt.exceptions import InputError, ShapeError
 from torchfilt.models import StateSpaceModel
+from torchfilt.numerics.dtypes import check_real_tensor
 
 __all__ = ["FilterInputs", "check_inputs", "check_prior", "model_noise", "observed"]
 
@@ -48,7 +49,7 @@ def observed(y: Tensor, mask: Tensor | None) -> Tensor:
         Bool tensor of the broadcast shape ``(..., T, m)``.
 
     Raises:
-        TypeError: ``mask`` is not boolean.
+        InputError: ``mask`` is not boolean.
         ShapeError: ``mask``'s trailing ``(T, m)`` differ from ``y``'s, or its batch dims do not
             broadcast with ``y``'s.
     """
@@ -57,7 +58,7 @@ def observed(y: Tensor, mask: Tensor | None) -> Tensor:
         return obs
     mask = torch.as_tensor(mask, device=y.device)
     if mask.dtype != torch.bool:
-        raise TypeError(f"mask must be a bool tensor, got {mask.dtype}")
+        raise InputError(f"mask must be a bool tensor, got {mask.dtype}")
     if mask.dim() < 2 or tuple(mask.shape[-2:]) != tuple(y.shape[-2:]):
         raise ShapeError(
             f"mask: shape {tuple(mask.shape)} does not match y {tuple(y.shape)}: its trailing "
@@ -75,22 +76,22 @@ def check_prior(x0: Tensor, P0: Tensor, n: int) -> None:
     """Check a prior ``x0 (..., n)``, ``P0 (..., n, n)``: shapes, finiteness, symmetry, PSD.
 
     Raises:
-        ShapeError: wrong shapes. ValueError: non-finite, asymmetric or indefinite ``P0``.
+        ShapeError: wrong shapes. InputError: non-finite, asymmetric or indefinite ``P0``.
     """
     if x0.dim() < 1 or x0.shape[-1] != n:
         raise ShapeError(f"x0: expected shape (..., n) with n = {n}, got {tuple(x0.shape)}")
     if P0.dim() < 2 or P0.shape[-2:] != (n, n):
         raise ShapeError(f"P0: expected shape (..., n, n) with n = {n}, got {tuple(P0.shape)}")
     if not bool(torch.isfinite(x0).all()):
-        raise ValueError("x0 contains non-finite entries")
+        raise InputError("x0 contains non-finite entries")
     if not bool(torch.isfinite(P0).all()):
-        raise ValueError("P0 contains non-finite entries")
+        raise InputError("P0 contains non-finite entries")
     if not torch.allclose(P0, P0.mT, rtol=1e-8, atol=0.0):
-        raise ValueError("P0 is not symmetric")
+        raise InputError("P0 is not symmetric")
     evals = torch.linalg.eigvalsh(P0)
     tol = evals.abs().amax(-1) * math.sqrt(torch.finfo(P0.dtype).eps)
     if bool((evals[..., 0] < -tol).any()) or bool((evals[..., -1] <= 0).any()):
-        raise ValueError(
+        raise InputError(
             f"P0 is not positive semi-definite: smallest eigenvalue {float(evals[..., 0].min()):.3e}"
         )
 
@@ -123,15 +124,22 @@ def check_inputs(
     """
     n, m = model.state_dim, model.obs_dim
     if not isinstance(y, Tensor):
-        raise TypeError(f"y must be a torch.Tensor, got {type(y).__name__}")
+        raise InputError(f"y must be a torch.Tensor, got {type(y).__name__}")
     if y.dim() < 2 or y.shape[-1] != m:
         raise ShapeError(f"y: expected shape (..., T, m) with m = {m}, got {tuple(y.shape)}")
-    if not y.is_floating_point():
-        raise TypeError(f"y must be floating point, got {y.dtype}")
+    check_real_tensor(y, "y")
     dtype, device = y.dtype, y.device
     T = y.shape[-2]
-    x0 = torch.as_tensor(x0, device=device)
-    P0 = torch.as_tensor(P0, device=device)
+    try:
+        x0 = torch.as_tensor(x0, device=device)
+        P0 = torch.as_tensor(P0, device=device)
+    except (TypeError, ValueError, RuntimeError):
+        raise InputError(
+            f"x0 and P0 must be tensors (or numbers), got {type(x0).__name__} and "
+            f"{type(P0).__name__}"
+        ) from None
+    check_real_tensor(x0, "x0", integers=True)
+    check_real_tensor(P0, "P0", integers=True)
     dtype = torch.promote_types(dtype, x0.dtype) if x0.is_floating_point() else dtype
     dtype = torch.promote_types(dtype, P0.dtype) if P0.is_floating_point() else dtype
     y, x0, P0 = y.to(dtype), x0.to(dtype), P0.to(dtype)
@@ -142,7 +150,7 @@ def check_inputs(
         if u.dim() < 2 or u.shape[-2] != T:
             raise ShapeError(f"u: expected shape (..., T, nu) with T = {T}, got {tuple(u.shape)}")
         if not bool(torch.isfinite(u).all()):
-            raise ValueError("u contains non-finite entries; inputs cannot be missing")
+            raise InputError("u contains non-finite entries; inputs cannot be missing")
         shapes["u"] = u.shape[:-2]
     obs = observed(y, mask)
     shapes["mask"] = obs.shape[:-2]  # y's batch shape broadcast with the mask's

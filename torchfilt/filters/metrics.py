@@ -7,7 +7,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import ShapeError
+from torchfilt.exceptions import InputError, ShapeError
 from torchfilt.filters.results import FilterResult
 from torchfilt.numerics import safe_cholesky, solve_tril
 
@@ -54,6 +54,17 @@ def nees(x_true: Tensor, mean: Tensor, cov: Tensor) -> Tensor:
     return (z * z).sum(-1)
 
 
+def _check_pair(x_true: Tensor, mean: Tensor) -> None:
+    if not isinstance(x_true, Tensor) or not isinstance(mean, Tensor):
+        raise InputError("x_true and mean must be tensors")
+    try:
+        torch.broadcast_shapes(x_true.shape, mean.shape)
+    except RuntimeError:
+        raise ShapeError(
+            f"x_true {tuple(x_true.shape)} and mean {tuple(mean.shape)} do not broadcast"
+        ) from None
+
+
 def rmse(x_true: Tensor, mean: Tensor, dim: int | tuple[int, ...] = -2) -> Tensor:
     """Root-mean-square error per state component.
 
@@ -65,6 +76,7 @@ def rmse(x_true: Tensor, mean: Tensor, dim: int | tuple[int, ...] = -2) -> Tenso
     Returns:
         RMSE, shape of the input with ``dim`` reduced (default ``(..., n)``).
     """
+    _check_pair(x_true, mean)
     return ((x_true - mean) ** 2).mean(dim=dim).sqrt()
 
 
@@ -81,7 +93,13 @@ def coverage(x_true: Tensor, mean: Tensor, cov: Tensor, level: float = 0.95) -> 
         Empirical coverage per state, shape ``(..., n)``; ``level`` when the filter is calibrated.
     """
     if not 0.0 < level < 1.0:
-        raise ValueError(f"level must be in (0, 1), got {level}")
+        raise InputError(f"level must be in (0, 1), got {level}")
+    _check_pair(x_true, mean)
+    if cov.shape[-2:] != (mean.shape[-1], mean.shape[-1]) or cov.shape[:-1] != mean.shape:
+        raise ShapeError(
+            f"cov: expected shape {(*mean.shape, mean.shape[-1])} to match mean {tuple(mean.shape)}, "
+            f"got {tuple(cov.shape)}"
+        )
     z = math.sqrt(2.0) * float(torch.special.erfinv(torch.tensor(level, dtype=torch.float64)))
     sd = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
     inside = ((x_true - mean).abs() <= z * sd).to(mean.dtype)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import torch
 
+from torchfilt.exceptions import InputError
 from torchfilt.filters.results import FilterResult, SmootherResult
 from torchfilt.numerics import psd_solve, symmetrize
 
@@ -34,6 +35,10 @@ def rts_smooth(result: FilterResult) -> SmootherResult:
         A :class:`SmootherResult` with ``mean (..., T, n)``, ``cov (..., T, n, n)`` and gains
         ``(..., T-1, n, n)``.
     """
+    if not isinstance(result, FilterResult):
+        raise InputError(
+            f"result: expected a FilterResult (from a filter's filter()), got {type(result).__name__}"
+        )
     T = result.mean.shape[-2]
     m_s = result.mean[..., T - 1, :]
     P_s = result.cov[..., T - 1, :, :]

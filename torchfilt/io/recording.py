@@ -371,10 +371,23 @@ def write_recording(rec: Recording, path: str | Path, *, precision: int = 17) ->
 
     Returns:
         The path written.
+
+    Raises:
+        DataError: an infinite value (refused on reading too), or an unknown suffix.
     """
     path = Path(path)
     suffix = path.suffix.lower()
     names = [rec.time_column, *(c.name for c in rec.channels)]
+    # the reading rule refuses infinite values (NaN is "not observed"): never write one
+    inf = np.isinf(rec.data)
+    if bool(inf.any()):
+        row, col = (int(v[0]) for v in np.nonzero(inf))
+        raise DataError(
+            "infinite value; a recording holds finite values or NaN (not observed)",
+            path=path,
+            column=rec.channels[col].name,
+            row=row,
+        )
     if suffix == ".csv":
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
