@@ -8,7 +8,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from torchfilt.exceptions import InputError, ShapeError
+from torchfilt.exceptions import InputError, InputTypeError, ShapeError
 from torchfilt.models import StateSpaceModel
 from torchfilt.numerics.dtypes import check_real_tensor
 
@@ -49,7 +49,7 @@ def observed(y: Tensor, mask: Tensor | None) -> Tensor:
         Bool tensor of the broadcast shape ``(..., T, m)``.
 
     Raises:
-        InputError: ``mask`` is not boolean.
+        InputTypeError: ``mask`` is not boolean.
         ShapeError: ``mask``'s trailing ``(T, m)`` differ from ``y``'s, or its batch dims do not
             broadcast with ``y``'s.
     """
@@ -58,7 +58,7 @@ def observed(y: Tensor, mask: Tensor | None) -> Tensor:
         return obs
     mask = torch.as_tensor(mask, device=y.device)
     if mask.dtype != torch.bool:
-        raise InputError(f"mask must be a bool tensor, got {mask.dtype}")
+        raise InputTypeError(f"mask must be a bool tensor, got {mask.dtype}")
     if mask.dim() < 2 or tuple(mask.shape[-2:]) != tuple(y.shape[-2:]):
         raise ShapeError(
             f"mask: shape {tuple(mask.shape)} does not match y {tuple(y.shape)}: its trailing "
@@ -124,7 +124,7 @@ def check_inputs(
     """
     n, m = model.state_dim, model.obs_dim
     if not isinstance(y, Tensor):
-        raise InputError(f"y must be a torch.Tensor, got {type(y).__name__}")
+        raise InputTypeError(f"y must be a torch.Tensor, got {type(y).__name__}")
     if y.dim() < 2 or y.shape[-1] != m:
         raise ShapeError(f"y: expected shape (..., T, m) with m = {m}, got {tuple(y.shape)}")
     check_real_tensor(y, "y")

@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from torchfilt.exceptions import InputError, InputTypeError, ModelError, ShapeError
+from torchfilt.filters.inputs import check_prior, observed
 from torchfilt.filters.linear_data import Data, LinearSteps, SmootherElements
 from torchfilt.filters.results import (
     FilterResult,
@@ -261,39 +262,8 @@ def _check(
         if t.is_floating_point():
             dtype = torch.promote_types(dtype, t.dtype)
     y, x0, P0 = y.to(dtype), x0.to(dtype), P0.to(dtype)
-    if x0.dim() < 1 or x0.shape[-1] != n:
-        raise ShapeError(f"x0: expected shape (..., n) with n = {n}, got {tuple(x0.shape)}")
-    if P0.dim() < 2 or P0.shape[-2:] != (n, n):
-        raise ShapeError(f"P0: expected shape (..., n, n) with n = {n}, got {tuple(P0.shape)}")
-    if not bool(torch.isfinite(x0).all()):
-        raise InputError("x0 contains non-finite entries")
-    if not bool(torch.isfinite(P0).all()):
-        raise InputError("P0 contains non-finite entries")
-    if not torch.allclose(P0, P0.mT, rtol=1e-8, atol=0.0):
-        raise InputError("P0 is not symmetric")
-    evals = torch.linalg.eigvalsh(P0)
-    tol = evals.abs().amax(-1) * math.sqrt(torch.finfo(dtype).eps)
-    if bool((evals[..., 0] < -tol).any()) or bool((evals[..., -1] <= 0).any()):
-        raise InputError(
-            "P0 is not positive semi-definite: smallest eigenvalue "
-            f"{float(evals[..., 0].min()):.3e}"
-        )
-    obs = torch.isfinite(y)
-    if mask is not None:
-        mask = torch.as_tensor(mask, device=device)
-        if mask.dtype != torch.bool:
-            raise InputTypeError(f"mask must be a bool tensor, got {mask.dtype}")
-        if mask.dim() < 2 or tuple(mask.shape[-2:]) != tuple(y.shape[-2:]):
-            raise ShapeError(
-                f"mask: shape {tuple(mask.shape)} does not match y {tuple(y.shape)}: its trailing "
-                f"(T, m) must equal y's {tuple(y.shape[-2:])} (a mask may add batch dimensions only)"
-            )
-        try:
-            obs = obs & mask
-        except RuntimeError:
-            raise ShapeError(
-                f"mask: shape {tuple(mask.shape)} does not broadcast with y {tuple(y.shape)}"
-            ) from None
+    check_prior(x0, P0, n)
+    obs = observed(y, mask)
     shapes = {"y": y.shape[:-2], "x0": x0.shape[:-1], "P0": P0.shape[:-2]}
     shapes_params: dict[str, torch.Size] = {}
     c = d = None
