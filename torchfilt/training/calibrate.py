@@ -67,8 +67,8 @@ class CalibrationResult:
 def _typical_variance(side: ConditionalModel, x: Tensor, u: Tensor | None) -> Tensor:
     """A variance scale per output ``(d,)`` for the floor's start: a GP's likelihood noise (the
     one-step scatter of its targets), else the additive noise's diagonal, else the predictive
-    variance at the prior mean ``x[:1]``. Not the variance at spread points: far from a GP's data
-    it reverts to the prior variance, orders of magnitude too large."""
+    variance at the prior mean ``x (1, n)`` (inputs ``u (1, nu)``). Not the variance at spread
+    points: far from a GP's data it reverts to the prior variance, orders of magnitude too large."""
     d = side.out_dim
     with torch.no_grad():
         nv = getattr(side, "noise_variance", None)
@@ -190,29 +190,25 @@ def calibrate(
         val = Sequences(vy, vu, x0 if vx0 is None else vx0, P0 if vP0 is None else vP0)
 
     base_f, base_h = model.transition.to(dtype), model.measurement.to(dtype)
-    n = model.base_state_dim if isinstance(model, DriftModel) else model.state_dim
-    m0 = x0.reshape(-1, model.state_dim)[:1, :n]
-    S0 = torch.linalg.cholesky(P0.reshape(-1, model.state_dim, model.state_dim)[0, :n, :n])
-    pts = torch.cat([m0, m0 + S0.mT], 0)  # the mean and n spread points
+    drift = model if isinstance(model, DriftModel) else None
+    n = model.state_dim if drift is None else drift.base_state_dim
+    m0 = x0.reshape(-1, model.state_dim)[:1, :n]  # the prior mean of the first recording, (1, n)
     u0 = None
     if u is not None:
         first_u = u[0] if isinstance(u, list) else u.reshape(-1, u.shape[-2], u.shape[-1])[0]
-        u0 = first_u[:1].to(dtype).expand(pts.shape[0], -1)
-
-    drifting = isinstance(model, DriftModel)
+        u0 = first_u[:1].to(dtype)
 
     def wrap(side: ConditionalModel, name: str, uu: Tensor | None) -> ConditionalModel:
         if name not in sides:
             return side
-        var = _typical_variance(side, pts, uu)
+        var = _typical_variance(side, m0, uu)
         # with drift states the measurement's variance is split anew between the white noise and
         # the drift (its learned variance counted the drift as white noise): it may shrink
-        inflate = inflate_only and not (drifting and name == "measurement")
+        inflate = inflate_only and not (drift is not None and name == "measurement")
         return CalibratedModel(
             side, floor=FLOOR_INIT * var, min_scale=1.0 if inflate else 0.0, dtype=dtype
         )
 
-    drift = model if isinstance(model, DriftModel) else None
     if drift is not None:
         # calibrate the original sides inside the drift wrappers; the drift parameters are copied
         # and fitted with the scales and floors
