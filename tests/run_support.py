@@ -22,7 +22,7 @@ lr = 0.05
 [train]
 checkpoint_every = {every}
 [calibrate]
-iterations = 5
+iterations = {cal_iters}
 """
 
 
@@ -32,9 +32,13 @@ def tiny_dataset(root: Path, recordings: int = 6, steps: int = 30) -> Path:
     return root
 
 
-def write_recipe(path: Path, data: Path, iters: int = 3, every: int = 1, extra: str = "") -> Path:
-    """A recipe training both sides as GPs for ``iters`` iterations."""
-    path.write_text(RECIPE.format(data=data.as_posix(), iters=iters, every=every) + extra)
+def write_recipe(
+    path: Path, data: Path, iters: int = 3, every: int = 1, extra: str = "", cal_iters: int = 5
+) -> Path:
+    """A recipe training both sides as GPs for ``iters`` iterations, then ``cal_iters`` of
+    calibration."""
+    text = RECIPE.format(data=data.as_posix(), iters=iters, every=every, cal_iters=cal_iters)
+    path.write_text(text + extra)
     return path
 
 

@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
+import run_support
 import torch
 
 import torchfilt
@@ -29,24 +30,6 @@ ROOT = Path(__file__).resolve().parents[1]
 #: resumed and uninterrupted runs execute the same float64 arithmetic: they agree to round-off
 RESUME_RTOL = 1e-10
 
-RECIPE = """
-name = "tiny"
-seed = 3
-[dataset]
-path = "{data}"
-[transition]
-increment = true
-iterations = {iters}
-lr = 0.05
-[measurement]
-iterations = {iters}
-lr = 0.05
-[train]
-checkpoint_every = {every}
-[calibrate]
-iterations = {cal_iters}
-"""
-
 
 @pytest.fixture(scope="module")
 def tiny_data(tmp_path_factory):
@@ -58,10 +41,7 @@ def tiny_data(tmp_path_factory):
 def write_recipe(
     path: Path, data: Path, iters: int = 20, every: int = 5, cal_iters: int = 12
 ) -> Path:
-    path.write_text(
-        RECIPE.format(data=data.as_posix(), iters=iters, every=every, cal_iters=cal_iters)
-    )
-    return path
+    return run_support.write_recipe(path, data, iters=iters, every=every, cal_iters=cal_iters)
 
 
 def gp_tensors(bundle: dict) -> dict[str, torch.Tensor]:
