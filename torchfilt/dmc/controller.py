@@ -42,7 +42,7 @@ from torch import Tensor
 
 from torchfilt.dmc.qp import QP_MAX_ITER, QP_TOL, solve_qp
 from torchfilt.dmc.step_response import StepResponseModel
-from torchfilt.exceptions import InfeasibleError, ShapeError
+from torchfilt.exceptions import InfeasibleError, InputError, ShapeError
 from torchfilt.numerics import psd_solve
 
 __all__ = ["ControlPlan", "DMCController", "InfeasibleError"]
@@ -77,7 +77,7 @@ def _vector(value: Any, size: int, name: str, dtype: torch.dtype) -> Tensor:
     if t.shape != (size,):
         raise ShapeError(f"{name}: expected a scalar or shape ({size},), got {tuple(t.shape)}")
     if bool(torch.isnan(t).any()):
-        raise ValueError(f"{name} contains NaN")
+        raise InputError(f"{name} contains NaN")
     return t.clone()
 
 

@@ -60,6 +60,7 @@ import scipy.optimize
 import torch
 from torch import Tensor
 
+from torchfilt.dmc.controller import _vector
 from torchfilt.dmc.qp import solve_one
 from torchfilt.dmc.step_response import StepResponseModel
 from torchfilt.dmc.target import Target, TargetRow
@@ -116,14 +117,7 @@ def _vec(
 ) -> np.ndarray:
     if value is None:
         return np.full(n, default)
-    t = torch.as_tensor(value, dtype=torch.float64)
-    if t.dim() == 0:
-        t = t.expand(n)
-    if t.shape != (n,):
-        raise ShapeError(f"{name}: expected a scalar or shape ({n},), got {tuple(t.shape)}")
-    if bool(torch.isnan(t).any()):
-        raise InputError(f"{name} contains NaN")
-    return t.numpy().astype(np.float64).copy()
+    return _vector(value, n, name, torch.float64).numpy()
 
 
 def _fmt(x: float) -> str:
