@@ -587,6 +587,23 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     )
     models["learned CKF, calibrated"] = cal.model
     timings["calibrate learned filter"] = time.perf_counter() - t0
+    if args.cal_gp != "none":
+        # the same, also refitting the GPs' hyperparameters through their differentiable twins
+        t0 = time.perf_counter()
+        cal_gp = torchfilt.calibrate(
+            torchfilt.StateSpaceModel(f_gp, h_gp),
+            torchfilt.Sequences(train.measurements[1:], train.inputs[:-1]),
+            x0=x0_train,
+            P0=P0_train,
+            window=args.cal_window,
+            burn_in=args.cal_burn_in,
+            iterations=args.cal_iterations,
+            lr=args.cal_lr,
+            progress=args.progress,
+            gp=args.cal_gp,
+        )
+        models[f"learned CKF, calibrated, gp={args.cal_gp}"] = cal_gp.model
+        timings[f"calibrate learned filter, gp={args.cal_gp}"] = time.perf_counter() - t0
     calibration = {
         **cal.parameters,
         "stopped": cal.fit.stopped,
@@ -760,6 +777,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cal-burn-in", type=int, default=CAL_BURN_IN, help="uncounted steps")
     ap.add_argument("--cal-iterations", type=int, default=CAL_ITERATIONS)
     ap.add_argument("--cal-lr", type=float, default=CAL_LR)
+    ap.add_argument(
+        "--cal-gp",
+        choices=("none", "noise", "all"),
+        default="none",
+        help="also a row calibrated with the GP hyperparameters refitted (calibrate(gp=...))",
+    )
     ap.add_argument("--progress", action="store_true", help="show the calibration progress")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest here)")

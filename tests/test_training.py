@@ -285,3 +285,31 @@ def test_shipped_recipes_are_valid(path):
         for name in getattr(r, side).get("inputs", []):
             assert name in names, f"{path.name}: [{side}] input {name!r} is not a channel"
     assert ds.split("train") and ds.split("test")
+
+
+def test_calibration_refits_gp_noises_into_the_bundle(tmp_path, tiny_data):
+    """``[calibrate] gp = "noise"``: the bundle holds the GPs with the refitted noises (not the
+    ones of the stage files), `info` shows them, and the loaded model predicts with them."""
+    recipe = write_recipe(tmp_path / "tiny.toml", tiny_data, iters=3, every=3, cal_iters=4)
+    recipe.write_text(recipe.read_text().replace("[calibrate]\n", '[calibrate]\ngp = "noise"\n'))
+    run = tmp_path / "run"
+    train_recipe(recipe, run, progress=False)
+    b = load_bundle(run / "model.pt")
+    stage = torch.load(run / "transition.pt", weights_only=True)
+    cal = b["calibration"]
+    assert "models" not in cal and cal["fit"]["options"]["gp"] == "noise"
+    logged = cal["gp_hyperparameters"]
+    assert set(logged) == {"transition", "measurement"}
+    before = torchfilt.GPTransition.from_state(stage["state"]).noise_variance
+    model = load_model(run / "model.pt")
+    after = model.transition.base.noise_variance
+    assert not torch.allclose(before, after)
+    assert torch.allclose(after, torch.tensor(logged["transition"]["noise"], dtype=after.dtype))
+    # a run resumed after the calibration stage (bundle lost) takes the refitted GPs from
+    # calibration.pt: the same bundle models
+    (run / "model.pt").unlink()
+    train_recipe(recipe, run, resume=True, progress=False)
+    again = load_bundle(run / "model.pt")
+    assert again["calibration"] == cal
+    for k, v in b["transition"]["state"]["state_dict"].items():
+        assert torch.equal(v, again["transition"]["state"]["state_dict"][k]), k

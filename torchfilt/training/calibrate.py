@@ -5,9 +5,10 @@ drift slowly, a filter that takes that variance as its ``Q`` and ``R`` is over-c
 :func:`calibrate` wraps both sides of a model in a :class:`~torchfilt.models.CalibratedModel`
 (per-output variance scales ``s`` and an additive diagonal floor ``f``, both log-parametrised) and
 fits ``s`` and ``f`` by :func:`~torchfilt.training.likelihood.fit_likelihood` on recordings of
-measurements and inputs: no logged states are needed. The GP means are left as they are; the
-gradient flows through the frozen predictor (its caches are constants, the cubature points are
-not).
+measurements and inputs: no logged states are needed. By default the GP means are left as they
+are and the gradient flows through the frozen predictor (its caches are constants, the cubature
+points are not). With ``gp="noise"`` or ``gp="all"`` the GP likelihood noises (and the kernel
+hyperparameters) are fitted too, through the frozen predictor's differentiable twin.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -54,14 +55,18 @@ class CalibrationResult:
 
     Attributes:
         model: the calibrated model (both sides wrapped in
-            :class:`~torchfilt.models.CalibratedModel`; the base models are shared, not copied).
+            :class:`~torchfilt.models.CalibratedModel`; the base models are shared, not copied,
+            except GPs whose hyperparameters were refitted, ``gp != "none"``: those are copies).
         fit: the likelihood fit.
         parameters: ``{"transition": {"scale", "floor"}, "measurement": {...}}`` as lists.
+        refit: the GP models whose hyperparameters were refitted, by side (frozen again with
+            their original options); empty when ``gp="none"``.
     """
 
     model: StateSpaceModel
     fit: LikelihoodFit
     parameters: dict[str, dict[str, Any]]
+    refit: dict[str, Any] = field(default_factory=dict)
 
 
 def _typical_variance(side: ConditionalModel, x: Tensor, u: Tensor | None) -> Tensor:
@@ -94,6 +99,21 @@ def _typical_variance(side: ConditionalModel, x: Tensor, u: Tensor | None) -> Te
             at_mean = pred.var.reshape(-1, d)[0] if pred.var is not None else torch.zeros_like(var)
             var = torch.where(var > tiny, var, at_mean.to(var))
     return torch.where(var > tiny, var, torch.full_like(var, NEGLIGIBLE_VARIANCE))
+
+
+def _refit_copy(side: ConditionalModel, name: str) -> Any:
+    """A copy of a GP side whose hyperparameters calibration may refit (``None``: not a GP)."""
+    from torchfilt.models.gp import GPModel  # lazy: GPyTorch loads only when GPs are used
+
+    if not isinstance(side, GPModel):
+        return None
+    bad = [g.structure for g in side.groups if g.structure != "independent"]  # type: ignore[union-attr]
+    if bad:
+        raise InputError(
+            f"gp: refitting GP hyperparameters needs independent exact GPs; the {name} GP has "
+            f"structure {bad[0]!r} (use gp = 'none')"
+        )
+    return copy.deepcopy(side)
 
 
 def _sequences(data: Sequence[Recording] | Sequences, name: str) -> tuple[Any, Any, Any, Any]:
@@ -136,6 +156,7 @@ def calibrate(
     dtype: torch.dtype = torch.float64,
     sqrt: bool = False,
     compile: bool = False,
+    gp: Literal["none", "noise", "all"] = "none",
 ) -> CalibrationResult:
     """Calibrate a model's predictive variances by the filter likelihood on recordings.
 
@@ -170,6 +191,13 @@ def calibrate(
         dtype: floating dtype (float64 by default).
         sqrt: use the square-root CKF.
         compile: compile the filter step.
+        gp: also refit the hyperparameters of the GP sides in ``sides``: ``"noise"`` (their
+            likelihood noises) or ``"all"`` (noises, lengthscales and outputscales; the mean
+            constants stay). The fit then runs through each GP's differentiable twin
+            (:meth:`~torchfilt.models.gp.GPModel.twin`: the exact frozen predictor with the graph
+            kept, rebuilt from the hyperparameters before every likelihood evaluation); the GPs
+            are copied, and frozen again with their own options at the end. Independent exact
+            GPs only. ``"none"`` (default): the GPs are left as they are.
 
     Returns:
         A :class:`CalibrationResult`.
@@ -179,6 +207,8 @@ def calibrate(
     bad = [s for s in sides if s not in ("transition", "measurement")]
     if bad or not sides:
         raise InputError(f"sides: expected 'transition' and/or 'measurement', got {list(sides)}")
+    if gp not in ("none", "noise", "all"):
+        raise InputError(f"gp: expected 'none', 'noise' or 'all', got {gp!r}")
     y, u, rx0, rP0 = _sequences(recordings, "recordings")
     x0 = x0 if rx0 is None else rx0
     P0 = P0 if rP0 is None else rP0
@@ -198,9 +228,15 @@ def calibrate(
         first_u = u[0] if isinstance(u, list) else u.reshape(-1, u.shape[-2], u.shape[-1])[0]
         u0 = first_u[:1].to(dtype)
 
+    refit: dict[str, Any] = {}
+
     def wrap(side: ConditionalModel, name: str, uu: Tensor | None) -> ConditionalModel:
         if name not in sides:
             return side
+        if gp != "none":
+            copied = _refit_copy(side, name)
+            if copied is not None:
+                side = refit[name] = copied
         var = _typical_variance(side, m0, uu)
         # with drift states the measurement's variance is split anew between the white noise and
         # the drift (its learned variance counted the drift as white noise): it may shrink
@@ -234,6 +270,12 @@ def calibrate(
     ]
     if isinstance(calibrated, DriftModel):
         params += calibrated.drift_parameters()
+    if gp != "none" and not refit:
+        raise InputError(
+            f"gp: {gp!r} refits GP hyperparameters, but no side in {list(sides)} is a GP"
+        )
+    params += [p for g in refit.values() for p in g.hyperparameter_tensors(gp)]
+    refreeze = {name: g.freeze_options for name, g in refit.items()}
     # the base models' own parameters (GP hyperparameters) stay fixed during the fit and get
     # their requires_grad flags back afterwards
     frozen = [
@@ -246,6 +288,10 @@ def calibrate(
     def project() -> None:
         for side in wrapped:
             side.project_()
+
+    def prepare() -> None:
+        for g in refit.values():
+            g.predictor = g.twin()
 
     try:
         fit = fit_likelihood(
@@ -264,6 +310,7 @@ def calibrate(
             iterations=iterations,
             callback=callback,
             project=project,
+            prepare=prepare if refit else None,
             progress=progress,
             dtype=dtype,
             sqrt=sqrt,
@@ -275,7 +322,14 @@ def calibrate(
     finally:
         for p in frozen:
             p.requires_grad_(True)
-    return CalibrationResult(calibrated, fit, calibration_entry(calibrated))
+        with torch.no_grad():
+            for name, g in refit.items():
+                opts = refreeze[name]
+                if opts is None:
+                    g.unfreeze()
+                else:
+                    g.freeze(**opts)
+    return CalibrationResult(calibrated, fit, calibration_entry(calibrated), refit)
 
 
 def calibration_entry(model: StateSpaceModel) -> dict[str, dict[str, Any]]:

@@ -324,6 +324,7 @@ def fit_likelihood(
     tol: float | None = None,
     callback: Callable[[LikelihoodState], bool | None] | None = None,
     project: Callable[[], None] | None = None,
+    prepare: Callable[[], None] | None = None,
     progress: bool = False,
     dtype: torch.dtype = torch.float64,
     sqrt: bool = False,
@@ -370,6 +371,9 @@ def fit_likelihood(
             to stop.
         project: called after every optimiser step to project the parameters back onto their
             feasible set in place (e.g. :meth:`~torchfilt.models.CalibratedModel.project_`).
+        prepare: called before every evaluation of the likelihood (training, held-out, window
+            starts), inside its autograd context: e.g. rebuilding a GP's differentiable twin
+            (:meth:`~torchfilt.models.gp.GPModel.twin`) from its current hyperparameters.
         progress: show a progress bar on stderr.
         dtype: floating dtype of the fit (float64 by default).
         sqrt: use the square-root CKF.
@@ -438,6 +442,8 @@ def fit_likelihood(
         wx0, wP0 = recs.x0[win.rec].detach().clone(), recs.P0[win.rec].detach().clone()
         if bool(first.all()):
             return wx0, wP0
+        if prepare is not None:
+            prepare()
         res = filt.filter(recs.y, recs.u, x0=recs.x0.detach(), P0=recs.P0.detach())
         if start == "smoothed":
             sm = rts_smooth(res)
@@ -460,6 +466,8 @@ def fit_likelihood(
         return torch.where(first.unsqueeze(-1), X0[win.rec], wx0)
 
     def train_loglik(wx0: Tensor, wP0: Tensor) -> Tensor:
+        if prepare is not None:
+            prepare()
         res = filt.filter(win.y, win.u, x0=x0_windows(wx0), P0=wP0)
         ll = step_log_likelihood(res)
         return (ll * win.counted.to(ll.dtype)).sum()
@@ -467,6 +475,8 @@ def fit_likelihood(
     def val_loglik() -> float:
         assert val is not None
         with torch.no_grad():
+            if prepare is not None:
+                prepare()
             res = filt.filter(val.y, val.u, x0=val.x0, P0=val.P0)
         return float(res.log_likelihood.sum()) / val_count
 

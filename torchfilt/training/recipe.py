@@ -297,6 +297,16 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
             "keep the variance scales >= 1: calibration only adds uncertainty",
             kind="bool",
         ),
+        Key(
+            "gp",
+            '`"none"`',
+            '`"none"`, `"noise"` (also refit the GP likelihood noises) or `"all"` (the noises, '
+            "lengthscales and outputscales) of the calibrated GP sides by the same likelihood, "
+            "through the frozen predictor's differentiable twin; the bundle then holds the "
+            "refitted GPs (independent exact GPs only)",
+            kind="choice",
+            choices=("none", "noise", "all"),
+        ),
     ),
 }
 
@@ -311,6 +321,7 @@ CALIBRATE_DEFAULTS: dict[str, Any] = {
     "optimizer": "adam",
     "patience": 15,
     "inflate_only": True,
+    "gp": "none",
 }
 
 #: Options passed through to ``GPTransition.fit`` / ``GPMeasurement.fit``.

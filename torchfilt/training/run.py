@@ -406,11 +406,16 @@ def _run_recipe(
         stream,
         log,
     )
+    uncal = StateSpaceModel(f, h)
+    if calibration is not None and calibration.get("models"):
+        # GPs refitted by the calibration: the bundle and the validation take them
+        for stage, state in calibration.pop("models").items():
+            entries[stage] = {**entries[stage], "state": state}
+        f = build_side(entries["transition"], "transition")
+        h = build_side(entries["measurement"], "measurement")
     validation = one_step_metrics(f, h, val) if val else {}
     if val:
-        validation["filter"] = {
-            "uncalibrated": consistency(StateSpaceModel(f, h), val, x0=m0, P0=P0)
-        }
+        validation["filter"] = {"uncalibrated": consistency(uncal, val, x0=m0, P0=P0)}
         if calibration is not None:
             fc = apply_calibration(f, calibration.get("transition"))
             hc = apply_calibration(h, calibration.get("measurement"))
@@ -701,6 +706,7 @@ def _calibrate_stage(
             optimizer=c["optimizer"],
             patience=int(c["patience"]),
             inflate_only=bool(c["inflate_only"]),
+            gp=c.get("gp", "none"),
             callback=callback,
             checkpoint=ckpt,
             resume=resume,
@@ -722,6 +728,14 @@ def _calibrate_stage(
             "options": dict(c),
         },
     }
+    if res.refit:
+        # the refitted GPs replace the stage's models in the bundle; their hyperparameters are
+        # logged beside the scales
+        entry["models"] = {name: g.to_state() for name, g in res.refit.items()}
+        entry["gp_hyperparameters"] = {
+            name: {k: v.tolist() for k, v in g.hyperparameters().items()}
+            for name, g in res.refit.items()
+        }
     _save(done, entry)
     if ckpt.exists():
         ckpt.unlink()

@@ -192,8 +192,9 @@ class GPGroup(nn.Module):
             return self.likelihood.task_noises.reshape(-1)
         return self.likelihood.noise.reshape(-1)
 
-    def hyperparameters(self) -> dict[str, Tensor]:
-        """Current hyperparameters (standardised units), detached."""
+    def hyperparameters(self, detach: bool = True) -> dict[str, Tensor]:
+        """Current hyperparameters (standardised units), detached unless ``detach=False`` (then
+        they carry the graph from the raw parameters)."""
         out: dict[str, Tensor] = {"noise": self.noise()}
         if self.structure == "multitask":
             kl = self.gp.covar_module.covar_module_list
@@ -208,4 +209,6 @@ class GPGroup(nn.Module):
             out["lengthscale"] = lengthscale_of(self.gp.covar_module.base_kernel)
             out["outputscale"] = self.gp.covar_module.outputscale.reshape(-1)
             out["constant"] = self.gp.mean_module.constant.reshape(-1)
+        if not detach:
+            return out
         return {k: v.detach().clone() for k, v in out.items()}

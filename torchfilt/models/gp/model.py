@@ -457,42 +457,8 @@ class GPModel(ConditionalModel):
             raise InputError(f"tol must be positive, got {tol}")
         if chunk_size < 1:
             raise InputError(f"chunk_size must be positive, got {chunk_size}")
-        blocks: list[torch.nn.Module] = []
-        ist, tst = self.input_std, self.target_std
         with torch.no_grad():
-            for grp, spec in zip(self.groups, self.config.groups, strict=True):
-                assert isinstance(grp, GPGroup)
-                feats = torch.tensor(spec.features, device=grp.train_x.device)
-                outs = torch.tensor(spec.outputs, device=grp.train_x.device)
-                common: dict[str, Any] = dict(
-                    kernel=self.config.kernel,
-                    outputs=outs,
-                    features=feats,
-                    in_shift=ist.shift[feats],
-                    in_scale=ist.scale[feats],
-                    hyper=grp.hyperparameters(),
-                    out_shift=tst.shift[outs],
-                    out_scale=tst.scale[outs],
-                )
-                exact_args: dict[str, Any] = dict(
-                    train_x=grp.train_x, train_y=grp.train_y, variance=variance, rank=rank, tol=tol
-                )
-                if grp.structure == "independent":
-                    blocks.append(independent_block(**exact_args, **common))
-                elif grp.structure == "multitask":
-                    blocks.append(multitask_block(**exact_args, **common))
-                else:
-                    strat = grp.gp.variational_strategy
-                    var_mean, var_chol = grp.gp.variational_moments()
-                    blocks.append(
-                        sparse_block(
-                            inducing=strat.inducing_points.detach(),
-                            var_mean=var_mean.detach(),
-                            var_chol=var_chol.detach(),
-                            jitter=float(strat.jitter_val),
-                            **common,
-                        )
-                    )
+            blocks = self._blocks(variance, rank, tol, differentiable=False)
         self.predictor = FrozenGP(blocks, self.target_std.shift, self.out_dim, chunk_size)
         self._freeze_opts = {
             "variance": variance,
@@ -501,6 +467,97 @@ class GPModel(ConditionalModel):
             "chunk_size": chunk_size,
         }
         return self
+
+    def _blocks(
+        self, variance: VarianceMode, rank: int | None, tol: float, *, differentiable: bool
+    ) -> list[torch.nn.Module]:
+        """One frozen block per output group (``differentiable``: keeping the graph from the
+        hyperparameters, exact independent groups only)."""
+        blocks: list[torch.nn.Module] = []
+        ist, tst = self.input_std, self.target_std
+        for grp, spec in zip(self.groups, self.config.groups, strict=True):
+            assert isinstance(grp, GPGroup)
+            feats = torch.tensor(spec.features, device=grp.train_x.device)
+            outs = torch.tensor(spec.outputs, device=grp.train_x.device)
+            common: dict[str, Any] = dict(
+                kernel=self.config.kernel,
+                outputs=outs,
+                features=feats,
+                in_shift=ist.shift[feats],
+                in_scale=ist.scale[feats],
+                hyper=grp.hyperparameters(detach=not differentiable),
+                out_shift=tst.shift[outs],
+                out_scale=tst.scale[outs],
+            )
+            exact_args: dict[str, Any] = dict(
+                train_x=grp.train_x, train_y=grp.train_y, variance=variance, rank=rank, tol=tol
+            )
+            if grp.structure == "independent":
+                blocks.append(
+                    independent_block(**exact_args, **common, differentiable=differentiable)
+                )
+            elif grp.structure == "multitask":
+                blocks.append(multitask_block(**exact_args, **common))
+            else:
+                strat = grp.gp.variational_strategy
+                var_mean, var_chol = grp.gp.variational_moments()
+                blocks.append(
+                    sparse_block(
+                        inducing=strat.inducing_points.detach(),
+                        var_mean=var_mean.detach(),
+                        var_chol=var_chol.detach(),
+                        jitter=float(strat.jitter_val),
+                        **common,
+                    )
+                )
+        return blocks
+
+    @property
+    def freeze_options(self) -> dict[str, Any] | None:
+        """The options of the last :meth:`freeze` (``None`` when not frozen)."""
+        return None if self._freeze_opts is None else dict(self._freeze_opts)
+
+    def twin(self) -> FrozenGP:
+        """The frozen predictor's differentiable twin, built from the current hyperparameters.
+
+        The same arithmetic as :meth:`freeze` with ``variance="exact"`` (Cholesky of
+        ``K + s^2 I``, ``alpha``), but the autograd graph runs from the GP's raw hyperparameters
+        (lengthscales, outputscales, likelihood noises) through the caches to the predictions, so
+        a loss computed with ``model.predictor = model.twin()`` (e.g. a filter likelihood) has
+        gradients in them. It equals the exact frozen predictor to rounding; a low-rank frozen
+        form differs from it by at most its ``tol``. Build a new twin after every change of the
+        hyperparameters (one ``S x S`` Cholesky per output group), and :meth:`freeze` again at
+        the end. Independent exact groups only.
+
+        Raises:
+            InputError: the model has a multitask or sparse group.
+        """
+        bad = [g.structure for g in self.groups if g.structure != "independent"]  # type: ignore[union-attr]
+        if bad:
+            raise InputError(
+                f"twin: only independent exact GPs have a differentiable twin; this model has "
+                f"structure {bad[0]!r}"
+            )
+        chunk = CHUNK_SIZE if self._freeze_opts is None else int(self._freeze_opts["chunk_size"])
+        with torch.enable_grad():
+            blocks = self._blocks("exact", None, AUTO_TOL, differentiable=True)
+        return FrozenGP(blocks, self.target_std.shift, self.out_dim, chunk)
+
+    def hyperparameter_tensors(
+        self, which: Literal["noise", "all"] = "all"
+    ) -> list[torch.nn.Parameter]:
+        """The raw (constrained by GPyTorch) parameters of the likelihood noises (``"noise"``),
+        or of the noises, lengthscales and outputscales (``"all"``); fixed noises excluded. The
+        mean constants are never included."""
+        if which not in ("noise", "all"):
+            raise InputError(f"which must be 'noise' or 'all', got {which!r}")
+        out = []
+        for name, p in self.groups.named_parameters():
+            if not p.requires_grad:
+                continue
+            if "likelihood" in name or (which == "all" and "covar_module" in name):
+                out.append(p)
+        return out
 
     @property
     def variance_forms(self) -> list[tuple[str, int | None]]:

@@ -97,16 +97,20 @@ class _Block(nn.Module):
 
     cache_args: dict[str, Tensor]
 
-    def __init__(self, kernel: str, form: str, rank: int | None) -> None:
+    def __init__(
+        self, kernel: str, form: str, rank: int | None, differentiable: bool = False
+    ) -> None:
         super().__init__()
         self.kernel = kernel
         self.form = form
         self.rank = rank
+        self.differentiable = differentiable
 
     def _buf(self, name: str, value: Tensor | None) -> None:
-        self.register_buffer(
-            name, None if value is None else value.detach().clone(), persistent=False
-        )
+        # a differentiable twin keeps the graph from the hyperparameters to its caches
+        if value is not None and not self.differentiable:
+            value = value.detach().clone()
+        self.register_buffer(name, value, persistent=False)
 
     def forward(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:  # pragma: no cover
         raise NotImplementedError
@@ -151,8 +155,9 @@ class _IndependentBlock(_Block):
         out_shift: Tensor,
         out_scale: Tensor,
         factor: Tensor,
+        differentiable: bool = False,
     ) -> None:
-        super().__init__(kernel, form, rank)
+        super().__init__(kernel, form, rank, differentiable)
         self.cache_args = _cache_args(
             form,
             outputs=outputs,
@@ -575,7 +580,10 @@ def independent_khat(
 def _independent_k(kernel: str, points: Tensor, lengthscale: Tensor, outputscale: Tensor) -> Tensor:
     """``K = s_f^2 k(X, X)`` of an independent group, ``(g, S, S)``, in one fresh buffer."""
     pts = points / lengthscale.unsqueeze(-2)  # (g, S, D)
-    return correlation(scaled_sq_dist(pts, pts), kernel).mul_(outputscale[:, None, None])
+    k = correlation(scaled_sq_dist(pts, pts), kernel)
+    if k.requires_grad or outputscale.requires_grad:  # a differentiable twin: out of place
+        return k * outputscale[:, None, None]
+    return k.mul_(outputscale[:, None, None])
 
 
 def _independent_factor(
@@ -630,6 +638,7 @@ def independent_block(
     variance: VarianceMode,
     rank: int | None,
     tol: float = AUTO_TOL,
+    differentiable: bool = False,
 ) -> _IndependentBlock:
     """Freeze an exact independent group: Cholesky of ``K + s^2 I``, ``alpha`` and the factor.
 
@@ -648,7 +657,12 @@ def independent_block(
         variance: ``"exact"``, ``"lowrank"`` or ``"auto"``.
         rank: rank of the low-rank root.
         tol: tolerance of ``"auto"``.
+        differentiable: keep the autograd graph from ``hyper`` to the block's caches (the
+            differentiable twin, :meth:`GPModel.twin <torchfilt.models.gp.GPModel.twin>`;
+            ``variance="exact"`` only).
     """
+    if differentiable and variance != "exact":
+        raise InputError("differentiable: a differentiable block takes variance='exact'")
     ls, os_, noise, c = (
         hyper["lengthscale"],
         hyper["outputscale"],
@@ -684,6 +698,7 @@ def independent_block(
         out_shift=out_shift,
         out_scale=out_scale,
         factor=factor,
+        differentiable=differentiable,
     )
 
 
