@@ -29,6 +29,7 @@ import torchfilt
 
 CONFIGS = {
     "ckf": "CKF, sigma-point path (path='cubature')",
+    "ckf_mean_ll": "CKF, sigma-point path, outputs=('mean', 'log_likelihood')",
     "kalman": "exact Kalman path (default); one covariance shared by the batch",
     "kalman_per_seq": "exact path, P0 given per sequence (one covariance per sequence)",
     "kalman_sqrt": "exact Kalman path, square-root",
@@ -73,6 +74,8 @@ def _run(name: str, model: Any, y: torch.Tensor, x0: torch.Tensor, P0: torch.Ten
     filt = torchfilt.CKF(model, sqrt=sqrt)
     if name == "ckf":
         return filt.filter(y, **kw, path="cubature")
+    if name == "ckf_mean_ll":
+        return filt.filter(y, **kw, path="cubature", outputs=("mean", "log_likelihood"))
     if name in ("kalman_per_seq", "kalman_sqrt", "kalman_grad"):
         kw["P0"] = P0.expand(y.shape[0], *P0.shape).clone()  # one covariance per sequence
     if name == "kalman_mean_ll":

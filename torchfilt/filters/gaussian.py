@@ -21,6 +21,7 @@ from torchfilt.filters import steps
 from torchfilt.filters.inputs import FilterInputs, check_inputs, check_prior, model_noise, observed
 from torchfilt.filters.kalman import (
     Path,
+    _keep,
     kalman_filter,
     kalman_smoother,
     select_outputs,
@@ -28,6 +29,7 @@ from torchfilt.filters.kalman import (
 )
 from torchfilt.filters.results import (
     FilterResult,
+    RecordSink,
     SmootherResult,
     StepRecord,
     concat_records,
@@ -297,29 +299,40 @@ class GaussianFilter(nn.Module):
         return NumericsPath(execution, self.small_kernels(inputs.batch), "nan" if nan else "jitter")
 
     def scan(
-        self, inputs: FilterInputs, step_fn: StepFunction | None = None
+        self,
+        inputs: FilterInputs,
+        step_fn: StepFunction | None = None,
+        sink: RecordSink | None = None,
     ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]:
         """Run the step over time from the prior, handing it each step's data and noise.
 
         Args:
             inputs: from :meth:`prepare`.
             step_fn: the step to run; default :meth:`step_function` for the data's device.
+            sink: a :class:`~torchfilt.filters.results.RecordSink` that takes the records
+                instead of the returned list (which is then empty); not with a compiled loop.
 
         Returns:
             One :class:`~torchfilt.filters.StepRecord` and one tuple of extra outputs per step.
         """
         if step_fn is None:
             if self.execution(inputs.batch) == "compiled-loop":
+                if sink is not None:
+                    raise InputError("sink: a compiled loop returns chunk records; pass no sink")
                 return self._chunked(inputs)
             step_fn = self.step_function(inputs.y.device)
         kernels = self.small_kernels(inputs.batch)
         with contextlib.ExitStack() as ctx:
             if not self._compiled:
                 ctx.enter_context(small_matrix_kernels(kernels))  # type: ignore[arg-type]
-            return self._loop(inputs, step_fn, ctx)
+            return self._loop(inputs, step_fn, ctx, sink)
 
     def _loop(
-        self, inp: FilterInputs, step_fn: StepFunction, ctx: contextlib.ExitStack
+        self,
+        inp: FilterInputs,
+        step_fn: StepFunction,
+        ctx: contextlib.ExitStack,
+        sink: RecordSink | None = None,
     ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]:
         T = inp.y.shape[-2]
         # fresh copies: under inference_mode they are inference tensors like every later step's
@@ -346,7 +359,10 @@ class GaussianFilter(nn.Module):
             belief, rec, extra = step_fn(
                 pts, belief, inp.y[..., t, :], inp.obs[..., t, :], ut, Q, R
             )
-            records.append(rec)
+            if sink is not None:
+                sink.append(rec)
+            else:
+                records.append(rec)
             extras.append(extra)
         return records, extras
 
@@ -486,18 +502,26 @@ class GaussianFilter(nn.Module):
                 outputs=outputs,
             )  # fmt: skip
         # -------------------------------------------------------------------------------------
+        keep = _keep(outputs)
         inputs = self.prepare(y, u, x0=x0, P0=P0, mask=mask)
-        res = self.run(inputs)
+        res = self.run(inputs, keep=keep)
         warn_nonfinite(res, stacklevel=3)
         return select_outputs(res, outputs)
 
-    def run(self, inputs: FilterInputs) -> FilterResult:
-        """:meth:`scan` the prepared ``inputs`` and stack the result (no divergence warning)."""
+    def run(self, inputs: FilterInputs, keep: Collection[str] | None = None) -> FilterResult:
+        """:meth:`scan` the prepared ``inputs`` into a result (no divergence warning).
+
+        Args:
+            inputs: from :meth:`prepare`.
+            keep: the result fields to store (default all; see :class:`RecordSink`).
+        """
         path = self.numerics_path(inputs)
-        records, _ = self.scan(inputs)
         if path.execution == "compiled-loop":
+            records, _ = self.scan(inputs)
             return concat_records(records, self._observed(inputs), path)
-        return stack_records(records, self._observed(inputs), path)
+        sink = RecordSink(inputs.y.shape[-2], keep)
+        self.scan(inputs, sink=sink)
+        return sink.result(self._observed(inputs), path)
 
     @staticmethod
     def _observed(inp: FilterInputs) -> Tensor:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import warnings
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from typing import NamedTuple
 
 import torch
@@ -16,6 +16,7 @@ __all__ = [
     "FilterResult",
     "KalmanFilterResult",
     "ParallelFilterResult",
+    "RecordSink",
     "SmootherResult",
     "StepRecord",
     "concat_records",
@@ -117,6 +118,71 @@ def stack_records(
     }
     loglik = torch.stack([r.log_likelihood for r in records], dim=-1).sum(-1)
     return FilterResult(**fields, observed=observed, log_likelihood=loglik, numerics=numerics)
+
+
+class RecordSink:
+    """Collects a filter's per-step records into a :class:`FilterResult`.
+
+    Without autograd recording, the fields are written step by step into tensors allocated once
+    (at the first step, ``(..., T, n)`` and ``(..., T, n, n)``), so the peak memory of a run is
+    the result plus one step's temporaries, not twice the result as with stacking a list at the
+    end; time fields not in ``keep`` are never stored. When the first record carries a graph,
+    it keeps the records and stacks them (:func:`stack_records`) so gradients flow. Both give
+    the same numbers bit for bit.
+
+    Args:
+        steps: the number of steps ``T``.
+        keep: the time fields to store (default all); the others become empty tensors.
+    """
+
+    def __init__(self, steps: int, keep: Collection[str] | None = None) -> None:
+        self.steps = int(steps)
+        self.keep = frozenset(_TIME_DIM) if keep is None else frozenset(keep) & set(_TIME_DIM)
+        self.records: list[StepRecord] = []
+        self.buffers: dict[str, Tensor] = {}
+        self.loglik: Tensor | None = None
+        self.graph: bool | None = None
+        self.count = 0
+
+    def append(self, rec: StepRecord) -> None:
+        """Store the record of the next step."""
+        t = self.count
+        if self.graph is None:
+            self.graph = torch.is_grad_enabled() and any(
+                isinstance(v, Tensor) and v.requires_grad for v in rec
+            )
+        if self.graph:
+            self.records.append(rec)
+        else:
+            if t == 0:
+                for name, dim in _TIME_DIM.items():
+                    v = getattr(rec, name)
+                    if name in self.keep:
+                        shape = list(v.shape)
+                        shape.insert(v.dim() + 1 + dim, self.steps)
+                        self.buffers[name] = v.new_empty(shape)
+                ll = rec.log_likelihood
+                self.loglik = ll.new_empty(*ll.shape, self.steps)
+            for name, buf in self.buffers.items():
+                buf.select(_TIME_DIM[name], t).copy_(getattr(rec, name))
+            assert self.loglik is not None
+            self.loglik[..., t] = rec.log_likelihood
+        self.count += 1
+
+    def result(self, observed: Tensor, numerics: NumericsPath | None = None) -> FilterResult:
+        """The :class:`FilterResult` of all ``T`` steps (fields not kept are empty)."""
+        if self.count != self.steps:
+            raise RuntimeError(f"RecordSink: {self.count} of {self.steps} steps recorded")
+        if self.graph:
+            res = stack_records(self.records, observed, numerics)
+            empty = res.mean.new_empty(0)
+            return res._replace(**{k: empty for k in _TIME_DIM if k not in self.keep})  # type: ignore[arg-type]
+        assert self.loglik is not None
+        empty = self.loglik.new_empty(0)
+        fields = {k: self.buffers.get(k, empty) for k in _TIME_DIM}
+        return FilterResult(
+            **fields, observed=observed, log_likelihood=self.loglik.sum(-1), numerics=numerics
+        )
 
 
 def concat_records(
