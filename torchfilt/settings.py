@@ -28,6 +28,7 @@ from collections.abc import Iterator
 from typing import Literal, NamedTuple
 
 __all__ = [
+    "RAY_BATCH_SIZE",
     "NumericsPath",
     "SmallKernels",
     "current_skip_guard_checks",
@@ -39,6 +40,11 @@ __all__ = [
 ]
 
 SmallKernels = Literal["auto", "unrolled", "library"]
+
+#: Default recordings per Ray task of ``torchfilt filter --ray`` (``--batch-size``). Measured on
+#: 2 CPUs (scripts/bench_ray.py): from about this size a task's fixed overhead is under 10% of
+#: its filtering time.
+RAY_BATCH_SIZE = 256
 
 _SYNC_FREE: contextvars.ContextVar[bool] = contextvars.ContextVar(
     "torchfilt_sync_free", default=False

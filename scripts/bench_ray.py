@@ -1,0 +1,181 @@
+"""Throughput of filtering recordings: locally batched against Ray with 1 and 2 workers.
+
+Re-entry recordings (analytic model, T = 60, float64, CSV in and out, the filter only), filtered
+end to end by ``filter_recordings`` (one process, 1 thread) and by ``filter_recordings_ray`` on a
+local Ray instance with 1 and 2 CPUs (one task = one batch, each worker 1 thread). Ray's start-up
+(``ray.init``, a few seconds) is outside the clock; everything else, from the first read to the
+summary file, is inside.
+
+Per-task overhead: with 1 worker the tasks run one after another, so ``(Ray 1-worker time -
+local time) / tasks`` is what a task costs beyond the filtering the local path does for the same
+batch (scheduling, argument transfer, the worker's marker files, the driver's completion checks).
+Its share of a task is ``overhead / (overhead + batch * local cost per recording)``; the batch size
+from which it is under 10% is where that share crosses 0.1 (interpolated on the measured sizes).
+
+    python scripts/bench_ray.py --out scripts/results/cpu-2026-12-01-ray
+    python scripts/bench_ray.py --recordings 256 --batch-sizes 8 64   # quicker
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import environment, table, write_json
+
+from torchfilt.io.synth import simulate_dataset
+from torchfilt.pipeline import filter_recordings, filter_recordings_ray
+from torchfilt.pipeline.distributed import ray_session
+
+SYSTEM = "reentry"
+
+
+def _time(fn: Any, out: Path, repeats: int) -> tuple[float, Any]:
+    best, res = float("inf"), None
+    for _ in range(repeats):
+        shutil.rmtree(out, ignore_errors=True)
+        t0 = time.perf_counter()
+        res = fn(out)
+        best = min(best, time.perf_counter() - t0)
+    return best, res
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--recordings", type=int, default=512)
+    ap.add_argument("--steps", type=int, default=60)
+    ap.add_argument("--batch-sizes", type=int, nargs="*", default=[4, 16, 64, 256])
+    ap.add_argument("--repeats", type=int, default=2, help="best of this many runs per row")
+    ap.add_argument("--out", type=Path, default=Path("out/bench_ray"))
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    work = Path(tempfile.mkdtemp(prefix="bench_ray."))
+    try:
+        simulate_dataset(SYSTEM, work / "data", recordings=args.recordings, steps=args.steps)
+        recs = sorted((work / "data").glob("*.csv"))
+        model = f"system:{SYSTEM}"
+        rows: list[dict[str, Any]] = []
+        local: dict[int, float] = {}
+        for b in args.batch_sizes:
+            t, _ = _time(
+                lambda o, b=b: filter_recordings(model, recs, o, batch_size=b),
+                work / "local",
+                args.repeats,
+            )
+            local[b] = t
+            rows.append({"path": "local", "workers": 1, "batch": b, "seconds": t})
+            print(f"local batch {b}: {t:.2f} s", file=sys.stderr)
+        for workers in (1, 2):
+            with ray_session(workers=workers):
+                # warm the workers (process start, imports) outside the clock
+                filter_recordings_ray(model, recs[:2], work / "warm", batch_size=1, progress=False)
+                shutil.rmtree(work / "warm")
+                for b in args.batch_sizes:
+                    t, res = _time(
+                        lambda o, b=b: filter_recordings_ray(
+                            model, recs, o, batch_size=b, progress=False
+                        ),
+                        work / "ray",
+                        args.repeats,
+                    )
+                    d = res["distributed"]
+                    compute = sum(x["compute_s"] for x in d["task_times"])
+                    rows.append(
+                        {
+                            "path": "ray",
+                            "workers": workers,
+                            "batch": b,
+                            "seconds": t,
+                            "tasks": d["tasks"],
+                            "task_compute_s": compute,
+                        }
+                    )
+                    print(f"ray {workers} workers batch {b}: {t:.2f} s", file=sys.stderr)
+        n = len(recs)
+        for r in rows:
+            r["recordings_per_s"] = n / r["seconds"]
+        over: dict[int, float] = {}
+        for r in rows:
+            if r["path"] == "ray" and r["workers"] == 1:
+                b = r["batch"]
+                per_task = (r["seconds"] - local[b]) / r["tasks"]
+                per_rec = local[b] / n
+                r["overhead_per_task_s"] = per_task
+                r["overhead_share"] = per_task / (per_task + b * per_rec)
+                over[b] = r["overhead_share"]
+        crossing = _crossing(over, 0.10)
+        # extra time of Ray (1 worker) over local = per_task * tasks + per_recording * n: a least
+        # squares fit over the batch sizes separates the two
+        one = [r for r in rows if r["path"] == "ray" and r["workers"] == 1]
+        fit = None
+        if len(one) >= 2:
+            A = torch.tensor([[r["tasks"], n] for r in one], dtype=torch.float64)
+            y = torch.tensor([r["seconds"] - local[r["batch"]] for r in one], dtype=torch.float64)
+            coef = torch.linalg.lstsq(A, y[:, None]).solution[:, 0]
+            fit = {"per_task_s": float(coef[0]), "per_recording_s": float(coef[1])}
+        payload = {
+            "benchmark": "filter recordings: local batched vs Ray",
+            "system": SYSTEM,
+            "recordings": n,
+            "steps": args.steps,
+            "dtype": "float64",
+            "io": "CSV recordings in, filtered-estimate CSV out (no smoother, no plots)",
+            "environment": environment(),
+            "rows": rows,
+            "overhead_below_10pct_from_batch": crossing,
+            "overhead_fit": fit,
+            "local_seconds_per_recording": {b: local[b] / n for b in local},
+            "note": "best of --repeats runs per row; Ray start-up (ray.init) not timed",
+        }
+        write_json(args.out / "bench_ray.json", payload)
+        print(f"{n} {SYSTEM} recordings, T = {args.steps}, float64, CSV in/out, 1 thread/worker")
+        headers = ["path", "workers", "batch", "tasks", "s", "rec/s", "overhead/task s", "share"]
+        print(
+            table(
+                headers,
+                [
+                    [
+                        r["path"],
+                        r["workers"],
+                        r["batch"],
+                        r.get("tasks"),
+                        r["seconds"],
+                        r["recordings_per_s"],
+                        r.get("overhead_per_task_s"),
+                        r.get("overhead_share"),
+                    ]
+                    for r in rows
+                ],
+            )
+        )
+        print(f"Ray overhead under 10% of a task from batch size: {crossing}")
+        print(f"overhead fit (extra s = per_task * tasks + per_recording * n): {fit}")
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def _crossing(share: dict[int, float], level: float) -> float | None:
+    """The batch size where the overhead share falls below ``level`` (log-linear interpolation
+    between the measured sizes); ``None`` if it never does in the measured range."""
+    pts = sorted(share.items())
+    if pts and pts[0][1] < level:
+        return float(pts[0][0])
+    for (b0, s0), (b1, s1) in zip(pts, pts[1:], strict=False):
+        if s0 >= level > s1:
+            import math
+
+            f = (s0 - level) / (s0 - s1)
+            return float(math.exp(math.log(b0) + f * (math.log(b1) - math.log(b0))))
+    return None
+
+
+if __name__ == "__main__":
+    main()
