@@ -19,6 +19,8 @@ from which it is under 10% is where that share crosses 0.1 (interpolated on the 
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import shutil
 import sys
 import tempfile
@@ -48,20 +50,29 @@ def _time(fn: Any, out: Path, repeats: int) -> tuple[float, Any]:
     return best, res
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--recordings", type=int, default=512)
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--batch-sizes", type=int, nargs="*", default=[4, 16, 64, 256])
     ap.add_argument("--repeats", type=int, default=2, help="best of this many runs per row")
     ap.add_argument("--out", type=Path, default=Path("out/bench_ray"))
-    args = ap.parse_args()
+    ap.add_argument(
+        "--components-only",
+        action="store_true",
+        help="only split the local per-recording cost into filtering and file I/O, and time "
+        "empty Ray tasks (the scheduling floor of a task)",
+    )
+    args = ap.parse_args(argv)
     torch.set_num_threads(1)
     work = Path(tempfile.mkdtemp(prefix="bench_ray."))
     try:
         simulate_dataset(SYSTEM, work / "data", recordings=args.recordings, steps=args.steps)
         recs = sorted((work / "data").glob("*.csv"))
         model = f"system:{SYSTEM}"
+        if args.components_only:
+            _components(recs, work, max(args.batch_sizes), args.repeats, args.out)
+            return 0
         rows: list[dict[str, Any]] = []
         local: dict[int, float] = {}
         for b in args.batch_sizes:
@@ -160,22 +171,89 @@ def main() -> None:
         print(f"overhead fit (extra s = per_task * tasks + per_recording * n): {fit}")
     finally:
         shutil.rmtree(work, ignore_errors=True)
+    return 0
+
+
+def _components(recs: list[Path], work: Path, batch: int, repeats: int, out: Path) -> None:
+    """Per recording: the whole local path at ``batch`` against the CKF alone on the same batch
+    in memory; the difference is reading the CSV, writing the estimates (atomic, fsync) and the
+    summary."""
+    from torchfilt.filters import CKF
+    from torchfilt.io import read_recording
+    from torchfilt.pipeline import resolve_model
+
+    spec = resolve_model(f"system:{SYSTEM}")
+    recs = recs[:batch]
+    n = len(recs)
+    whole, _ = _time(
+        lambda o: filter_recordings(f"system:{SYSTEM}", recs, o, batch_size=batch),
+        work / "comp",
+        repeats,
+    )
+    rs = [read_recording(p, spec.channels, optional=("state",)) for p in recs]
+    y = torch.stack([r.measurements[1:] for r in rs])
+    filt = CKF(spec.model)
+    t = []
+    for _ in range(repeats + 1):
+        t0 = time.perf_counter()
+        filt.filter(y, x0=spec.prior_mean, P0=spec.prior_cov)
+        t.append(time.perf_counter() - t0)
+    ckf = min(t[1:])
+    payload = {
+        "system": SYSTEM,
+        "batch": n,
+        "local_path_s_per_recording": whole / n,
+        "ckf_only_s_per_recording": ckf / n,
+        "io_and_bookkeeping_s_per_recording": (whole - ckf) / n,
+        "environment": environment(),
+    }
+    payload["empty_task"] = _empty_tasks()
+    write_json(out / "bench_ray_components.json", payload)
+    print(json.dumps(payload, indent=2, default=float))
+
+
+def _noop(job: Any, spec: Any, shard: list[int]) -> int:
+    return len(shard)
+
+
+def _empty_tasks(count: int = 200) -> dict[str, float]:
+    """Seconds per task of a task that does nothing but receive the job's two object references
+    and a shard, on 1 worker: one at a time (submit, wait) and all submitted at once."""
+    import ray
+
+    from torchfilt.pipeline import resolve_model
+
+    with ray_session(workers=1):
+        remote = ray.remote(_noop).options(num_cpus=1, max_retries=3)
+        job = ray.put({"names": [f"r{i}" for i in range(10_000)]})
+        spec = ray.put(resolve_model(f"system:{SYSTEM}"))
+        ray.get([remote.remote(job, spec, [0]) for _ in range(20)])  # warm
+        t0 = time.perf_counter()
+        for i in range(count):
+            ray.get(remote.remote(job, spec, [i]))
+        serial = (time.perf_counter() - t0) / count
+        t0 = time.perf_counter()
+        ray.get([remote.remote(job, spec, [i]) for i in range(count)])
+        pipelined = (time.perf_counter() - t0) / count
+    return {"serial_s_per_task": serial, "pipelined_s_per_task": pipelined, "tasks": count}
 
 
 def _crossing(share: dict[int, float], level: float) -> float | None:
-    """The batch size where the overhead share falls below ``level`` (log-linear interpolation
-    between the measured sizes); ``None`` if it never does in the measured range."""
+    """The batch size from which the overhead share stays below ``level``: the smallest measured
+    size with every larger one below too, log-linearly interpolated from the last size above;
+    ``None`` if the largest measured size is not below."""
     pts = sorted(share.items())
-    if pts and pts[0][1] < level:
+    if not pts or pts[-1][1] >= level:
+        return None
+    k = len(pts) - 1
+    while k > 0 and pts[k - 1][1] < level:
+        k -= 1
+    if k == 0:
         return float(pts[0][0])
-    for (b0, s0), (b1, s1) in zip(pts, pts[1:], strict=False):
-        if s0 >= level > s1:
-            import math
-
-            f = (s0 - level) / (s0 - s1)
-            return float(math.exp(math.log(b0) + f * (math.log(b1) - math.log(b0))))
-    return None
+    (b0, s0), (b1, s1) = pts[k - 1], pts[k]
+    f = (s0 - level) / (s0 - s1)
+    return float(math.exp(math.log(b0) + f * (math.log(b1) - math.log(b0))))
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -292,3 +292,25 @@ def test_without_ray_says_how_to_install(tmp_path, recordings, capsys, monkeypat
     assert main([*argv, "--ray"]) == 2
     assert "torchfilt[distributed]" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_fleet_example_small(ray_local, tmp_path):
+    """The fleet example end to end on 200 units: every unit filtered once, the error grows with
+    the unit's distance from the nominal parameter, and a re-run resumes (filters nothing)."""
+    import json
+
+    from script_support import load_script
+
+    fleet = load_script("fleet_example")
+    argv = ["--units", "200", "--steps", "40", "--batch-size", "64", "--out", str(tmp_path)]
+    assert fleet.main(argv) == 0
+    s = json.loads((tmp_path / "fleet_summary.json").read_text())
+    assert s["ray"]["filtered"] == 200 and s["ray"]["complete_before"] == 0
+    assert (tmp_path / "fleet_errors.png").stat().st_size > 10_000
+    bins = s["by_k1_deviation"]
+    assert sum(b["units"] for b in bins) == 200
+    assert bins[0]["nees_median"] < bins[-1]["nees_median"]
+    assert fleet.main(argv) == 0
+    again = json.loads((tmp_path / "fleet_summary.json").read_text())
+    assert again["ray"]["filtered"] == 0 and again["ray"]["complete_before"] == 200
+    assert again["fleet"] == s["fleet"]
