@@ -418,7 +418,8 @@ def filter_recordings_ray(
                 started[remote.remote(job_ref, spec_ref, s)] = (time.perf_counter(), len(s))
             done_count = found
             left = list(started)
-            _progress(progress, stream, done_count, total)
+            show = _Progress(progress, stream, total)
+            show(done_count)
             while left:
                 ready, left = ray.wait(left, num_returns=1)
                 ref = ready[0]
@@ -437,7 +438,7 @@ def filter_recordings_ray(
                     }
                 )
                 done_count += size
-                _progress(progress, stream, done_count, total)
+                show(done_count)
     stats["task_times"] = task_times
     stats["failed_tasks"] = len(failures)
     if failures and any(_complete_entry(out, nm) is None for nm in job["names"]):
@@ -474,10 +475,20 @@ def _read_job(path: Path) -> dict[str, Any] | None:
     return job
 
 
-def _progress(enabled: bool, stream: TextIO, done: int, total: int) -> None:
-    if enabled:
-        stream.write(f"filter: {done}/{total} recordings done\n")
-        stream.flush()
+class _Progress:
+    """``filter: k/N recordings done`` lines: at the start, at every further percent, at the end."""
+
+    def __init__(self, enabled: bool, stream: TextIO, total: int) -> None:
+        self.enabled, self.stream, self.total = enabled, stream, total
+        self.last = -1
+
+    def __call__(self, done: int) -> None:
+        pct = 100 * done // max(self.total, 1)
+        if not self.enabled or (pct == self.last and done < self.total):
+            return
+        self.last = pct
+        self.stream.write(f"filter: {done}/{self.total} recordings done\n")
+        self.stream.flush()
 
 
 def _one_line(e: BaseException) -> str:
