@@ -43,7 +43,9 @@ import contextlib
 import dataclasses
 import json
 import os
+import re
 import shutil
+import socket
 import sys
 import time
 import warnings
@@ -136,6 +138,8 @@ def ray_session(address: str | None = None, *, workers: int | None = None) -> It
         raise InputError(
             "--workers sets the CPUs of a local Ray instance; a cluster at --ray ADDRESS has its own"
         )
+    if not local:
+        _check_reachable(str(address))
     try:
         if local:
             ray.init(
@@ -153,6 +157,22 @@ def ray_session(address: str | None = None, *, workers: int | None = None) -> It
         yield ray
     finally:
         ray.shutdown()
+
+
+def _check_reachable(address: str) -> None:
+    """A ``host:port`` address must accept a connection within a few seconds (Ray itself keeps
+    retrying an unreachable one for minutes)."""
+    m = re.fullmatch(r"([\w.\-]+):(\d+)", address)
+    if m is None:
+        return  # "auto", "ray://...": Ray reports these quickly itself
+    try:
+        with socket.create_connection((m.group(1), int(m.group(2))), timeout=5.0):
+            pass
+    except OSError as e:
+        raise InputError(
+            f"--ray {address}: no Ray cluster answers there ({e.strerror or e}); start one with "
+            "`ray start --head` or check the address"
+        ) from None
 
 
 # ------------------------------------------------------------------------------------- filtering
@@ -377,35 +397,40 @@ def filter_recordings_ray(
         "paths": [paths_given[i] for i in perm],
         **{k: opts[k] for k in ("smooth", "plot", "dtype", "sqrt", "device", "x0", "P0")},
     }
-    output_dir(out)
-    if old is None or force:
-        if (out / ".torchfilt").is_dir():
-            shutil.rmtree(out / ".torchfilt")
-        atomic_write_text(
-            job_path,
-            json.dumps(
-                {
-                    "schema": _JOB_SCHEMA,
-                    "identity": identity,
-                    "paths": job["paths"],
-                    "lengths": lengths,
-                },
-                indent=1,
-            )
-            + "\n",
-        )
     plan = shard_plan(lengths, batch_size)
     total = len(job["names"])
-    pending = [s for s in plan if any(_complete_entry(out, job["names"][i]) is None for i in s)]
-    found = total - sum(
-        sum(_complete_entry(out, job["names"][i]) is None for i in s) for s in pending
-    )
+    fresh = old is None or force  # a new job: its markers (if any, of a forced one) go
+
+    def incomplete(i: int) -> bool:
+        return fresh or _complete_entry(out, job["names"][i]) is None
+
+    pending = [sh for sh in plan if any(incomplete(i) for i in sh)]
+    found = total - sum(incomplete(i) for sh in pending for i in sh)
     stats: dict[str, Any] = {"filtered": 0, "complete_before": found, "tasks": len(pending)}
     stats["prepare_s"] = time.perf_counter() - t_start
     failures: list[str] = []
     task_times: list[dict[str, float]] = []
-    if pending:
-        with ray_session(address, workers=workers) as ray:
+    with contextlib.ExitStack() as stack:
+        # Ray first: an unreachable cluster is reported before anything is written
+        ray = stack.enter_context(ray_session(address, workers=workers)) if pending else None
+        output_dir(out)
+        if fresh:
+            if (out / ".torchfilt").is_dir():
+                shutil.rmtree(out / ".torchfilt")
+            atomic_write_text(
+                job_path,
+                json.dumps(
+                    {
+                        "schema": _JOB_SCHEMA,
+                        "identity": identity,
+                        "paths": job["paths"],
+                        "lengths": lengths,
+                    },
+                    indent=1,
+                )
+                + "\n",
+            )
+        if ray is not None:
             gpus = gpus_per_task
             if gpus is None:
                 gpus = 1.0 if device != "cpu" and ray.cluster_resources().get("GPU", 0) > 0 else 0.0
@@ -580,10 +605,10 @@ def train_recipes_ray(
                 f"(units {seen[name] + 1} and {i + 1}); give them distinct names"
             )
         seen[name] = i
-    output_dir(out)
     results: dict[str, Path] = {}
     failures: list[str] = []
     with ray_session(address, workers=workers) as ray:
+        output_dir(out)  # after Ray is reached: an unreachable cluster leaves nothing behind
         remote = ray.remote(_train_one).options(num_cpus=1, max_retries=max_retries)
         refs = {
             remote.remote(r, os.path.abspath(Path(out) / name), resume, force): name
