@@ -574,9 +574,13 @@ def train_recipes_ray(
 
     Raises:
         MissingDependencyError: Ray is not installed.
-        InputError: no recipes, ``datasets`` with several recipes, two units with one run name.
-        RecipeError, DataError: an invalid recipe or dataset (checked before anything runs).
-        RunError: some runs failed (the others are kept; ``resume`` continues them).
+        InputError: no recipes, ``datasets`` with several recipes, a dataset that does not exist,
+            two units with one run name.
+        RecipeError: an invalid recipe (checked here, before any task starts).
+        RunError: some runs failed, including on an invalid dataset or a run directory that
+            already holds a run (each task checks its own before it trains, as
+            :func:`~torchfilt.training.train_recipe` does); the message gives the first failure's
+            own message. The other runs are kept; ``resume`` continues them.
     """
     import_ray()
     if not recipes:
