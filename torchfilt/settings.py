@@ -43,7 +43,7 @@ SmallKernels = Literal["auto", "unrolled", "library"]
 
 #: Default recordings per Ray task of ``torchfilt filter --ray`` (``--batch-size``). Measured on
 #: 2 CPUs (scripts/bench_ray.py, README "Distributed"): a task's fixed overhead (~15 ms) is under
-#: 10% of the task from about 10 re-entry recordings and about 1% at 256, while 256 still makes
+#: 10% of the task from about 10 re-entry recordings and under 2% at 256, while 256 still makes
 #: 40 tasks of 10^4 recordings to spread over the workers.
 RAY_BATCH_SIZE = 256
 
