@@ -16,6 +16,7 @@ __all__ = [
     "InfeasibleError",
     "InputError",
     "InputTypeError",
+    "MissingDependencyError",
     "ModelError",
     "NotDetectableError",
     "NumericsWarning",
@@ -96,6 +97,11 @@ class RunError(TorchfiltError, RuntimeError):
 class OutputError(TorchfiltError, OSError):
     """An output cannot be written: it exists (and ``--force`` was not given), its folder is a
     file or is read-only, or the disk is full. The message names the path."""
+
+
+class MissingDependencyError(TorchfiltError, ImportError):
+    """An optional dependency a feature needs is not installed; the message says how to install
+    it (e.g. ``pip install 'torchfilt[distributed]'`` for Ray)."""
 
 
 class BundleError(TorchfiltError, ValueError):

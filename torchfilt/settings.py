@@ -28,6 +28,7 @@ from collections.abc import Iterator
 from typing import Literal, NamedTuple
 
 __all__ = [
+    "RAY_BATCH_SIZE",
     "NumericsPath",
     "SmallKernels",
     "current_skip_guard_checks",
@@ -39,6 +40,12 @@ __all__ = [
 ]
 
 SmallKernels = Literal["auto", "unrolled", "library"]
+
+#: Default recordings per Ray task of ``torchfilt filter --ray`` (``--batch-size``). Measured on
+#: 2 CPUs (scripts/bench_ray.py, README "Distributed"): a task's fixed overhead (~15 ms) is under
+#: 10% of the task from about 10 re-entry recordings and under 2% at 256, while 256 still makes
+#: 40 tasks of 10^4 recordings to spread over the workers.
+RAY_BATCH_SIZE = 256
 
 _SYNC_FREE: contextvars.ContextVar[bool] = contextvars.ContextVar(
     "torchfilt_sync_free", default=False

@@ -15,7 +15,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from torchfilt.exceptions import TorchfiltError
+from torchfilt.exceptions import InputError, TorchfiltError
 
 __all__ = ["main"]
 
@@ -43,19 +43,47 @@ def _filter(args: argparse.Namespace) -> int:
 
     from torchfilt.pipeline import check_device, filter_recordings
 
-    check_device(args.device)  # before anything is loaded
+    dtype = torch.float32 if args.float32 else torch.float64
+    if args.ray is None:
+        if args.workers is not None:
+            raise InputError("--workers sets the CPUs of a local Ray instance: use it with --ray")
+        device = args.device or "cpu"
+        check_device(device)  # before anything is loaded
+        summary = filter_recordings(
+            args.model,
+            args.recordings,
+            args.out,
+            smooth=args.smooth,
+            plot=args.plot,
+            device=device,
+            dtype=dtype,
+            sqrt=args.sqrt,
+            force=args.force,
+            batch_size=args.batch_size,
+        )
+    else:
+        from torchfilt.pipeline.distributed import filter_recordings_ray
+        from torchfilt.settings import RAY_BATCH_SIZE
 
-    summary = filter_recordings(
-        args.model,
-        args.recordings,
-        args.out,
-        smooth=args.smooth,
-        plot=args.plot,
-        device=args.device,
-        dtype=torch.float32 if args.float32 else torch.float64,
-        sqrt=args.sqrt,
-        force=args.force,
-    )
+        summary = filter_recordings_ray(
+            args.model,
+            args.recordings,
+            args.out,
+            address=args.ray,
+            workers=args.workers,
+            batch_size=RAY_BATCH_SIZE if args.batch_size is None else args.batch_size,
+            smooth=args.smooth,
+            plot=args.plot,
+            device=args.device or "auto",
+            dtype=dtype,
+            sqrt=args.sqrt,
+            force=args.force,
+        )
+        d = summary["distributed"]
+        print(
+            f"ray: filtered {d['filtered']} recordings in {d['tasks']} tasks; "
+            f"{d['complete_before']} were already complete"
+        )
     for e in summary["recordings"]:
         met = e.get("filtered_metrics") or {}
         extra = f", NEES {met['nees']:.3g}" if met else ""
@@ -88,13 +116,50 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from torchfilt.training import train_recipe
+    if args.ray is None:
+        if len(args.recipe) > 1 or args.dataset:
+            raise InputError(
+                "several recipes or --dataset train several models: add --ray to run them as "
+                "parallel tasks"
+            )
+        if args.workers is not None:
+            raise InputError("--workers sets the CPUs of a local Ray instance: use it with --ray")
+        from torchfilt.training import train_recipe
 
-    bundle = train_recipe(
-        args.recipe, args.out, resume=args.resume, force=args.force, progress=not args.quiet
+        bundle = train_recipe(
+            args.recipe[0], args.out, resume=args.resume, force=args.force, progress=not args.quiet
+        )
+        print(f"model bundle: {bundle}")
+        return 0
+    from torchfilt.pipeline.distributed import train_recipes_ray
+
+    bundles = train_recipes_ray(
+        args.recipe,
+        args.out,
+        datasets=args.dataset,
+        address=args.ray,
+        workers=args.workers,
+        resume=args.resume,
+        force=args.force,
     )
-    print(f"model bundle: {bundle}")
+    for name, b in bundles.items():
+        print(f"model bundle ({name}): {b}")
     return 0
+
+
+def _add_ray(s: argparse.ArgumentParser, what: str) -> None:
+    s.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        default=None,
+        metavar="ADDRESS",
+        help=f"{what} as Ray tasks: on a new local Ray instance, or on the cluster at ADDRESS "
+        "(auto, host:6379, ray://host:10001); needs pip install 'torchfilt[distributed]'",
+    )
+    s.add_argument(
+        "--workers", type=int, default=None, help="CPUs of the local Ray instance (default: all)"
+    )
 
 
 def _info(args: argparse.Namespace) -> int:
@@ -122,8 +187,20 @@ def _parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("train", help="train a model from a recipe (trainers/*.toml)")
-    s.add_argument("recipe", type=Path)
-    s.add_argument("--out", type=Path, required=True, help="run directory")
+    s.add_argument("recipe", type=Path, nargs="+", help="recipe(s); several need --ray")
+    s.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="run directory (with --ray: the folder of one run directory per unit)",
+    )
+    s.add_argument(
+        "--dataset",
+        type=Path,
+        action="append",
+        default=None,
+        help="with --ray and one recipe: train it on this dataset too (repeat; one model each)",
+    )
     s.add_argument(
         "--resume", action="store_true", help="continue from the last checkpoint in --out"
     )
@@ -131,6 +208,7 @@ def _parser() -> argparse.ArgumentParser:
         "--force", action="store_true", help="discard the run already in --out and start afresh"
     )
     s.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_ray(s, "train the units")
     s.set_defaults(fn=_train)
 
     s = sub.add_parser("filter", help="filter (and smooth) recordings with a model")
@@ -139,10 +217,22 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--smooth", action="store_true", help="also run the RTS smoother")
     s.add_argument("--plot", action="store_true", help="write a PNG report per recording")
-    s.add_argument("--device", default="cpu", help="torch device, e.g. cuda")
+    s.add_argument(
+        "--device",
+        default=None,
+        help="torch device, e.g. cuda (default: cpu; with --ray: each task's GPU if it has one)",
+    )
     s.add_argument("--sqrt", action="store_true", help="square-root CKF")
     s.add_argument("--float32", action="store_true", help="compute in float32")
     s.add_argument("--force", action="store_true", help="overwrite existing estimate files")
+    s.add_argument(
+        "--batch-size",
+        type=int,
+        default=None,
+        help="most recordings per batch (default: all of one length; with --ray: "
+        "settings.RAY_BATCH_SIZE per task)",
+    )
+    _add_ray(s, "filter the batches")
     s.set_defaults(fn=_filter)
 
     s = sub.add_parser(

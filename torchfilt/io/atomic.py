@@ -147,12 +147,19 @@ def check_new_outputs(paths: Iterable[str | Path], *, force: bool) -> None:
             )
 
 
-def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> Path:
+def atomic_write(
+    path: str | Path, write: Callable[[BinaryIO], None], *, fsync: bool = True
+) -> Path:
     """Write ``path`` atomically: ``write`` fills a temporary file that then replaces ``path``.
 
     Args:
         path: destination.
         write: callback writing the content to a binary file object.
+        fsync: flush the content to disk before the rename. The rename is atomic either way (a
+            killed process leaves the old file or the new one); without the flush, an operating
+            system crash or power loss can leave the new name with empty or partial content. Turn
+            it off only for files whose loss or corruption is detected and harmless (a completion
+            marker that is re-derived when unreadable).
 
     Returns:
         The destination path.
@@ -177,7 +184,8 @@ def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> Path:
         with os.fdopen(fd, "wb") as fh:
             write(fh)
             fh.flush()
-            os.fsync(fh.fileno())
+            if fsync:
+                os.fsync(fh.fileno())
         os.replace(tmp, path)
     except OSError as e:
         if os.path.exists(tmp):
@@ -190,18 +198,18 @@ def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> Path:
     return path
 
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
-    """Write bytes atomically."""
+def atomic_write_bytes(path: str | Path, data: bytes, *, fsync: bool = True) -> Path:
+    """Write bytes atomically (``fsync``: see :func:`atomic_write`)."""
 
     def write(fh: BinaryIO) -> None:
         fh.write(data)
 
-    return atomic_write(path, write)
+    return atomic_write(path, write, fsync=fsync)
 
 
-def atomic_write_text(path: str | Path, text: str) -> Path:
-    """Write UTF-8 text atomically."""
-    return atomic_write_bytes(path, text.encode("utf-8"))
+def atomic_write_text(path: str | Path, text: str, *, fsync: bool = True) -> Path:
+    """Write UTF-8 text atomically (``fsync``: see :func:`atomic_write`)."""
+    return atomic_write_bytes(path, text.encode("utf-8"), fsync=fsync)
 
 
 def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:

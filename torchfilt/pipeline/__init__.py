@@ -1,9 +1,11 @@
 """Workflows behind the command line: filter recordings, evaluate estimates, simulate datasets.
 
 Every ``torchfilt`` CLI command has its Python twin here (``torchfilt.pipeline.filter_recordings``
-is ``torchfilt filter``, and so on).
+is ``torchfilt filter``, and so on); :mod:`torchfilt.pipeline.distributed` runs filtering and
+training as Ray tasks (``--ray``; Ray is the optional extra ``torchfilt[distributed]``).
 """
 
+from torchfilt.pipeline.distributed import filter_recordings_ray, train_recipes_ray
 from torchfilt.pipeline.evaluate import evaluate_outputs
 from torchfilt.pipeline.offline import (
     ModelSpec,
@@ -11,6 +13,7 @@ from torchfilt.pipeline.offline import (
     filter_recordings,
     output_names,
     resolve_model,
+    shard_plan,
 )
 
 __all__ = [
@@ -18,6 +21,9 @@ __all__ = [
     "check_device",
     "evaluate_outputs",
     "filter_recordings",
+    "filter_recordings_ray",
     "output_names",
     "resolve_model",
+    "shard_plan",
+    "train_recipes_ray",
 ]

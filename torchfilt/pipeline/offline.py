@@ -28,9 +28,13 @@ __all__ = [
     "INDEX_NAME",
     "ModelSpec",
     "check_device",
+    "check_recording_files",
+    "filter_batch",
     "filter_recordings",
     "output_names",
+    "recording_outputs",
     "resolve_model",
+    "shard_plan",
 ]
 
 #: Summary file that ``filter_recordings`` writes into its output folder (read by evaluate).
@@ -106,6 +110,36 @@ def output_names(recordings: Sequence[str | Path]) -> list[str]:
     return names
 
 
+def check_recording_files(recordings: Sequence[str | Path]) -> None:
+    """Check that recordings were given, exist and have a readable suffix.
+
+    Raises:
+        InputError: no recordings.
+        DataError: a recording is missing or of an unsupported file type.
+    """
+    if not recordings:
+        raise InputError("no recordings given")
+    for p in recordings:
+        if not Path(p).is_file():
+            raise DataError("recording not found", path=p)
+        if Path(p).suffix.lower() not in SUFFIXES:
+            raise DataError(
+                f"unsupported file type {Path(p).suffix!r}; use one of {SUFFIXES}", path=p
+            )
+
+
+def recording_outputs(name: str, *, smooth: bool, plot: bool) -> list[str]:
+    """The files ``filter_recordings`` writes for the recording with output name ``name``,
+    relative to the output folder, in the order written (the filtered estimates last)."""
+    files = []
+    if smooth:
+        files.append(f"{name}.smoothed.csv")
+    if plot:
+        files.append(f"{name}.png")
+    files.append(f"{name}.filtered.csv")
+    return files
+
+
 def _metrics(truth: Tensor, mean: Tensor, cov: Tensor) -> dict[str, Any]:
     ok = torch.isfinite(truth).all(-1)
     if not bool(ok.any()):
@@ -132,12 +166,15 @@ def filter_recordings(
     x0: Tensor | None = None,
     P0: Tensor | None = None,
     force: bool = False,
+    batch_size: int | None = None,
 ) -> dict[str, Any]:
     """Filter (and optionally smooth) recordings with a model; write estimates, plots and a summary.
 
     The prior ``N(x0, P0)`` (default: the model's) is the state at each recording's first row; the
     filter then predicts and updates on rows ``1..T-1`` (input row ``k`` drives the step from row
-    ``k`` to ``k + 1``). Recordings of equal length are filtered as one batch on ``device``.
+    ``k`` to ``k + 1``). Recordings of equal length are filtered as one batch on ``device`` (batches
+    of at most ``batch_size``, see :func:`shard_plan`);
+    :func:`~torchfilt.pipeline.distributed.filter_recordings_ray` does the same on a Ray cluster.
 
     Writes into ``out``: ``{name}.filtered.csv`` (mean, sd, correlations and NIS per step),
     ``{name}.smoothed.csv`` with ``smooth``, ``{name}.png`` with ``plot``, and
@@ -160,6 +197,7 @@ def filter_recordings(
         x0: prior mean override ``(n,)``.
         P0: prior covariance override ``(n, n)``.
         force: overwrite existing output files.
+        batch_size: most recordings per batch (default: all recordings of one length).
 
     Returns:
         The summary (also written to ``filter_summary.json``).
@@ -170,24 +208,13 @@ def filter_recordings(
         OutputError: an output exists (without ``force``), or ``out`` cannot be written.
     """
     dev = check_device(device)
-    if not recordings:
-        raise InputError("no recordings given")
-    for p in recordings:
-        if not Path(p).is_file():
-            raise DataError("recording not found", path=p)
-        if Path(p).suffix.lower() not in SUFFIXES:
-            raise DataError(
-                f"unsupported file type {Path(p).suffix!r}; use one of {SUFFIXES}", path=p
-            )
+    shard_plan([], batch_size)  # check the option before anything is read
+    check_recording_files(recordings)
     out = Path(out)
     names = output_names(recordings)
     planned = [out / INDEX_NAME]
     for n in names:
-        planned.append(out / f"{n}.filtered.csv")
-        if smooth:
-            planned.append(out / f"{n}.smoothed.csv")
-        if plot:
-            planned.append(out / f"{n}.png")
+        planned.extend(out / f for f in recording_outputs(n, smooth=smooth, plot=plot))
     check_new_outputs(planned, force=force)
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out}: the output folder is a file; choose a folder")
@@ -209,48 +236,101 @@ def filter_recordings(
     filt = CKF(spec.model.to(device=dev, dtype=dtype), sqrt=sqrt)
     m0 = (spec.prior_mean if x0 is None else torch.as_tensor(x0)).to(dev, dtype)
     C0 = (spec.prior_cov if P0 is None else torch.as_tensor(P0)).to(dev, dtype)
-    groups: dict[int, list[int]] = defaultdict(list)
-    for i, r in enumerate(recs):
-        groups[len(r)].append(i)
     summary: dict[str, Any] = {"model": spec.source, "smooth": smooth, "recordings": []}
     entries: dict[int, dict[str, Any]] = {}
-    for idx in groups.values():
-        y = torch.stack([recs[i].measurements[1:] for i in idx]).to(dev, dtype)
-        u = None
-        if spec.inputs:
-            u = torch.stack([recs[i].inputs[:-1] for i in idx]).to(dev, dtype)  # type: ignore[index]
+    for idx in shard_plan([len(r) for r in recs], batch_size):
         if recs[idx[0]].measurements[0].isfinite().any():
             warnings.warn(
                 "the first row of a recording is the prior's time; its measurements are not used",
                 stacklevel=2,
             )
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", NumericsWarning)
-            if smooth:
-                sm = filt.smooth(y, u, x0=m0, P0=C0)
-                res = sm.filtered
-            else:
-                sm, res = None, filt.filter(y, u, x0=m0, P0=C0)
-        value, dof = nis(res)
-        for b, i in enumerate(idx):
-            entries[i] = _write_one(
-                recs[i],
-                names[i],
-                spec,
-                res,
-                sm,
-                b,
-                value[b],
-                dof[b],
-                m0,
-                C0,
-                out,
-                plot,
-                len(caught),
-            )
+        for i, entry in filter_batch(
+            spec,
+            filt,
+            [recs[i] for i in idx],
+            [names[i] for i in idx],
+            m0,
+            C0,
+            out,
+            smooth=smooth,
+            plot=plot,
+        ):
+            entries[idx[i]] = entry
     summary["recordings"] = [entries[i] for i in range(len(recs))]
     atomic_write_text(out / INDEX_NAME, json.dumps(summary, indent=2, default=float) + "\n")
     return summary
+
+
+def shard_plan(lengths: Sequence[int], batch_size: int | None = None) -> list[list[int]]:
+    """How recordings are batched: the indices of each batch, in order.
+
+    Recordings of equal length form a group (groups in order of first appearance, members in input
+    order); a group is split into consecutive batches of at most ``batch_size`` (one batch per group
+    when ``None``). Batched linear algebra can round differently for different batch shapes, so an
+    estimate's last bits depend on the batch it was filtered in: the local and the distributed
+    paths both follow this plan, and give byte-identical files for the same ``batch_size``.
+
+    Raises:
+        InputError: ``batch_size`` is not a positive integer.
+    """
+    if batch_size is not None and (
+        isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1
+    ):
+        raise InputError(
+            f"batch_size (--batch-size) must be a positive integer, got {batch_size!r}"
+        )
+    groups: dict[int, list[int]] = defaultdict(list)
+    for i, n in enumerate(lengths):
+        groups[n].append(i)
+    plan: list[list[int]] = []
+    for idx in groups.values():
+        step = len(idx) if batch_size is None else batch_size
+        plan.extend(idx[k : k + step] for k in range(0, len(idx), step))
+    return plan
+
+
+def filter_batch(
+    spec: ModelSpec,
+    filt: CKF,
+    recs: Sequence[Recording],
+    names: Sequence[str],
+    m0: Tensor,
+    C0: Tensor,
+    out: Path,
+    *,
+    smooth: bool,
+    plot: bool,
+    write: Sequence[bool] | None = None,
+) -> list[tuple[int, dict[str, Any]]]:
+    """Filter recordings of equal length as one batch and write their outputs into ``out``.
+
+    Each recording's files are written atomically, the filtered estimates last (after the smoothed
+    estimates and the plot). ``write[b]`` false skips writing recording ``b`` (it is still part of
+    the batch, so the others' numbers do not change). Returns ``(b, summary entry)`` for each
+    recording written.
+    """
+    dev, dtype = m0.device, m0.dtype
+    y = torch.stack([r.measurements[1:] for r in recs]).to(dev, dtype)
+    u = None
+    if spec.inputs:
+        u = torch.stack([r.inputs[:-1] for r in recs]).to(dev, dtype)  # type: ignore[index]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", NumericsWarning)
+        if smooth:
+            sm = filt.smooth(y, u, x0=m0, P0=C0)
+            res = sm.filtered
+        else:
+            sm, res = None, filt.filter(y, u, x0=m0, P0=C0)
+    value, dof = nis(res)
+    done: list[tuple[int, dict[str, Any]]] = []
+    for b, rec in enumerate(recs):
+        if write is not None and not write[b]:
+            continue
+        entry = _write_one(
+            rec, names[b], spec, res, sm, b, value[b], dof[b], m0, C0, out, plot, len(caught)
+        )
+        done.append((b, entry))
+    return done
 
 
 def _with_prior(mean: Tensor, cov: Tensor, m0: Tensor, C0: Tensor) -> tuple[np.ndarray, np.ndarray]:
@@ -278,8 +358,6 @@ def _write_one(
     M, P = _with_prior(res.mean[b], res.cov[b], m0, C0)
     nis_v = np.concatenate([[np.nan], value.detach().cpu().numpy()])
     nis_k = np.concatenate([[0.0], dof.detach().cpu().numpy()])
-    fpath = out / f"{name}.filtered.csv"
-    write_estimates(fpath, Estimates(rec.time, M, P, names, nis_v, nis_k))
     entry: dict[str, Any] = {
         "recording": str(rec.path),
         "rows": len(rec),
@@ -327,4 +405,6 @@ def _write_one(
         fig.savefig(buf, format="png")
         atomic_write_bytes(out / f"{name}.png", buf.getvalue())
         entry["plot"] = f"{name}.png"
+    # the filtered estimates last: once they exist, so do the recording's other outputs
+    write_estimates(out / f"{name}.filtered.csv", Estimates(rec.time, M, P, names, nis_v, nis_k))
     return entry
