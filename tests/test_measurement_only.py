@@ -274,3 +274,29 @@ def test_no_gauge_refused(data):
     with pytest.raises(InputError, match="known_channels"):
         check_gauge(model, [3])
     assert issubclass(GaugeError, torchfilt.TorchfiltError)
+
+
+def test_inducing_transition_is_the_gp_conditional():
+    g = torch.Generator().manual_seed(5)
+    Z = torch.randn(5, 3, generator=g, dtype=DT)  # n = 2 states, nu = 1 input
+    f = InducingTransition(2, Z, input_dim=1, lengthscale=0.7, outputscale=0.3, floor=1e-4)
+    with torch.no_grad():
+        f.inducing_outputs.copy_(torch.randn(2, 5, generator=g, dtype=DT))
+    x, u = Z[:, :2].unsqueeze(0), Z[:, 2:].unsqueeze(0)
+    pred = f.predict(x, u)
+    assert pred.mean.shape == (1, 5, 2) and pred.var is not None
+    # at the inducing inputs: the linear part plus the inducing outputs, variance ~ the floor
+    lin = Z @ f.linear.detach().mT
+    assert torch.allclose(pred.mean[0] - lin, f.inducing_outputs.detach().mT, atol=1e-4)
+    assert torch.allclose(pred.var, torch.full_like(pred.var, 1e-4), atol=1e-5)
+    # far away: the linear part alone and the prior variance
+    far = f.predict(torch.full((1, 1, 2), 50.0, dtype=DT), torch.zeros(1, 1, 1, dtype=DT))
+    assert torch.allclose(far.mean[0, 0], torch.full((2,), 50.0, dtype=DT))
+    assert torch.allclose(far.var, torch.full_like(far.var, 0.3 + 1e-4))
+    # a nominal model sits under it; W then starts at zero
+    g2 = InducingTransition(2, 0, nominal=lambda x, u: 0.5 * x)
+    assert torch.equal(g2.predict(x).mean, 0.5 * x)
+    with pytest.raises(InputError, match="u"):
+        f.predict(x)
+    with pytest.raises(InputError, match="inducing"):
+        InducingTransition(2, Z[:, :2], input_dim=1)

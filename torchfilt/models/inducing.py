@@ -15,12 +15,16 @@ Gaussian filter moment-matches it through its cubature points, and every quantit
 Far from the inducing inputs the mean falls back to the linear part and the variance grows to
 ``s_j``: the model says where it has not seen data.
 
-``inducing=0`` (no inducing points) is the plain linear transition ``W z + b``.
+``inducing=0`` (no inducing points) is the plain linear transition ``W z + b``. A ``nominal``
+physics model ``g(x, u)`` (a textbook model with guessed constants) can stand under it all: the
+mean is then ``g(x, u) + W z + b + GP``, with ``W`` starting at zero, so training starts from the
+physics and learns its error.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor, nn
@@ -40,12 +44,14 @@ class InducingTransition(ConditionalModel):
             ``M`` (then ``Z`` starts at zero and must be set before use, e.g. with
             :meth:`init_inducing`).
         input_dim: ``nu`` (0: no inputs).
-        linear: initial ``W (n, n + nu)`` (default ``[I, 0]``: a random walk).
+        linear: initial ``W (n, n + nu)`` (default ``[I, 0]``: a random walk; ``0`` with a
+            ``nominal`` model).
         bias: initial ``b (n,)`` (default 0).
         lengthscale: initial lengthscales, a float or ``(n + nu,)``.
         outputscale: initial GP variances ``s_j``, a float or ``(n,)``.
         floor: a fixed variance floor added to ``var`` (float or ``(n,)``, default 0).
         jitter: added to the diagonal of ``C_ZZ``.
+        nominal: a fixed physics model ``g(x, u)``, ``(..., n) -> (..., n)``, added to the mean.
         dtype: parameter dtype.
     """
 
@@ -63,6 +69,7 @@ class InducingTransition(ConditionalModel):
         outputscale: float | Tensor = 0.1,
         floor: float | Tensor = 0.0,
         jitter: float = 1e-6,
+        nominal: Callable[[Tensor, Tensor | None], Tensor] | None = None,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         super().__init__()
@@ -81,7 +88,12 @@ class InducingTransition(ConditionalModel):
             if Z.dim() != 2 or Z.shape[-1] != D:
                 raise ShapeError(f"inducing: expected shape (M, {D}), got {tuple(Z.shape)}")
         M = int(Z.shape[0])
-        if linear is None:
+        if nominal is not None and not callable(nominal):
+            raise InputError(f"nominal must be callable, got {type(nominal).__name__}")
+        self.nominal = nominal
+        if linear is None and nominal is not None:
+            W = torch.zeros(n, D, dtype=dtype)
+        elif linear is None:
             W = torch.cat([torch.eye(n, dtype=dtype), torch.zeros(n, D - n, dtype=dtype)], -1)
         else:
             W = torch.as_tensor(linear, dtype=dtype).detach().clone()
@@ -147,6 +159,8 @@ class InducingTransition(ConditionalModel):
         """Mean and variance ``(..., P, n)`` at points ``x (..., P, n)`` (inputs ``(..., P, nu)``)."""
         z = self._inputs(x, u)
         mean = z @ self.linear.to(z.dtype).mT + self.bias.to(z.dtype)
+        if self.nominal is not None:
+            mean = mean + self.nominal(x, u)
         if self.num_inducing == 0:
             return Prediction(mean)
         ls = self.log_lengthscale.exp()

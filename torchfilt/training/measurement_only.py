@@ -25,7 +25,7 @@ Two methods, chosen by ``method`` of :func:`fit_measurement_only`:
     which a fit on smoothed means alone would ignore. A step that lowers ``Q`` is undone
     (generalised EM). Because the E-step of a non-linear model is the CKF's Gaussian
     approximation, a higher ``Q`` does not guarantee a higher likelihood: a step that lowers the
-    filter's likelihood is halved until it does not (at most four times, else undone), so the
+    filter's likelihood is halved until it does not (at most ``backtracks`` times, else undone), so the
     likelihood trace is monotone by construction there; for a linear-Gaussian model it is
     monotone because the EM is exact.
 
@@ -91,8 +91,6 @@ __all__ = [
 ]
 
 _EM_SCHEMA = "torchfilt.em-checkpoint/1"
-#: step halvings of a non-linear M-step that lowered the filter likelihood
-_BACKTRACKS = 4
 
 
 # ----------------------------------------------------------------------------------- gauge
@@ -231,7 +229,8 @@ class EMFit:
         log_likelihood: innovation log-likelihood at the returned parameters.
         initial_log_likelihood: at the initial parameters.
         iterations: EM iterations run.
-        stopped: ``"iterations"``, ``"converged"`` or ``"callback"``.
+        stopped: ``"iterations"``, ``"converged"``, ``"callback"`` or ``"no improvement"`` (a
+            non-linear M-step lowered the likelihood even after ``backtracks`` halvings).
         measurements: observed measurement components.
         history: one record per iteration: ``iteration``, ``log_likelihood`` (at the parameters
             after that iteration's M-step), ``elapsed``.
@@ -429,6 +428,7 @@ def fit_em(
     tol: float = 1e-9,
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
+    backtracks: int = 4,
     rule: CubatureRule | None = None,
     callback: Callable[[EMState], bool | None] | None = None,
     progress: bool = False,
@@ -457,6 +457,8 @@ def fit_em(
         learn_measurement_noise: update ``R`` (linear) / include the measurement term in the
             M-step (others).
         m_step_iterations: L-BFGS iterations per M-step (non-linear models).
+        backtracks: step halvings of a non-linear M-step that lowered the filter likelihood
+            before it is undone (0: undone at once).
         rule: cubature rule of the filter and of the M-step expectation (default third degree).
         callback: called after every iteration with an :class:`EMState`; return ``True`` to
             stop.
@@ -559,6 +561,7 @@ def fit_em(
     if initial is None:
         initial = ll
     for it in range(it0 + 1, iterations + 1):
+        stalled = False
         before = state()
         if lin is not None:
             lin = _linear_m_step(lin, sp, Y, U, known, learn_measurement_noise)
@@ -571,7 +574,7 @@ def fit_em(
             # The E-step of a non-linear model is the CKF's Gaussian approximation, so a better
             # Q need not mean a better likelihood: halve the step until it is (safeguarded GEM).
             after = state()
-            for k in range(1, _BACKTRACKS + 1):
+            for k in range(1, backtracks + 1):
                 if ll_new >= ll:
                     break
                 t = 0.5**k
@@ -580,6 +583,7 @@ def fit_em(
             if ll_new < ll:
                 load(before)
                 ll_new, sp_new = ll, sp
+                stalled = True
         change = (ll_new - ll) / counted
         ll, sp = ll_new, sp_new
         elapsed = time.perf_counter() - t_start
@@ -602,6 +606,9 @@ def fit_em(
             atomic_write(ckpt_path, write)
         if stop:
             stopped = "callback"
+            break
+        if stalled:
+            stopped = "no improvement"
             break
         if abs(change) <= tol:
             stopped = "converged"
