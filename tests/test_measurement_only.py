@@ -300,3 +300,23 @@ def test_inducing_transition_is_the_gp_conditional():
         f.predict(x)
     with pytest.raises(InputError, match="inducing"):
         InducingTransition(2, Z[:, :2], input_dim=1)
+
+
+def test_em_gp_resume_equals_uninterrupted(data, tmp_path):
+    def model() -> StateSpaceModel:
+        f = InducingTransition(2, 4, linear=A_INIT, outputscale=0.01)
+        f.init_inducing(torch.randn(40, 2, generator=torch.Generator().manual_seed(2), dtype=DT))
+        h = LinearModel(H, CholeskyCovariance(torch.eye(1, dtype=DT)), name="measurement")
+        return StateSpaceModel(f, h, Q=CholeskyCovariance(0.3 * torch.eye(2, dtype=DT)))
+
+    y, kw = data[:80], dict(x0=X0, P0=P0, known_channels=[0], tol=0.0, m_step_iterations=3)
+    full = fit_em(model(), y, iterations=4, **kw)
+    ck = tmp_path / "em_gp.pt"
+    fit_em(model(), y, iterations=2, checkpoint=ck, **kw)
+    resumed = fit_em(model(), y, iterations=4, checkpoint=ck, resume=True, **kw)
+    assert resumed.log_likelihood == full.log_likelihood
+    assert [h["log_likelihood"] for h in resumed.history] == [
+        h["log_likelihood"] for h in full.history
+    ]
+    with pytest.raises(torchfilt.RunError, match="another fit"):
+        fit_em(model(), y[:60], iterations=4, checkpoint=ck, resume=True, **kw)
