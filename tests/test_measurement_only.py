@@ -274,6 +274,9 @@ def test_no_gauge_refused(data):
     with pytest.raises(InputError, match="known_channels"):
         check_gauge(model, [3])
     assert issubclass(GaugeError, torchfilt.TorchfiltError)
+    blind = LinearGaussianModel(A_INIT, torch.zeros(1, 2, dtype=DT), P0, R_TRUE)
+    with pytest.raises(GaugeError, match="all zero"):
+        fit_em(blind, data, x0=X0, P0=P0, known_channels=[0])
 
 
 def test_inducing_transition_is_the_gp_conditional():

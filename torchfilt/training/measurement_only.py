@@ -514,6 +514,11 @@ def fit_em(
             None if sys.B is None else sys.B.detach().to(dtype).clone(),
             None if sys.D is None else sys.D.detach().to(dtype).clone(),
         )
+        if not bool((lin.H[known] != 0).any()):
+            raise GaugeError(
+                f"known_channels {known}: the known rows of H are all zero, so they pin no state "
+                "coordinate; give channels whose measurement map sees the state"
+            )
         plist: list[nn.Parameter] = []
     else:
         plist = [p for p in model.parameters() if p.requires_grad]
