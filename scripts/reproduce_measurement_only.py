@@ -196,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--test-runs", type=int, default=50)
     ap.add_argument("--em-iterations", type=int, default=40)
     ap.add_argument("--likelihood-iterations", type=int, default=15)
-    ap.add_argument("--m-step-iterations", type=int, default=5)
+    ap.add_argument("--m-step-iterations", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
     torch.set_num_threads(1)

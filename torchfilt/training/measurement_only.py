@@ -17,7 +17,7 @@ Two methods, chosen by ``method`` of :func:`fit_measurement_only`:
 
     with the expectation under the smoothed Gaussian of ``(x_{t-1}, x_t)`` (of ``x_t`` for the
     measurement term) taken by the same cubature rule as the filter (``4 n`` points per pair for
-    the third-degree rule). We chose this deterministic expectation over sampling trajectories
+    the third-degree rule), in blocks: the noise covariances, the maps, the noise again. We chose this deterministic expectation over sampling trajectories
     from the smoothed posterior because it has no Monte Carlo error, so the EM likelihood trace
     can be checked for monotonicity exactly (up to the Gaussian approximation of the E-step), it
     is reproducible without a generator, and it is the moment matching the filter itself does;
@@ -641,29 +641,46 @@ def _gradient_m_step(
     measurement_term: bool,
     iterations: int,
 ) -> None:
-    """L-BFGS on ``-Q(theta)``; undone if it does not improve ``Q`` (generalised EM)."""
+    """Block coordinate L-BFGS on ``-Q(theta)``: the noise covariances, then the other
+    parameters, then the noise again (the maps' gradients dwarf the noises', so a joint step
+    leaves ``Q`` and ``R`` almost where they were); undone if ``Q`` does not improve
+    (generalised EM)."""
     scale = float(sp.mean.shape[:-1].numel())
     before = [p.detach().clone() for p in plist]
+    noise_ids = {
+        id(p)
+        for mod in model.modules()
+        if isinstance(mod, CovarianceParameter)
+        for p in mod.parameters()
+    }
+    noise = [p for p in plist if id(p) in noise_ids]
+    rest = [p for p in plist if id(p) not in noise_ids]
     with torch.no_grad():
         q0 = float(_expected_loglik(model, sp, Y, U, rule, measurement_term))
-    opt = torch.optim.LBFGS(
-        plist,
-        lr=1.0,
-        max_iter=iterations,
-        line_search_fn="strong_wolfe",
-        tolerance_change=1e-12,
-        tolerance_grad=1e-10,
-        history_size=20,
-    )
 
-    def closure() -> Tensor:
-        opt.zero_grad()
-        loss = -_expected_loglik(model, sp, Y, U, rule, measurement_term) / scale
-        loss.backward()
-        return loss.detach()
+    def run(group: list[nn.Parameter]) -> None:
+        opt = torch.optim.LBFGS(
+            group,
+            lr=1.0,
+            max_iter=iterations,
+            line_search_fn="strong_wolfe",
+            tolerance_change=1e-12,
+            tolerance_grad=1e-10,
+            history_size=20,
+        )
+
+        def closure() -> Tensor:
+            opt.zero_grad()
+            loss = -_expected_loglik(model, sp, Y, U, rule, measurement_term) / scale
+            loss.backward()
+            return loss.detach()
+
+        opt.step(closure)  # type: ignore[arg-type]
 
     try:
-        opt.step(closure)  # type: ignore[arg-type]
+        for group in (noise, rest, noise):
+            if group:
+                run(group)
         with torch.no_grad():
             q1 = float(_expected_loglik(model, sp, Y, U, rule, measurement_term))
         ok = math.isfinite(q1) and q1 >= q0
