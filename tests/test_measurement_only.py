@@ -323,3 +323,31 @@ def test_em_gp_resume_equals_uninterrupted(data, tmp_path):
     ]
     with pytest.raises(torchfilt.RunError, match="another fit"):
         fit_em(model(), y[:60], iterations=4, checkpoint=ck, resume=True, **kw)
+
+
+def test_em_with_inputs_recovers_B_under_the_full_gauge():
+    """H = I known pins every coordinate, so A, B, Q, R themselves are identified."""
+    g = torch.Generator().manual_seed(7)
+    B = torch.tensor([[0.5], [-0.3]], dtype=DT)
+    eye = torch.eye(2, dtype=DT)
+    truth = LinearGaussianModel(A_TRUE, eye, Q_TRUE, 0.05 * eye, B=B)
+    u = torch.randn(8, 100, 1, generator=g, dtype=DT)
+    y = torchfilt.simulate(truth, 100, X0, u=u, batch_shape=(8,), generator=g).measurements
+    start = LinearGaussianModel(A_INIT, eye, 0.3 * eye, eye, B=torch.zeros(2, 1, dtype=DT))
+    fit = fit_em(start, y, u, x0=X0, P0=P0, known_channels=[0, 1], iterations=150)
+    m = fit.model
+    assert isinstance(m, LinearGaussianModel) and m.B is not None
+    assert torch.allclose(m.A, A_TRUE, atol=0.1)
+    assert torch.allclose(m.B, B, atol=0.1)
+    assert torch.allclose(m.measurement.noise_cov(), 0.05 * eye, atol=0.03)
+    # the GP path takes the same inputs
+    f = InducingTransition(
+        2, 4, input_dim=1, linear=torch.cat([A_INIT, torch.zeros(2, 1, dtype=DT)], -1)
+    )
+    f.init_inducing(
+        torch.randn(40, 2, generator=g, dtype=DT), torch.randn(40, 1, generator=g, dtype=DT)
+    )
+    h = LinearModel(eye, CholeskyCovariance(eye), name="measurement")
+    gp = StateSpaceModel(f, h, Q=CholeskyCovariance(0.3 * eye))
+    gfit = fit_em(gp, y[:4], u[:4], x0=X0, P0=P0, known_channels=[0, 1], iterations=3)
+    assert gfit.log_likelihood > gfit.initial_log_likelihood + 10
