@@ -351,3 +351,21 @@ def test_em_with_inputs_recovers_B_under_the_full_gauge():
     gp = StateSpaceModel(f, h, Q=CholeskyCovariance(0.3 * eye))
     gfit = fit_em(gp, y[:4], u[:4], x0=X0, P0=P0, known_channels=[0, 1], iterations=3)
     assert gfit.log_likelihood > gfit.initial_log_likelihood + 10
+
+
+def test_gp_transition_starts_from_an_identified_linear_model(em_fit, data):
+    """Initialisation from a linear model identified from the data (EM), then EM on the GP."""
+    lin = em_fit.model
+    assert isinstance(lin, LinearGaussianModel)
+    with torch.no_grad():
+        sm = torchfilt.rts_smooth(torchfilt.CKF(lin).filter(data, x0=X0, P0=P0))
+    f = InducingTransition.from_linear(lin.A, inducing=5, states=sm.mean, outputscale=1e-3)
+    assert torch.equal(f.linear.detach(), lin.A)
+    x = sm.mean[:10].unsqueeze(0)
+    assert torch.allclose(f.predict(x).mean, x @ lin.A.mT)  # the residual starts at zero
+    with pytest.raises(InputError, match="states"):
+        InducingTransition.from_linear(lin.A, inducing=5)
+    with pytest.raises(InputError, match="B"):
+        InducingTransition.from_linear(lin.A, torch.zeros(3, 1, dtype=DT))
+    g = InducingTransition.from_linear(lin.A, torch.ones(2, 1, dtype=DT))
+    assert g.input_dim == 1

@@ -118,6 +118,55 @@ class InducingTransition(ConditionalModel):
         self.log_outputscale = nn.Parameter(sc.log())
         self.register_buffer("floor", fl)
 
+    @classmethod
+    def from_linear(
+        cls,
+        A: Tensor,
+        B: Tensor | None = None,
+        *,
+        inducing: int = 0,
+        states: Tensor | None = None,
+        inputs: Tensor | None = None,
+        lengthscale: float | Tensor = 1.0,
+        outputscale: float | Tensor = 0.1,
+    ) -> InducingTransition:
+        """Start a GP transition from a linear model (e.g. one identified from the data by
+        :func:`~torchfilt.training.fit_em` on a :class:`~torchfilt.models.LinearGaussianModel`):
+        ``W = [A, B]``, ``b = 0``, the GP residual at zero.
+
+        Args:
+            A: ``(n, n)``.
+            B: ``(n, nu)`` or ``None``.
+            inducing: number of inducing points ``M``.
+            states: ``(N, n)`` states to place the inducing inputs on (required when ``M > 0``),
+                e.g. the smoothed means of the linear model.
+            inputs: ``(N, nu)`` inputs aligned with ``states``.
+            lengthscale, outputscale: initial GP hyperparameters.
+        """
+        A = torch.as_tensor(A)
+        if A.dim() != 2 or A.shape[0] != A.shape[1]:
+            raise ShapeError(f"A: expected a square matrix (n, n), got {tuple(A.shape)}")
+        n = int(A.shape[0])
+        if B is not None:
+            B = torch.as_tensor(B, dtype=A.dtype)
+            if B.dim() != 2 or B.shape[0] != n:
+                raise ShapeError(f"B: expected shape ({n}, nu), got {tuple(B.shape)}")
+        W = A if B is None else torch.cat([A, B], -1)
+        if inducing > 0 and states is None:
+            raise InputError("states: needed to place the inducing inputs when inducing > 0")
+        f = cls(
+            n,
+            inducing,
+            input_dim=int(W.shape[-1]) - n,
+            linear=W.detach(),
+            lengthscale=lengthscale,
+            outputscale=outputscale,
+            dtype=A.dtype,
+        )
+        if inducing > 0 and states is not None:
+            f.init_inducing(states, inputs)
+        return f
+
     @property
     def num_inducing(self) -> int:
         """``M``."""
