@@ -369,3 +369,28 @@ def test_gp_transition_starts_from_an_identified_linear_model(em_fit, data):
         InducingTransition.from_linear(lin.A, torch.zeros(3, 1, dtype=DT))
     g = InducingTransition.from_linear(lin.A, torch.ones(2, 1, dtype=DT))
     assert g.input_dim == 1
+
+
+def test_likelihood_method_learns_inducing_inputs_and_outputs(data):
+    """Gradients reach the inducing inputs and outputs through the batched filter."""
+    f = InducingTransition(2, 4, linear=A_INIT, outputscale=0.05)
+    f.init_inducing(torch.randn(40, 2, generator=torch.Generator().manual_seed(4), dtype=DT))
+    h = LinearModel(H, CholeskyCovariance(torch.eye(1, dtype=DT)), name="measurement")
+    model = StateSpaceModel(f, h, Q=CholeskyCovariance(0.3 * torch.eye(2, dtype=DT)))
+    Z0, U0 = f.inducing_inputs.detach().clone(), f.inducing_outputs.detach().clone()
+    fit = fit_measurement_only(
+        model,
+        data[:120],
+        x0=X0,
+        P0=P0,
+        known_channels=[0],
+        method="likelihood",
+        optimizer="adam",
+        lr=0.02,
+        window=40,
+        burn_in=5,
+        iterations=15,
+    )
+    assert fit.log_likelihood > fit.detail.initial_log_likelihood
+    assert not torch.equal(f.inducing_inputs.detach(), Z0)
+    assert not torch.equal(f.inducing_outputs.detach(), U0)
