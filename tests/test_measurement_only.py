@@ -394,3 +394,14 @@ def test_likelihood_method_learns_inducing_inputs_and_outputs(data):
     assert fit.log_likelihood > fit.detail.initial_log_likelihood
     assert not torch.equal(f.inducing_inputs.detach(), Z0)
     assert not torch.equal(f.inducing_outputs.detach(), U0)
+
+
+def test_em_resume_of_a_converged_fit_stays_converged(data, tmp_path):
+    y, ck = data[:150], tmp_path / "em_conv.pt"
+    kw = dict(x0=X0, P0=P0, known_channels=[0], tol=1e-3)
+    full = fit_em(initial_linear(), y, iterations=200, **kw)
+    assert full.stopped == "converged" and full.iterations < 200
+    fit_em(initial_linear(), y, iterations=200, checkpoint=ck, checkpoint_every=50, **kw)
+    again = fit_em(initial_linear(), y, iterations=200, checkpoint=ck, resume=True, **kw)
+    assert again.stopped == "converged" and again.iterations == full.iterations
+    assert again.log_likelihood == full.log_likelihood

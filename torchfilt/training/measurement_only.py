@@ -549,10 +549,12 @@ def fit_em(
     fingerprint = _digest(Y, U, X0, C0, *state()) if ckpt_path is not None else ""
     it0, history = 0, []
     initial: float | None = None
+    finished: str | None = None
     if resume and ckpt_path is not None and ckpt_path.is_file():
         ck = _em_checkpoint(ckpt_path, fingerprint)
         load(list(ck["state"]))
         it0, history, initial = int(ck["iteration"]), list(ck["history"]), float(ck["initial"])
+        finished = ck.get("done")  # a fit that had stopped by itself stays stopped
 
     def e_step() -> tuple[float, SmoothedPairs]:
         with torch.no_grad():
@@ -565,7 +567,9 @@ def fit_em(
     ll, sp = e_step()
     if initial is None:
         initial = ll
-    for it in range(it0 + 1, iterations + 1):
+    if finished is not None:
+        stopped = finished
+    for it in range(it0 + 1, iterations + 1 if finished is None else it0 + 1):
         stalled = False
         before = state()
         if lin is not None:
@@ -595,7 +599,10 @@ def fit_em(
         history.append({"iteration": it, "log_likelihood": ll, "elapsed": elapsed})
         bar.update(it, f"loglik/meas {ll / counted:.6g}")
         stop = bool(callback(EMState(it, iterations, ll, elapsed))) if callback else False
-        if ckpt_path is not None and (it % checkpoint_every == 0 or it == iterations):
+        done = "no improvement" if stalled else ("converged" if abs(change) <= tol else None)
+        if ckpt_path is not None and (
+            it % checkpoint_every == 0 or it == iterations or done is not None
+        ):
             payload = {
                 "schema": _EM_SCHEMA,
                 "fingerprint": fingerprint,
@@ -603,6 +610,7 @@ def fit_em(
                 "state": state(),
                 "history": history,
                 "initial": initial,
+                "done": done,
             }
 
             def write(fh: Any, data: dict[str, Any] = payload) -> None:
@@ -612,11 +620,8 @@ def fit_em(
         if stop:
             stopped = "callback"
             break
-        if stalled:
-            stopped = "no improvement"
-            break
-        if abs(change) <= tol:
-            stopped = "converged"
+        if done is not None:
+            stopped = done
             break
     final = ll
     return EMFit(
