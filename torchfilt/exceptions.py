@@ -13,6 +13,7 @@ __all__ = [
     "ConvergenceWarning",
     "DataError",
     "DivergenceWarning",
+    "GaugeError",
     "InfeasibleError",
     "InputError",
     "InputTypeError",
@@ -67,6 +68,12 @@ class InputError(TorchfiltError, ValueError):
 
 class InputTypeError(InputError, TypeError):
     """An argument has the wrong type or dtype (also a ``TypeError``)."""
+
+
+class GaugeError(InputError):
+    """A state-space model to be learned from measurements alone has no fixed gauge: nothing pins
+    its state coordinates (a known measurement map for some channels, or an anchored output). The
+    message names what must be fixed."""
 
 
 class ShapeError(InputError):

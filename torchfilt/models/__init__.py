@@ -14,6 +14,7 @@ from torchfilt.models.base import (
 )
 from torchfilt.models.calibrated import CalibratedModel
 from torchfilt.models.functional import FunctionModel, StateSpaceModel, as_conditional
+from torchfilt.models.inducing import InducingTransition
 from torchfilt.models.integrate import rk4
 from torchfilt.models.linear import (
     LinearGaussianModel,
@@ -38,6 +39,7 @@ __all__ = [
     "CovarianceParameter",
     "DiagonalCovariance",
     "FunctionModel",
+    "InducingTransition",
     "LinearGaussianModel",
     "LinearModel",
     "LinearSystem",

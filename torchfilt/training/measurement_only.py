@@ -1,0 +1,832 @@
+"""Learning a state-space model from measurements alone (no logged states).
+
+Two methods, chosen by ``method`` of :func:`fit_measurement_only`:
+
+``"em"`` (:func:`fit_em`): expectation-maximisation with the cubature RTS smoother.
+    *E-step*: the CKF and the RTS smoother give the smoothed moments of every state and of every
+    consecutive pair ``(x_{t-1}, x_t)``; the pair's cross-covariance is the smoothed lag-one
+    covariance ``Cov(x_{t-1}, x_t | y) = G_{t-1} P^s_t`` (``G`` the smoother gain). The prior
+    ``N(x0, P0)`` is ``x_{-1}``, and it is smoothed too, so that the first transition is counted.
+    *M-step*: for a linear-Gaussian model, the closed form on the expected sufficient statistics
+    (``A, B, Q``; the rows of ``H`` outside ``known_channels``; ``R``), which is exact EM: the
+    likelihood never decreases. For any other model (a GP transition such as
+    :class:`~torchfilt.models.InducingTransition`), a few L-BFGS steps on the *expected
+    complete-data log-likelihood*
+
+        Q(theta) = sum_t E_q[log N(x_t; f(x_{t-1}, u_t), Q + V_f)] + sum_t E_q[log N(y_t; h(x_t), R + V_h)]
+
+    with the expectation under the smoothed Gaussian of ``(x_{t-1}, x_t)`` (of ``x_t`` for the
+    measurement term) taken by the same cubature rule as the filter (``4 n`` points per pair for
+    the third-degree rule), in blocks: the noise covariances, the maps, the noise again. We chose this deterministic expectation over sampling trajectories
+    from the smoothed posterior because it has no Monte Carlo error, so the EM likelihood trace
+    can be checked for monotonicity exactly (up to the Gaussian approximation of the E-step), it
+    is reproducible without a generator, and it is the moment matching the filter itself does;
+    it still accounts for the smoothed uncertainty of the GP's *inputs* (errors in variables),
+    which a fit on smoothed means alone would ignore. A step that lowers ``Q`` is undone
+    (generalised EM). Because the E-step of a non-linear model is the CKF's Gaussian
+    approximation, a higher ``Q`` does not guarantee a higher likelihood: a step that lowers the
+    filter's likelihood is halved until it does not (at most ``backtracks`` times, else undone), so the
+    likelihood trace is monotone by construction there; for a linear-Gaussian model it is
+    monotone because the EM is exact.
+
+``"likelihood"``: direct maximisation of the CKF's innovation likelihood with
+    :func:`~torchfilt.training.fit_likelihood` (windows, burn-in, checkpoints, resume) over every
+    learnable parameter of the model; with an :class:`~torchfilt.models.InducingTransition` the
+    inducing inputs and inducing outputs play the role of the unknown training targets.
+
+**The gauge.** A state-space model is defined only up to a change of state coordinates
+``x -> T x`` (``A -> T A T^{-1}``, ``H -> H T^{-1}``, ``Q -> T Q T^T``): from measurements alone,
+every ``T`` fits equally well. Something must pin the coordinates: torchfilt requires the
+measurement map of at least one channel to be *known* (``known_channels``: a datasheet sensor
+model whose parameters are not learned). Without it the fit wanders along the flat directions of
+the likelihood, the learned states have no physical meaning, and state-level metrics (RMSE,
+NEES against ground truth) are meaningless; :func:`check_gauge` therefore refuses with a
+:class:`~torchfilt.exceptions.GaugeError`. With fewer known channels than states (``m < n``) the
+coordinates are pinned only partly: invariants (eigenvalues of ``A``, the transfer function, the
+output spectrum, the likelihood) are identified, individual matrix entries need not be.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from torchfilt.cubature import CubatureRule, SphericalRadialRule, sigma_points
+from torchfilt.exceptions import GaugeError, InputError, ModelError, RunError
+from torchfilt.filters import CKF, FilterResult, rts_smooth
+from torchfilt.io import atomic_write
+from torchfilt.models import (
+    CovarianceParameter,
+    LinearGaussianModel,
+    StateSpaceModel,
+    linear_system,
+)
+from torchfilt.numerics import gaussian_log_prob, psd_solve, safe_cholesky, symmetrize
+from torchfilt.training.likelihood import (
+    LikelihoodFit,
+    LikelihoodState,
+    Sequences,
+    _digest,
+    _recordings,
+    fit_likelihood,
+)
+from torchfilt.training.progress import ProgressBar
+
+__all__ = [
+    "EMFit",
+    "EMState",
+    "MeasurementOnlyFit",
+    "SmoothedPairs",
+    "check_gauge",
+    "fit_em",
+    "fit_measurement_only",
+    "smoothed_pairs",
+]
+
+_EM_SCHEMA = "torchfilt.em-checkpoint/1"
+
+
+# ----------------------------------------------------------------------------------- gauge
+def check_gauge(
+    model: StateSpaceModel,
+    known_channels: Sequence[int] | None,
+    params: Iterable[nn.Parameter] | None = None,
+) -> list[int]:
+    """Check that a model to be learned from measurements alone has a fixed gauge.
+
+    Args:
+        model: the state-space model.
+        known_channels: indices of the measurement channels whose map ``h_j`` is known (not
+            learned); at least one.
+        params: the parameters that will be learned (default: every parameter of ``model`` with
+            ``requires_grad``).
+
+    Returns:
+        The sorted known channels.
+
+    Raises:
+        GaugeError: no known channel, or a known channel's map depends on a learned parameter.
+        InputError: a channel index out of range or repeated.
+    """
+    m = model.obs_dim
+    if known_channels is None or len(list(known_channels)) == 0:
+        raise GaugeError(
+            "known_channels: learning from measurements alone needs a fixed gauge (the state "
+            "coordinates are otherwise free: x -> T x fits equally well); give the measurement "
+            f"channels (of 0..{m - 1}) whose measurement map h is known and not learned, e.g. "
+            "known_channels=[0] for a datasheet sensor model"
+        )
+    ch = [int(c) for c in known_channels]
+    if len(set(ch)) != len(ch) or any(not 0 <= c < m for c in ch):
+        raise InputError(f"known_channels: expected distinct indices in 0..{m - 1}, got {ch}")
+    learned = [p for p in (model.parameters() if params is None else params) if p.requires_grad]
+    noise_ids = {
+        id(p)
+        for mod in model.measurement.modules()
+        if isinstance(mod, CovarianceParameter)
+        for p in mod.parameters()
+    }
+    map_params = {
+        id(p): name for name, p in model.measurement.named_parameters() if id(p) not in noise_ids
+    }
+    suspects = [p for p in learned if id(p) in map_params]
+    if suspects:
+        n = model.state_dim
+        dtype = suspects[0].dtype
+        gen = torch.Generator().manual_seed(0)
+        x = torch.randn(1, 4, n, generator=gen, dtype=dtype)
+        u = None
+        nu = getattr(model.measurement, "input_dim", None)
+        if isinstance(nu, int) and nu > 0:
+            u = torch.randn(1, 4, nu, generator=gen, dtype=dtype)
+        out = model.measurement.predict(x, u).mean[..., ch].sum()
+        grads = torch.autograd.grad(out, suspects, allow_unused=True)
+        for p, g in zip(suspects, grads, strict=True):
+            if g is not None and bool((g != 0).any()):
+                raise GaugeError(
+                    f"known_channels {ch}: the measurement map of these channels depends on the "
+                    f"learned parameter measurement.{map_params[id(p)]}; freeze it "
+                    "(requires_grad_(False)) or leave those channels out of known_channels: a "
+                    "known channel must not be learned"
+                )
+    return sorted(ch)
+
+
+# ----------------------------------------------------------------------------------- E-step
+class SmoothedPairs(NamedTuple):
+    """Smoothed moments of every transition ``x_{t-1} -> x_t``, ``t = 0..T-1`` (``x_{-1}`` is the
+    prior).
+
+    Attributes:
+        prev_mean: ``E[x_{t-1} | y] (..., T, n)``.
+        prev_cov: ``Cov(x_{t-1} | y) (..., T, n, n)``.
+        mean: ``E[x_t | y] (..., T, n)``.
+        cov: ``Cov(x_t | y) (..., T, n, n)``.
+        cross_cov: ``Cov(x_{t-1}, x_t | y) = G_{t-1} P^s_t`` ``(..., T, n, n)``.
+    """
+
+    prev_mean: Tensor
+    prev_cov: Tensor
+    mean: Tensor
+    cov: Tensor
+    cross_cov: Tensor
+
+
+def smoothed_pairs(res: FilterResult, x0: Tensor, P0: Tensor) -> SmoothedPairs:
+    """RTS-smooth a filter result, the prior state ``x_{-1}`` included, with lag-one covariances.
+
+    Args:
+        res: a filter result ``(..., T, ...)``.
+        x0: the prior mean the filter started from, ``(..., n)``.
+        P0: the prior covariance, ``(..., n, n)``.
+
+    Returns:
+        A :class:`SmoothedPairs`.
+    """
+    sm = rts_smooth(res)
+    Pp0 = res.predicted_cov[..., 0, :, :]
+    G0 = psd_solve(Pp0, res.cross_cov[..., 0, :, :].mT, name="predicted covariance").mT
+    ms0, Ps0 = sm.mean[..., 0, :], sm.cov[..., 0, :, :]
+    m_prev0 = x0 + (G0 @ (ms0 - res.predicted_mean[..., 0, :]).unsqueeze(-1)).squeeze(-1)
+    P_prev0 = symmetrize(P0 + G0 @ (Ps0 - Pp0) @ G0.mT)
+    gains = torch.cat([G0.unsqueeze(-3), sm.gain], -3)  # G_{t-1}, t = 0..T-1
+    prev_mean = torch.cat([m_prev0.unsqueeze(-2), sm.mean[..., :-1, :]], -2)
+    prev_cov = torch.cat([P_prev0.unsqueeze(-3), sm.cov[..., :-1, :, :]], -3)
+    return SmoothedPairs(prev_mean, prev_cov, sm.mean, sm.cov, gains @ sm.cov)
+
+
+# ----------------------------------------------------------------------------------- results
+class EMState(NamedTuple):
+    """What the per-iteration callback of :func:`fit_em` sees.
+
+    Attributes:
+        iteration: iterations done (1-based).
+        iterations: the budget.
+        log_likelihood: the innovation log-likelihood at the parameters after this iteration.
+        elapsed: seconds since the fit started (this process).
+    """
+
+    iteration: int
+    iterations: int
+    log_likelihood: float
+    elapsed: float
+
+
+@dataclass
+class EMFit:
+    """Outcome of :func:`fit_em`.
+
+    Attributes:
+        model: the fitted model (the same object as passed in, updated in place, except for a
+            linear-Gaussian model, which is returned as a new :class:`LinearGaussianModel`).
+        log_likelihood: innovation log-likelihood at the returned parameters.
+        initial_log_likelihood: at the initial parameters.
+        iterations: EM iterations run.
+        stopped: ``"iterations"``, ``"converged"``, ``"callback"`` or ``"no improvement"`` (a
+            non-linear M-step lowered the likelihood even after ``backtracks`` halvings).
+        measurements: observed measurement components.
+        history: one record per iteration: ``iteration``, ``log_likelihood`` (at the parameters
+            after that iteration's M-step), ``elapsed``.
+        elapsed: seconds of the whole fit.
+    """
+
+    model: StateSpaceModel
+    log_likelihood: float
+    initial_log_likelihood: float
+    iterations: int
+    stopped: str
+    measurements: int
+    history: list[dict[str, Any]] = field(default_factory=list)
+    elapsed: float = 0.0
+
+
+@dataclass
+class MeasurementOnlyFit:
+    """Outcome of :func:`fit_measurement_only`.
+
+    Attributes:
+        model: the fitted model.
+        method: ``"em"`` or ``"likelihood"``.
+        log_likelihood: innovation log-likelihood of the training data at the returned
+            parameters (for ``"likelihood"`` with windows: over the counted steps).
+        per_measurement: the same per counted measurement.
+        known_channels: the gauge.
+        iterations: iterations run.
+        stopped: why the loop ended.
+        history: per-iteration records of the method.
+        elapsed: seconds of the whole fit.
+        detail: the method's own result (:class:`EMFit` or :class:`LikelihoodFit`).
+    """
+
+    model: StateSpaceModel
+    method: str
+    log_likelihood: float
+    per_measurement: float
+    known_channels: list[int]
+    iterations: int
+    stopped: str
+    history: list[dict[str, Any]]
+    elapsed: float
+    detail: EMFit | LikelihoodFit
+
+
+# ----------------------------------------------------------------------------------- M-steps
+class _Lin(NamedTuple):
+    A: Tensor
+    H: Tensor
+    Q: Tensor
+    R: Tensor
+    B: Tensor | None
+    D: Tensor | None
+
+
+def _linear_m_step(
+    lin: _Lin,
+    sp: SmoothedPairs,
+    Y: Tensor,
+    U: Tensor | None,
+    known: list[int],
+    learn_R: bool,
+) -> _Lin:
+    """Closed-form M-step of a linear-Gaussian model (Shumway & Stoffer 1982; Ghahramani &
+    Hinton 1996), with inputs, known rows of ``H`` and missing measurement rows."""
+    n = lin.A.shape[-1]
+    m_prev, m_cur = sp.prev_mean.reshape(-1, n), sp.mean.reshape(-1, n)
+    P_prev, P_cur = sp.prev_cov.reshape(-1, n, n), sp.cov.reshape(-1, n, n)
+    C = sp.cross_cov.reshape(-1, n, n)  # Cov(x_{t-1}, x_t)
+    N = m_cur.shape[0]
+    Sxx = (P_cur + m_cur.unsqueeze(-1) * m_cur.unsqueeze(-2)).sum(0)
+    Spp = (P_prev + m_prev.unsqueeze(-1) * m_prev.unsqueeze(-2)).sum(0)
+    Sxp = (C.mT + m_cur.unsqueeze(-1) * m_prev.unsqueeze(-2)).sum(0)  # E[x_t x_{t-1}^T]
+    if lin.B is not None and U is not None:
+        u = U.reshape(-1, U.shape[-1])
+        Szz = torch.cat(
+            [torch.cat([Spp, m_prev.mT @ u], -1), torch.cat([u.mT @ m_prev, u.mT @ u], -1)], -2
+        )
+        Sxz = torch.cat([Sxp, m_cur.mT @ u], -1)
+    else:
+        Szz, Sxz = Spp, Sxp
+    AB = psd_solve(Szz, Sxz.mT, name="expected state second moment").mT
+    Q = symmetrize((Sxx - AB @ Sxz.mT) / N)
+    A = AB[:, :n]
+    B = AB[:, n:] if lin.B is not None and U is not None else lin.B
+    # measurement: rows with every component observed
+    y = Y.reshape(-1, Y.shape[-1])
+    ok = torch.isfinite(y).all(-1)
+    H, R = lin.H, lin.R
+    if bool(ok.any()):
+        yo, mo, Po = y[ok], m_cur[ok], P_cur[ok]
+        if lin.D is not None and U is not None:
+            yo = yo - U.reshape(-1, U.shape[-1])[ok] @ lin.D.mT
+        unknown = [j for j in range(H.shape[0]) if j not in known]
+        if unknown:
+            Sxx_o = (Po + mo.unsqueeze(-1) * mo.unsqueeze(-2)).sum(0)
+            Hu = psd_solve(Sxx_o, (yo[:, unknown].mT @ mo).mT, name="state second moment").mT
+            H = H.clone()
+            H[unknown] = Hu
+        if learn_R:
+            e = yo - mo @ H.mT
+            R = symmetrize(
+                (e.unsqueeze(-1) * e.unsqueeze(-2) + H @ Po @ H.mT).sum(0) / int(ok.sum())
+            )
+    return _Lin(A, H, Q, R, B, lin.D)
+
+
+def _expected_loglik(
+    model: StateSpaceModel,
+    sp: SmoothedPairs,
+    Y: Tensor,
+    U: Tensor | None,
+    rule: CubatureRule,
+    measurement_term: bool,
+) -> Tensor:
+    """``Q(theta)``: the cubature expectation of the complete-data log-likelihood."""
+    n = model.state_dim
+    dtype = sp.mean.dtype
+    mean2 = torch.cat([sp.prev_mean, sp.mean], -1).reshape(-1, 2 * n)
+    cov2 = torch.cat(
+        [
+            torch.cat([sp.prev_cov, sp.cross_cov], -1),
+            torch.cat([sp.cross_cov.mT, sp.cov], -1),
+        ],
+        -2,
+    ).reshape(-1, 2 * n, 2 * n)
+    xi, wm, _ = rule.unit_points(2 * n, dtype=dtype, device=mean2.device)
+    S = safe_cholesky(symmetrize(cov2), name="smoothed pair covariance")
+    pts = sigma_points(mean2, S, xi)  # (N, P, 2n)
+    xa, xb = pts[..., :n], pts[..., n:]
+    uu = None
+    if U is not None:
+        uu = U.reshape(-1, U.shape[-1]).unsqueeze(-2).expand(-1, pts.shape[-2], -1)
+    pred = model.transition.predict(xa, uu)
+    Qn = model.transition.noise_cov()
+    cov = torch.zeros(n, n, dtype=dtype) if Qn is None else Qn.to(dtype)
+    cov = cov.expand(*pred.mean.shape[:-1], n, n)
+    if pred.cov is not None:
+        cov = cov + pred.cov
+    elif pred.var is not None:
+        cov = cov + torch.diag_embed(pred.var)
+    L = safe_cholesky(cov, name="transition covariance")
+    q = (gaussian_log_prob(xb - pred.mean, L) * wm).sum()
+    if measurement_term:
+        m = model.obs_dim
+        y = Y.reshape(-1, m)
+        ok = torch.isfinite(y).all(-1)
+        xi1, wm1, _ = rule.unit_points(n, dtype=dtype, device=mean2.device)
+        S1 = safe_cholesky(symmetrize(sp.cov.reshape(-1, n, n)[ok]), name="smoothed covariance")
+        p1 = sigma_points(sp.mean.reshape(-1, n)[ok], S1, xi1)
+        u1 = None
+        if U is not None:
+            u1 = U.reshape(-1, U.shape[-1])[ok].unsqueeze(-2).expand(-1, p1.shape[-2], -1)
+        hp = model.measurement.predict(p1, u1)
+        Rn = model.measurement.noise_cov()
+        rc = torch.zeros(m, m, dtype=dtype) if Rn is None else Rn.to(dtype)
+        rc = rc.expand(*hp.mean.shape[:-1], m, m)
+        if hp.cov is not None:
+            rc = rc + hp.cov
+        elif hp.var is not None:
+            rc = rc + torch.diag_embed(hp.var)
+        Lr = safe_cholesky(rc, name="measurement covariance")
+        q = q + (gaussian_log_prob(y[ok].unsqueeze(-2) - hp.mean, Lr) * wm1).sum()
+    return q
+
+
+# ----------------------------------------------------------------------------------- EM
+def _em_checkpoint(path: Path, fingerprint: str) -> dict[str, Any]:
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise RunError(
+            f"{path}: unreadable checkpoint ({type(e).__name__}); delete it to start again"
+        ) from None
+    if not isinstance(ck, dict) or ck.get("schema") != _EM_SCHEMA:
+        raise RunError(f"{path}: not a torchfilt EM checkpoint; delete it to start again")
+    if ck.get("fingerprint") != fingerprint:
+        raise RunError(
+            f"{path}: the checkpoint belongs to another fit (different data, model or initial "
+            "values); delete it to start again"
+        )
+    return ck
+
+
+def fit_em(
+    model: StateSpaceModel,
+    y: Tensor | Sequence[Tensor],
+    u: Tensor | Sequence[Tensor] | None = None,
+    *,
+    x0: Tensor,
+    P0: Tensor,
+    known_channels: Sequence[int] | None,
+    iterations: int = 100,
+    tol: float = 1e-9,
+    learn_measurement_noise: bool = True,
+    m_step_iterations: int = 20,
+    backtracks: int = 4,
+    rule: CubatureRule | None = None,
+    callback: Callable[[EMState], bool | None] | None = None,
+    progress: bool = False,
+    dtype: torch.dtype = torch.float64,
+    checkpoint: str | Path | None = None,
+    checkpoint_every: int = 1,
+    resume: bool = False,
+) -> EMFit:
+    """Expectation-maximisation with the cubature RTS smoother (see the module docstring).
+
+    Args:
+        model: the model to fit. A :class:`~torchfilt.models.LinearGaussianModel` (or any model
+            :func:`~torchfilt.models.linear_system` recognises, with constant noise) gets the
+            closed-form M-step on ``A, B, Q``, the rows of ``H`` outside ``known_channels`` and
+            ``R``; any other model gets L-BFGS steps on the expected complete-data
+            log-likelihood over its parameters with ``requires_grad`` (measurement-map
+            parameters of known channels are refused by :func:`check_gauge`).
+        y: measurements ``(..., T, m)`` or a list of ``(T_i, m)``; NaN is missing. The
+            closed-form ``R`` and ``H`` updates use the steps with every component observed.
+        u: inputs ``(..., T, nu)``, a list, or ``None``.
+        x0: prior mean ``(n,)`` or one per recording ``(..., n)`` (fixed).
+        P0: prior covariance ``(n, n)`` or ``(..., n, n)`` (fixed).
+        known_channels: the gauge: measurement channels whose map is known (at least one).
+        iterations: EM iterations.
+        tol: stop when the log-likelihood per measurement changes by less than ``tol``.
+        learn_measurement_noise: update ``R`` (linear) / include the measurement term in the
+            M-step (others).
+        m_step_iterations: L-BFGS iterations per M-step (non-linear models).
+        backtracks: step halvings of a non-linear M-step that lowered the filter likelihood
+            before it is undone (0: undone at once).
+        rule: cubature rule of the filter and of the M-step expectation (default third degree).
+        callback: called after every iteration with an :class:`EMState`; return ``True`` to
+            stop.
+        progress: show a progress bar on stderr.
+        dtype: floating dtype (float64 by default).
+        checkpoint: file for checkpoints (atomic); with ``resume=True`` an existing one is
+            continued and the result equals an uninterrupted fit.
+        checkpoint_every: iterations between checkpoints.
+        resume: continue from ``checkpoint`` if it exists.
+
+    Returns:
+        An :class:`EMFit`.
+
+    Raises:
+        GaugeError: no gauge; InputError, ShapeError: invalid arguments; RunError: a checkpoint
+        of another fit; ModelError: time-varying noise.
+    """
+    if not isinstance(model, StateSpaceModel):
+        raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
+    if iterations < 0:
+        raise InputError(f"iterations must be non-negative, got {iterations}")
+    for name, v in (
+        ("m_step_iterations", m_step_iterations),
+        ("checkpoint_every", checkpoint_every),
+    ):
+        if v < 1:
+            raise InputError(f"{name} must be at least 1, got {v}")
+    if not (math.isfinite(tol) and tol >= 0):
+        raise InputError(f"tol must be finite and non-negative, got {tol}")
+    if dtype not in (torch.float32, torch.float64):
+        raise InputError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+    if model.transition.time_varying_noise or model.measurement.time_varying_noise:
+        raise ModelError("fit_em: time-varying Q or R cannot be learned; give constant noise")
+    model.to(dtype)
+    known = check_gauge(model, known_channels)
+    rule = SphericalRadialRule() if rule is None else rule
+    recs = _recordings(model, y, u, x0, P0, dtype)
+    Y, U, X0, C0 = recs.y, recs.u, recs.x0.detach(), recs.P0.detach()
+    counted = int(torch.isfinite(Y).sum())
+    if counted == 0:
+        raise InputError("y: no measurement observed")
+    sys = linear_system(model)
+    lin: _Lin | None = None
+    if sys is not None:
+        Qm, Rm = model.transition.noise_cov(), model.measurement.noise_cov()
+        if Qm is None or Rm is None:
+            raise ModelError("fit_em: a linear model needs both Q and R")
+        lin = _Lin(
+            sys.A.detach().to(dtype).clone(),
+            sys.H.detach().to(dtype).clone(),
+            Qm.detach().to(dtype).clone(),
+            Rm.detach().to(dtype).clone(),
+            None if sys.B is None else sys.B.detach().to(dtype).clone(),
+            None if sys.D is None else sys.D.detach().to(dtype).clone(),
+        )
+        if not bool((lin.H[known] != 0).any()):
+            raise GaugeError(
+                f"known_channels {known}: the known rows of H are all zero, so they pin no state "
+                "coordinate; give channels whose measurement map sees the state"
+            )
+        plist: list[nn.Parameter] = []
+    else:
+        plist = [p for p in model.parameters() if p.requires_grad]
+        if not plist:
+            raise InputError("model: nothing to fit (no parameter with requires_grad)")
+
+    def current() -> StateSpaceModel:
+        if lin is None:
+            return model
+        return LinearGaussianModel(lin.A, lin.H, lin.Q, lin.R, lin.B, lin.D)
+
+    def state() -> list[Tensor]:
+        if lin is not None:
+            return [t.clone() for t in lin if t is not None]
+        return [p.detach().clone() for p in plist]
+
+    def load(values: list[Tensor]) -> None:
+        nonlocal lin
+        if lin is not None:
+            it = iter(values)
+            lin = _Lin(*(None if t is None else next(it) for t in lin))  # type: ignore[arg-type]
+            return
+        with torch.no_grad():
+            for p, v in zip(plist, values, strict=True):
+                p.copy_(v)
+
+    ckpt_path = None if checkpoint is None else Path(checkpoint)
+    fingerprint = _digest(Y, U, X0, C0, *state()) if ckpt_path is not None else ""
+    it0, history = 0, []
+    initial: float | None = None
+    finished: str | None = None
+    if resume and ckpt_path is not None and ckpt_path.is_file():
+        ck = _em_checkpoint(ckpt_path, fingerprint)
+        load(list(ck["state"]))
+        it0, history, initial = int(ck["iteration"]), list(ck["history"]), float(ck["initial"])
+        finished = ck.get("done")  # a fit that had stopped by itself stays stopped
+
+    def e_step() -> tuple[float, SmoothedPairs]:
+        with torch.no_grad():
+            res = CKF(current(), rule=rule).filter(Y, U, x0=X0, P0=C0)
+            return float(res.log_likelihood.sum()), smoothed_pairs(res, X0, C0)
+
+    t_start = time.perf_counter()
+    bar = ProgressBar("fit EM", iterations, enabled=progress)
+    stopped = "iterations"
+    ll, sp = e_step()
+    if initial is None:
+        initial = ll
+    if finished is not None:
+        stopped = finished
+    for it in range(it0 + 1, iterations + 1 if finished is None else it0 + 1):
+        stalled = False
+        before = state()
+        if lin is not None:
+            lin = _linear_m_step(lin, sp, Y, U, known, learn_measurement_noise)
+            ll_new, sp_new = e_step()
+        else:
+            _gradient_m_step(
+                model, plist, sp, Y, U, rule, learn_measurement_noise, m_step_iterations
+            )
+            ll_new, sp_new = e_step()
+            # The E-step of a non-linear model is the CKF's Gaussian approximation, so a better
+            # Q need not mean a better likelihood: halve the step until it is (safeguarded GEM).
+            after = state()
+            for k in range(1, backtracks + 1):
+                if ll_new >= ll:
+                    break
+                t = 0.5**k
+                load([b + t * (a - b) for a, b in zip(after, before, strict=True)])
+                ll_new, sp_new = e_step()
+            if ll_new < ll:
+                load(before)
+                ll_new, sp_new = ll, sp
+                stalled = True
+        change = (ll_new - ll) / counted
+        ll, sp = ll_new, sp_new
+        elapsed = time.perf_counter() - t_start
+        history.append({"iteration": it, "log_likelihood": ll, "elapsed": elapsed})
+        bar.update(it, f"loglik/meas {ll / counted:.6g}")
+        stop = bool(callback(EMState(it, iterations, ll, elapsed))) if callback else False
+        done = "no improvement" if stalled else ("converged" if abs(change) <= tol else None)
+        if ckpt_path is not None and (
+            it % checkpoint_every == 0 or it == iterations or done is not None
+        ):
+            payload = {
+                "schema": _EM_SCHEMA,
+                "fingerprint": fingerprint,
+                "iteration": it,
+                "state": state(),
+                "history": history,
+                "initial": initial,
+                "done": done,
+            }
+
+            def write(fh: Any, data: dict[str, Any] = payload) -> None:
+                torch.save(data, fh)
+
+            atomic_write(ckpt_path, write)
+        if stop:
+            stopped = "callback"
+            break
+        if done is not None:
+            stopped = done
+            break
+    final = ll
+    return EMFit(
+        model=current(),
+        log_likelihood=final,
+        initial_log_likelihood=initial,
+        iterations=len(history),
+        stopped=stopped,
+        measurements=counted,
+        history=history,
+        elapsed=time.perf_counter() - t_start,
+    )
+
+
+def _gradient_m_step(
+    model: StateSpaceModel,
+    plist: list[nn.Parameter],
+    sp: SmoothedPairs,
+    Y: Tensor,
+    U: Tensor | None,
+    rule: CubatureRule,
+    measurement_term: bool,
+    iterations: int,
+) -> None:
+    """Block coordinate L-BFGS on ``-Q(theta)``: the noise covariances, then the other
+    parameters, then the noise again (the maps' gradients dwarf the noises', so a joint step
+    leaves ``Q`` and ``R`` almost where they were); undone if ``Q`` does not improve
+    (generalised EM)."""
+    scale = float(sp.mean.shape[:-1].numel())
+    before = [p.detach().clone() for p in plist]
+    noise_ids = {
+        id(p)
+        for mod in model.modules()
+        if isinstance(mod, CovarianceParameter)
+        for p in mod.parameters()
+    }
+    noise = [p for p in plist if id(p) in noise_ids]
+    rest = [p for p in plist if id(p) not in noise_ids]
+    with torch.no_grad():
+        q0 = float(_expected_loglik(model, sp, Y, U, rule, measurement_term))
+
+    def run(group: list[nn.Parameter]) -> None:
+        opt = torch.optim.LBFGS(
+            group,
+            lr=1.0,
+            max_iter=iterations,
+            line_search_fn="strong_wolfe",
+            tolerance_change=1e-12,
+            tolerance_grad=1e-10,
+            history_size=20,
+        )
+
+        def closure() -> Tensor:
+            opt.zero_grad()
+            loss = -_expected_loglik(model, sp, Y, U, rule, measurement_term) / scale
+            loss.backward()
+            return loss.detach()
+
+        opt.step(closure)  # type: ignore[arg-type]
+
+    try:
+        for group in (noise, rest, noise):
+            if group:
+                run(group)
+        with torch.no_grad():
+            q1 = float(_expected_loglik(model, sp, Y, U, rule, measurement_term))
+        ok = math.isfinite(q1) and q1 >= q0
+    except (RuntimeError, ValueError):  # a failed factorisation on a wild line-search step
+        ok = False
+    if not ok:
+        with torch.no_grad():
+            for p, v in zip(plist, before, strict=True):
+                p.copy_(v)
+
+
+# ----------------------------------------------------------------------------------- front
+def fit_measurement_only(
+    model: StateSpaceModel,
+    y: Tensor | Sequence[Tensor],
+    u: Tensor | Sequence[Tensor] | None = None,
+    *,
+    x0: Tensor,
+    P0: Tensor,
+    known_channels: Sequence[int] | None,
+    method: Literal["em", "likelihood"] = "em",
+    iterations: int = 100,
+    window: int | None = None,
+    burn_in: int = 0,
+    validation: Sequences | None = None,
+    optimizer: Literal["adam", "lbfgs"] = "lbfgs",
+    lr: float | None = None,
+    tol: float | None = None,
+    learn_measurement_noise: bool = True,
+    m_step_iterations: int = 20,
+    rule: CubatureRule | None = None,
+    callback: Callable[[EMState | LikelihoodState], bool | None] | None = None,
+    progress: bool = False,
+    dtype: torch.dtype = torch.float64,
+    checkpoint: str | Path | None = None,
+    checkpoint_every: int = 1,
+    resume: bool = False,
+) -> MeasurementOnlyFit:
+    """Learn a state-space model from measurements alone (no states), by EM or by the filter's
+    likelihood (see the module docstring).
+
+    Args:
+        model: the model, with the gauge fixed: the maps of ``known_channels`` must not depend on
+            learned parameters. For ``"likelihood"`` its learnable parameters are those with
+            ``requires_grad`` (a GP transition such as
+            :class:`~torchfilt.models.InducingTransition`, learnable ``Q``/``R`` from
+            :mod:`torchfilt.models.params`).
+        y: measurements ``(..., T, m)`` or a list of ``(T_i, m)``; NaN is missing.
+        u: inputs ``(..., T, nu)``, a list, or ``None``.
+        x0: prior mean ``(n,)`` or ``(..., n)``.
+        P0: prior covariance ``(n, n)`` or ``(..., n, n)``.
+        known_channels: the gauge (see :func:`check_gauge`).
+        method: ``"em"`` (:func:`fit_em`) or ``"likelihood"``
+            (:func:`~torchfilt.training.fit_likelihood`).
+        iterations: EM iterations, or optimiser iterations.
+        window, burn_in, validation, optimizer, lr: of
+            :func:`~torchfilt.training.fit_likelihood` (``"likelihood"`` only).
+        tol: convergence tolerance (EM: per measurement, default ``1e-9``; likelihood: that of
+            ``fit_likelihood``).
+        learn_measurement_noise, m_step_iterations: of :func:`fit_em` (``"em"`` only).
+        rule: cubature rule.
+        callback: per-iteration callback (an :class:`EMState` or a
+            :class:`~torchfilt.training.LikelihoodState`); return ``True`` to stop.
+        progress: show a progress bar.
+        dtype: floating dtype.
+        checkpoint, checkpoint_every, resume: checkpointing; resuming equals an uninterrupted
+            fit.
+
+    Returns:
+        A :class:`MeasurementOnlyFit`.
+
+    Raises:
+        GaugeError: no gauge (see :func:`check_gauge`); InputError: invalid arguments.
+    """
+    if method not in ("em", "likelihood"):
+        raise InputError(f"method must be 'em' or 'likelihood', got {method!r}")
+    if not isinstance(model, StateSpaceModel):
+        raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
+    known = check_gauge(model, known_channels)
+    if method == "em":
+        em = fit_em(
+            model,
+            y,
+            u,
+            x0=x0,
+            P0=P0,
+            known_channels=known,
+            iterations=iterations,
+            tol=1e-9 if tol is None else tol,
+            learn_measurement_noise=learn_measurement_noise,
+            m_step_iterations=m_step_iterations,
+            rule=rule,
+            callback=callback,
+            progress=progress,
+            dtype=dtype,
+            checkpoint=checkpoint,
+            checkpoint_every=checkpoint_every,
+            resume=resume,
+        )
+        return MeasurementOnlyFit(
+            model=em.model,
+            method="em",
+            log_likelihood=em.log_likelihood,
+            per_measurement=em.log_likelihood / em.measurements,
+            known_channels=known,
+            iterations=em.iterations,
+            stopped=em.stopped,
+            history=em.history,
+            elapsed=em.elapsed,
+            detail=em,
+        )
+    lf = fit_likelihood(
+        model,
+        y,
+        u,
+        x0=x0,
+        P0=P0,
+        window=window,
+        burn_in=burn_in,
+        validation=validation,
+        optimizer=optimizer,
+        lr=lr,
+        iterations=iterations,
+        tol=tol,
+        callback=callback,
+        progress=progress,
+        dtype=dtype,
+        rule=rule,
+        checkpoint=checkpoint,
+        checkpoint_every=checkpoint_every,
+        resume=resume,
+    )
+    return MeasurementOnlyFit(
+        model=model,
+        method="likelihood",
+        log_likelihood=lf.log_likelihood,
+        per_measurement=lf.per_measurement,
+        known_channels=known,
+        iterations=lf.iterations,
+        stopped=lf.stopped,
+        history=lf.history,
+        elapsed=lf.elapsed,
+        detail=lf,
+    )
