@@ -181,7 +181,9 @@ class StateSpaceModel(torch.nn.Module):
         y_k = h(x_k, u_k) + v_k,               v ~ N(0, R + V_h(x, u))
 
     ``V_f``, ``V_h`` are the per-point variances a learned (GP) model reports; plain callables have
-    none.
+    none. Indexing in the filters: step ``k`` passes the same row ``u[..., k, :]`` of the inputs to
+    ``f`` (predicting ``x_k`` from ``x_{k-1}``) and to ``h``; for a recording whose row 0 is the
+    prior's time, :func:`~torchfilt.pipeline.filter_recordings` passes ``inputs[:-1]``.
 
     Args:
         transition: ``f(x, u)``, ``(..., n) -> (..., n)``, or a :class:`ConditionalModel`.
