@@ -157,6 +157,7 @@ def calibrate(
     sqrt: bool = False,
     compile: bool = False,
     gp: Literal["none", "noise", "all"] = "none",
+    all_reduce: Callable[[Tensor], None] | None = None,
 ) -> CalibrationResult:
     """Calibrate a model's predictive variances by the filter likelihood on recordings.
 
@@ -198,6 +199,11 @@ def calibrate(
             kept, rebuilt from the hyperparameters before every likelihood evaluation); the GPs
             are copied, and frozen again with their own options at the end. Independent exact
             GPs only. ``"none"`` (default): the GPs are left as they are.
+        all_reduce: data-parallel calibration, each process with its own recordings (see
+            :func:`~torchfilt.training.likelihood.fit_likelihood`). Every process must start
+            from the same parameters: a floor starts from the side's noise variance, or, for a
+            side that reports none, from its variance at the first recording's prior mean and
+            input, which then must be the same in every process.
 
     Returns:
         A :class:`CalibrationResult`.
@@ -311,6 +317,7 @@ def calibrate(
             callback=callback,
             project=project,
             prepare=prepare if refit else None,
+            all_reduce=all_reduce,
             progress=progress,
             dtype=dtype,
             sqrt=sqrt,

@@ -325,6 +325,7 @@ def fit_likelihood(
     callback: Callable[[LikelihoodState], bool | None] | None = None,
     project: Callable[[], None] | None = None,
     prepare: Callable[[], None] | None = None,
+    all_reduce: Callable[[Tensor], None] | None = None,
     progress: bool = False,
     dtype: torch.dtype = torch.float64,
     sqrt: bool = False,
@@ -374,6 +375,13 @@ def fit_likelihood(
         prepare: called before every evaluation of the likelihood (training, held-out, window
             starts), inside its autograd context: e.g. rebuilding a GP's differentiable twin
             (:meth:`~torchfilt.models.gp.GPModel.twin`) from its current hyperparameters.
+        all_reduce: for a data-parallel fit: sums a flat tensor in place across the processes
+            (e.g. ``torch.distributed.all_reduce`` with a CPU ``gloo`` group). Each process passes
+            its own recordings (whole recordings: window starts come from filtering them) and the
+            same ``validation`` (or none); the log-likelihood, the measurement count and the
+            gradient are summed over the processes, so every process takes the same steps and
+            ends with the parameters of one fit on all recordings (up to the order of the sums).
+            Give each process its own ``checkpoint`` file.
         progress: show a progress bar on stderr.
         dtype: floating dtype of the fit (float64 by default).
         sqrt: use the square-root CKF.
@@ -423,6 +431,16 @@ def fit_likelihood(
     counted = int((torch.isfinite(win.y) & win.counted.unsqueeze(-1)).sum())
     if counted == 0:
         raise InputError("y: no measurement is counted (all missing, or burn_in covers them)")
+
+    def summed(*values: Tensor) -> Tensor:
+        """The values flattened into one float64 tensor, summed over the processes."""
+        flat = torch.cat([v.detach().reshape(-1).to(torch.float64) for v in values])
+        if all_reduce is not None:
+            all_reduce(flat)
+        return flat
+
+    if all_reduce is not None:
+        counted = int(summed(torch.tensor([float(counted)]))[0])
     val = None
     if validation is not None:
         vx0 = recs.x0[0] if validation.x0 is None else validation.x0
@@ -471,6 +489,11 @@ def fit_likelihood(
         res = filt.filter(win.y, win.u, x0=x0_windows(wx0), P0=wP0)
         ll = step_log_likelihood(res)
         return (ll * win.counted.to(ll.dtype)).sum()
+
+    def total_loglik(wx0: Tensor, wP0: Tensor) -> float:
+        """The training log-likelihood summed over the processes (no gradient)."""
+        with torch.no_grad():
+            return float(summed(train_loglik(wx0, wP0).reshape(1))[0])
 
     def val_loglik() -> float:
         assert val is not None
@@ -529,8 +552,7 @@ def fit_likelihood(
     if wx0 is None or wP0 is None:
         wx0, wP0 = starts()
     if initial is None:
-        with torch.no_grad():
-            initial = float(train_loglik(wx0, wP0))
+        initial = total_loglik(wx0, wP0)
         best_score = val_loglik() if val is not None else initial / counted
     bar = ProgressBar("fit likelihood", iterations, enabled=progress)
     stopped = "iterations"
@@ -543,10 +565,29 @@ def fit_likelihood(
 
         def closure(ux0: Tensor = wx0, uP0: Tensor = wP0) -> Tensor:
             opt.zero_grad()
-            loss = -train_loglik(ux0, uP0) / counted
-            if bool(torch.isfinite(loss)):
-                loss.backward()
-            return loss.detach()
+            if all_reduce is None:
+                loss = -train_loglik(ux0, uP0) / counted
+                if bool(torch.isfinite(loss)):
+                    loss.backward()
+                return loss.detach()
+            # data-parallel: local sums, then one collective for the loss and the gradient
+            # (called on every process whatever its loss, so that none waits forever)
+            ll = train_loglik(ux0, uP0)
+            if bool(torch.isfinite(ll)):
+                (-ll).backward()
+            grads = [
+                torch.full_like(p, math.nan)
+                if not bool(torch.isfinite(ll))
+                else (torch.zeros_like(p) if p.grad is None else p.grad)
+                for p in plist
+            ]
+            flat = summed(ll.reshape(1), *grads)
+            offset = 1
+            for p in plist:
+                k = p.numel()
+                p.grad = (flat[offset : offset + k] / counted).reshape(p.shape).to(p.dtype)
+                offset += k
+            return (-flat[0] / counted).to(ll.dtype)
 
         if optimizer == "adam":
             loss_t = closure()
@@ -624,13 +665,12 @@ def fit_likelihood(
     else:
         best_it = it if stopped != "non-finite" else max(it - 1, 0)
     wx0, wP0 = starts()
-    with torch.no_grad():
-        final = float(train_loglik(wx0, wP0))
-        if val is None and -final / counted > best_train[0]:
-            restore(best_train[1])
-            best_it = best_train[2]
-            wx0, wP0 = starts()
-            final = float(train_loglik(wx0, wP0))
+    final = total_loglik(wx0, wP0)
+    if val is None and -final / counted > best_train[0]:
+        restore(best_train[1])
+        best_it = best_train[2]
+        wx0, wP0 = starts()
+        final = total_loglik(wx0, wP0)
     vfinal = val_loglik() if val is not None else None
     return LikelihoodFit(
         log_likelihood=final,

@@ -1,0 +1,39 @@
+"""Data-parallel likelihood fitting: two processes, each with half of the recordings, whose
+log-likelihoods and gradients are summed by ``torch.distributed`` (``gloo``), take the same steps
+as one process with all of them."""
+
+from __future__ import annotations
+
+import ddp_support
+import torch
+import torch.multiprocessing as mp
+
+import torchfilt
+
+
+def test_two_processes_fit_like_one(tmp_path):
+    world = 2
+    init = f"file://{tmp_path / 'rendezvous'}"
+    mp.spawn(ddp_support.worker, args=(world, init, str(tmp_path)), nprocs=world, join=True)
+    ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in range(world)]
+
+    model, y, (Q, R) = ddp_support.problem()
+    fit = torchfilt.fit_likelihood(
+        model,
+        y,
+        x0=torch.zeros(1, dtype=torch.float64),
+        P0=torch.eye(1, dtype=torch.float64),
+        **ddp_support.OPTIONS,
+    )
+    with torch.no_grad():
+        want = torch.stack([Q().reshape(()), R().reshape(())])
+    losses = torch.tensor([h["loss"] for h in fit.history])
+    for r in ranks:
+        # every process ends with the parameters of the single fit (sums in another order)
+        assert torch.allclose(r["values"], want, rtol=1e-9, atol=0), (r["values"], want)
+        assert torch.allclose(r["loss"], losses, rtol=1e-10, atol=0)
+        assert abs(r["log_likelihood"] - fit.log_likelihood) <= 1e-9 * abs(fit.log_likelihood)
+        assert r["measurements"] == fit.measurements
+    # the fit moved: the test would notice a reduction that did nothing
+    assert not torch.allclose(want, torch.ones(2, dtype=torch.float64), rtol=1e-2)
+    assert torch.equal(ranks[0]["values"], ranks[1]["values"])
