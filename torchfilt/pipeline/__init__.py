@@ -5,7 +5,7 @@ is ``torchfilt filter``, and so on); :mod:`torchfilt.pipeline.distributed` runs 
 training as Ray tasks (``--ray``; Ray is the optional extra ``torchfilt[distributed]``).
 """
 
-from torchfilt.pipeline.distributed import filter_recordings_ray, train_recipes_ray
+from torchfilt.pipeline.distributed import calibrate_ray, filter_recordings_ray, train_recipes_ray
 from torchfilt.pipeline.evaluate import evaluate_outputs
 from torchfilt.pipeline.offline import (
     ModelSpec,
@@ -18,6 +18,7 @@ from torchfilt.pipeline.offline import (
 
 __all__ = [
     "ModelSpec",
+    "calibrate_ray",
     "check_device",
     "evaluate_outputs",
     "filter_recordings",

@@ -83,6 +83,7 @@ __all__ = [
     "DONE_DIR",
     "INSTALL_HINT",
     "JOB_FILE",
+    "calibrate_ray",
     "filter_recordings_ray",
     "import_ray",
     "ray_session",
@@ -637,3 +638,153 @@ def train_recipes_ray(
             "the finished runs are kept: pass --resume to continue the others"
         )
     return {name: results[name] for name, _ in units}
+
+
+def _shard_sequences(data: Any, rank: int, world: int) -> Any:
+    """Recordings ``rank::world`` of a list of recordings or a :class:`Sequences`."""
+    from torchfilt.training.likelihood import Sequences
+
+    if isinstance(data, Sequences):
+
+        def part(v: Any) -> Any:
+            return None if v is None else v[rank::world]
+
+        return Sequences(part(data.y), part(data.u), data.x0, data.P0)
+    return list(data)[rank::world]
+
+
+def _free_address() -> str:
+    """``tcp://{this node}:{a free port}``: the rendezvous of a ``gloo`` process group."""
+    ray = import_ray()
+    with socket.socket() as s:
+        s.bind(("", 0))
+        port = s.getsockname()[1]
+    return f"tcp://{ray.util.get_node_ip_address()}:{port}"
+
+
+def _calibrate_rank(rank: int, world: int, init: str, job: dict[str, Any]) -> dict[str, Any]:
+    """One process of a data-parallel calibration: its shard, gradients summed over ``gloo``."""
+    import torch.distributed as dist
+
+    from torchfilt.training.calibrate import calibrate
+
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=init, rank=rank, world_size=world)
+    try:
+        ckpt = job["checkpoint"]
+        res = calibrate(
+            job["model"],
+            _shard_sequences(job["recordings"], rank, world),
+            all_reduce=dist.all_reduce,
+            checkpoint=None if ckpt is None else Path(ckpt) / f"rank{rank}.ckpt",
+            **job["options"],
+        )
+    finally:
+        dist.destroy_process_group()
+    return {"result": res if rank == 0 else None, "parameters": res.parameters}
+
+
+def calibrate_ray(
+    model: Any,
+    recordings: Any,
+    *,
+    x0: torch.Tensor,
+    P0: torch.Tensor,
+    workers: int = 2,
+    address: str | None = None,
+    validation: Any = None,
+    sides: Sequence[str] = ("transition", "measurement"),
+    window: int | None = 100,
+    burn_in: int = 20,
+    iterations: int = 150,
+    lr: float = 0.1,
+    optimizer: str = "adam",
+    patience: int = 15,
+    inflate_only: bool = True,
+    gp: str = "none",
+    dtype: torch.dtype = torch.float64,
+    checkpoint: str | Path | None = None,
+    resume: bool = False,
+    checkpoint_every: int = 10,
+) -> Any:
+    """:func:`~torchfilt.training.calibrate` as a data-parallel job on Ray.
+
+    The recordings are dealt to ``workers`` Ray actors (recording ``i`` to actor ``i % workers``),
+    which form a ``torch.distributed`` ``gloo`` group: each filters its own windows and the
+    log-likelihood, the measurement count and the gradient are summed over the group at every
+    evaluation, so all take the steps of one calibration on all recordings (equal to it up to the
+    order of the sums; tested). Each actor checkpoints into ``checkpoint/rank{r}.ckpt``; after a
+    lost worker, run the same call again with ``resume=True`` to continue from the checkpoints
+    (the whole group restarts: a collective cannot lose a member).
+
+    Args:
+        model, recordings, x0, P0, validation, sides, window, burn_in, iterations, lr,
+        optimizer, patience, inflate_only, gp, dtype, checkpoint_every: as in
+            :func:`~torchfilt.training.calibrate` (``recordings`` a list of recordings or a
+            :class:`~torchfilt.training.likelihood.Sequences` whose ``x0``/``P0`` are shared).
+        workers: Ray actors, one CPU each; the cluster must have that many free at once.
+        address: Ray cluster (see :func:`ray_session`).
+        checkpoint: folder of the actors' checkpoints (``None``: no checkpoints).
+        resume: continue from the checkpoints in ``checkpoint``.
+
+    Returns:
+        The :class:`~torchfilt.training.calibrate.CalibrationResult` of actor 0.
+
+    Raises:
+        MissingDependencyError: Ray is not installed.
+        InputError: ``workers`` below 1 or more than the recordings or the cluster's CPUs.
+    """
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise InputError(f"workers must be a positive integer, got {workers!r}")
+    count = len(recordings.y) if hasattr(recordings, "y") else len(list(recordings))
+    if workers > count:
+        raise InputError(f"workers: {workers} workers for {count} recordings; use at most {count}")
+    if checkpoint is not None:
+        Path(checkpoint).mkdir(parents=True, exist_ok=True)
+    options: dict[str, Any] = {
+        "x0": x0,
+        "P0": P0,
+        "validation": validation,
+        "sides": tuple(sides),
+        "window": window,
+        "burn_in": burn_in,
+        "iterations": iterations,
+        "lr": lr,
+        "optimizer": optimizer,
+        "patience": patience,
+        "inflate_only": inflate_only,
+        "gp": gp,
+        "dtype": dtype,
+        "resume": resume,
+        "checkpoint_every": checkpoint_every,
+    }
+    job = {
+        "model": model,
+        "recordings": recordings,
+        "options": options,
+        "checkpoint": None if checkpoint is None else str(Path(checkpoint).resolve()),
+    }
+    with ray_session(address) as ray:
+        total = int(ray.cluster_resources().get("CPU", 0))
+        if total < workers:
+            raise InputError(
+                f"workers: {workers} actors must run at once, but the Ray cluster has {total} CPUs"
+            )
+        actor = ray.remote(num_cpus=1, max_restarts=0)(_Rank)
+        ranks = [actor.remote() for _ in range(workers)]
+        init = ray.get(ranks[0].address.remote())
+        ref = ray.put(job)
+        outs = ray.get([a.run.remote(r, workers, init, ref) for r, a in enumerate(ranks)])
+        for a in ranks:
+            ray.kill(a)
+    return outs[0]["result"]
+
+
+class _Rank:
+    """A Ray actor of :func:`calibrate_ray`."""
+
+    def address(self) -> str:
+        return _free_address()
+
+    def run(self, rank: int, world: int, init: str, job: dict[str, Any]) -> dict[str, Any]:
+        return _calibrate_rank(rank, world, init, job)

@@ -1,0 +1,71 @@
+"""Data-parallel calibration on Ray (``calibrate_ray``): two actors in a ``gloo`` group, each with
+half of the recordings, give the calibration of one process on all of them; a killed job resumes
+from the actors' checkpoints."""
+
+from __future__ import annotations
+
+import pytest
+import ray
+import torch
+
+import torchfilt
+from torchfilt.exceptions import InputError
+from torchfilt.pipeline import calibrate_ray
+from torchfilt.systems import pendulum
+from torchfilt.training.likelihood import Sequences
+
+DT = torch.float64
+OPTIONS = dict(sides=("transition",), window=40, burn_in=5, iterations=12, lr=0.2)
+
+
+@pytest.fixture(scope="module")
+def ray_local():
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def data():
+    """Pendulum recordings with 100x the model's process noise: calibration must inflate Q."""
+    g = torch.Generator().manual_seed(0)
+    sim = torchfilt.simulate(
+        pendulum.model(qc=30.0, R=0.001), 80, torch.tensor([1.0, 0.0], dtype=DT), batch_shape=(6,),
+        generator=g,
+    )  # fmt: skip
+    return pendulum.model(R=0.001), Sequences(sim.measurements), torch.tensor([1.0, 0.0], dtype=DT)
+
+
+def test_two_actors_calibrate_like_one_process(ray_local, data, tmp_path):
+    model, seqs, x0 = data
+    P0 = 0.1 * torch.eye(2, dtype=DT)
+    local = torchfilt.calibrate(model, seqs, x0=x0, P0=P0, **OPTIONS)
+    dist = calibrate_ray(
+        model, seqs, x0=x0, P0=P0, workers=2, checkpoint=tmp_path / "ck", **OPTIONS
+    )
+    a, b = local.parameters["transition"], dist.parameters["transition"]
+    assert torch.allclose(torch.tensor(a["scale"]), torch.tensor(b["scale"]), rtol=1e-9)
+    assert torch.allclose(torch.tensor(a["floor"]), torch.tensor(b["floor"]), rtol=1e-9)
+    assert abs(local.fit.log_likelihood - dist.fit.log_likelihood) <= 1e-9 * abs(
+        local.fit.log_likelihood
+    )
+    assert dist.fit.measurements == local.fit.measurements
+    # the fit moved (the model's Q is far too small)
+    assert local.fit.log_likelihood > local.fit.initial_log_likelihood + 10
+    assert sorted(p.name for p in (tmp_path / "ck").iterdir()) == ["rank0.ckpt", "rank1.ckpt"]
+    # resuming a finished job from its checkpoints gives the same result
+    again = calibrate_ray(
+        model, seqs, x0=x0, P0=P0, workers=2, checkpoint=tmp_path / "ck", resume=True, **OPTIONS
+    )
+    assert again.parameters == dist.parameters
+
+
+def test_calibrate_ray_refuses(ray_local, data):
+    model, seqs, x0 = data
+    P0 = torch.eye(2, dtype=DT)
+    with pytest.raises(InputError, match="workers"):
+        calibrate_ray(model, seqs, x0=x0, P0=P0, workers=0)
+    with pytest.raises(InputError, match="at most 6"):
+        calibrate_ray(model, seqs, x0=x0, P0=P0, workers=7)
+    with pytest.raises(InputError, match="has 2 CPUs"):
+        calibrate_ray(model, seqs, x0=x0, P0=P0, workers=3)
