@@ -15,6 +15,8 @@ DT = torch.float64
 RECORDINGS = 6
 #: fit options shared by the single-process and the data-parallel fit
 OPTIONS = dict(window=20, burn_in=5, iterations=15, refresh_every=5, lr=0.1)
+#: the same through fit_measurement_only (L-BFGS: several collectives per iteration)
+MO_OPTIONS = dict(window=20, burn_in=5, iterations=4)
 
 
 def problem() -> tuple[torchfilt.StateSpaceModel, torch.Tensor, tuple[ScalarCovariance, ...]]:
@@ -31,20 +33,23 @@ def problem() -> tuple[torchfilt.StateSpaceModel, torch.Tensor, tuple[ScalarCova
     return model, torch.stack(ys, 1), (Q, R)
 
 
-def worker(rank: int, world: int, init: str, out: str) -> None:
-    """Fit on the recordings ``rank::world`` with summed gradients; rank 0 writes the result."""
+def worker(rank: int, world: int, init: str, out: str, measurement_only: bool = False) -> None:
+    """Fit on the recordings ``rank::world`` with summed gradients; each rank writes its result.
+    ``measurement_only``: through ``fit_measurement_only(method="likelihood")`` (gauge: the
+    measurement map is known)."""
     torch.set_num_threads(1)
     dist.init_process_group("gloo", init_method=init, rank=rank, world_size=world)
     try:
         model, y, (Q, R) = problem()
-        fit = torchfilt.fit_likelihood(
-            model,
-            y[rank::world],
-            x0=torch.zeros(1, dtype=DT),
-            P0=torch.eye(1, dtype=DT),
-            all_reduce=dist.all_reduce,
-            **OPTIONS,
+        kw = dict(
+            x0=torch.zeros(1, dtype=DT), P0=torch.eye(1, dtype=DT), all_reduce=dist.all_reduce
         )
+        if measurement_only:
+            fit = torchfilt.fit_measurement_only(
+                model, y[rank::world], known_channels=[0], method="likelihood", **MO_OPTIONS, **kw
+            ).detail
+        else:
+            fit = torchfilt.fit_likelihood(model, y[rank::world], **OPTIONS, **kw)
         with torch.no_grad():
             values = torch.stack([Q().reshape(()), R().reshape(())])
         result = {

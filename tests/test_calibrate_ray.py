@@ -1,8 +1,10 @@
-"""Data-parallel calibration on Ray (``calibrate_ray``): two actors in a ``gloo`` group, each with
-half of the recordings, give the calibration of one process on all of them; a killed job resumes
-from the actors' checkpoints."""
+"""Data-parallel fits on Ray (``calibrate_ray``, ``fit_measurement_only_ray``): two actors in a
+``gloo`` group, each with half of the recordings, give the fit of one process on all of them;
+a finished job resumes from the actors' checkpoints to the same result."""
 
 from __future__ import annotations
+
+import sys
 
 import pytest
 import ray
@@ -10,7 +12,8 @@ import torch
 
 import torchfilt
 from torchfilt.exceptions import InputError
-from torchfilt.pipeline import calibrate_ray
+from torchfilt.models.params import ScalarCovariance
+from torchfilt.pipeline import calibrate_ray, fit_measurement_only_ray
 from torchfilt.systems import pendulum
 from torchfilt.training.likelihood import Sequences
 
@@ -69,3 +72,37 @@ def test_calibrate_ray_refuses(ray_local, data):
         calibrate_ray(model, seqs, x0=x0, P0=P0, workers=7)
     with pytest.raises(InputError, match="has 2 CPUs"):
         calibrate_ray(model, seqs, x0=x0, P0=P0, workers=3)
+
+
+def test_measurement_only_on_two_actors_equals_one_process(ray_local):
+    """Unknown Q and R of a scalar linear system, from measurements alone (gauge: h known)."""
+    g = torch.Generator().manual_seed(1)
+    x, ys = torch.zeros(4, 1, dtype=DT), []
+    for _ in range(50):
+        x = 0.9 * x + 0.5 * torch.randn(4, 1, generator=g, dtype=DT)
+        ys.append(x + 0.3 * torch.randn(4, 1, generator=g, dtype=DT))
+    y = torch.stack(ys, 1)
+
+    def model():
+        Q, R = ScalarCovariance(1.0, 1, dtype=DT), ScalarCovariance(1.0, 1, dtype=DT)
+        return torchfilt.StateSpaceModel(lambda x, u: 0.9 * x, lambda x, u: x, Q=Q, R=R)
+
+    # the workers cannot import this test module: send its functions by value
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+
+    kw = dict(
+        x0=torch.zeros(1, dtype=DT), P0=torch.eye(1, dtype=DT), known_channels=[0], iterations=3
+    )
+    local = model()
+    torchfilt.fit_measurement_only(local, y, method="likelihood", **kw)
+    res = fit_measurement_only_ray(model(), Sequences(y), workers=2, **kw)
+
+    def noises(m: torchfilt.StateSpaceModel) -> torch.Tensor:
+        with torch.no_grad():
+            return torch.stack(
+                [m.transition.noise_cov().reshape(()), m.measurement.noise_cov().reshape(())]
+            )
+
+    want, got = noises(local), noises(res.model)
+    assert torch.allclose(got, want, rtol=1e-8, atol=0), (got, want)
+    assert not torch.allclose(want, torch.ones(2, dtype=DT), rtol=1e-2)  # the fit moved

@@ -5,10 +5,12 @@ as one process with all of them."""
 from __future__ import annotations
 
 import ddp_support
+import pytest
 import torch
 import torch.multiprocessing as mp
 
 import torchfilt
+from torchfilt.exceptions import InputError
 
 
 def test_two_processes_fit_like_one(tmp_path):
@@ -37,3 +39,26 @@ def test_two_processes_fit_like_one(tmp_path):
     # the fit moved: the test would notice a reduction that did nothing
     assert not torch.allclose(want, torch.ones(2, dtype=torch.float64), rtol=1e-2)
     assert torch.equal(ranks[0]["values"], ranks[1]["values"])
+
+
+def test_measurement_only_likelihood_fit_in_two_processes(tmp_path):
+    """``fit_measurement_only(method="likelihood", all_reduce=...)``: L-BFGS, whose line search
+    evaluates several times per iteration, stays in step across the processes."""
+    world = 2
+    init = f"file://{tmp_path / 'rendezvous'}"
+    mp.spawn(ddp_support.worker, args=(world, init, str(tmp_path), True), nprocs=world, join=True)
+    ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in range(world)]
+    model, y, (Q, R) = ddp_support.problem()
+    kw = dict(x0=torch.zeros(1, dtype=torch.float64), P0=torch.eye(1, dtype=torch.float64))
+    torchfilt.fit_measurement_only(
+        model, y, known_channels=[0], method="likelihood", **ddp_support.MO_OPTIONS, **kw
+    )
+    with torch.no_grad():
+        want = torch.stack([Q().reshape(()), R().reshape(())])
+    for r in ranks:
+        assert torch.allclose(r["values"], want, rtol=1e-8, atol=0), (r["values"], want)
+    assert not torch.allclose(want, torch.ones(2, dtype=torch.float64), rtol=1e-2)
+    with pytest.raises(InputError, match="all_reduce"):
+        torchfilt.fit_measurement_only(
+            model, y, known_channels=[0], method="em", all_reduce=lambda t: None, **kw
+        )

@@ -5,7 +5,12 @@ is ``torchfilt filter``, and so on); :mod:`torchfilt.pipeline.distributed` runs 
 training as Ray tasks (``--ray``; Ray is the optional extra ``torchfilt[distributed]``).
 """
 
-from torchfilt.pipeline.distributed import calibrate_ray, filter_recordings_ray, train_recipes_ray
+from torchfilt.pipeline.distributed import (
+    calibrate_ray,
+    filter_recordings_ray,
+    fit_measurement_only_ray,
+    train_recipes_ray,
+)
 from torchfilt.pipeline.evaluate import evaluate_outputs
 from torchfilt.pipeline.offline import (
     ModelSpec,
@@ -23,6 +28,7 @@ __all__ = [
     "evaluate_outputs",
     "filter_recordings",
     "filter_recordings_ray",
+    "fit_measurement_only_ray",
     "output_names",
     "resolve_model",
     "shard_plan",

@@ -85,6 +85,7 @@ __all__ = [
     "JOB_FILE",
     "calibrate_ray",
     "filter_recordings_ray",
+    "fit_measurement_only_ray",
     "import_ray",
     "ray_session",
     "train_recipes_ray",
@@ -667,21 +668,30 @@ def _calibrate_rank(rank: int, world: int, init: str, job: dict[str, Any]) -> di
     import torch.distributed as dist
 
     from torchfilt.training.calibrate import calibrate
+    from torchfilt.training.measurement_only import fit_measurement_only
 
     torch.set_num_threads(1)
     dist.init_process_group("gloo", init_method=init, rank=rank, world_size=world)
     try:
         ckpt = job["checkpoint"]
-        res = calibrate(
-            job["model"],
-            _shard_sequences(job["recordings"], rank, world),
-            all_reduce=dist.all_reduce,
-            checkpoint=None if ckpt is None else Path(ckpt) / f"rank{rank}.ckpt",
-            **job["options"],
-        )
+        path = None if ckpt is None else Path(ckpt) / f"rank{rank}.ckpt"
+        data = _shard_sequences(job["recordings"], rank, world)
+        if job["kind"] == "calibrate":
+            res: Any = calibrate(
+                job["model"], data, all_reduce=dist.all_reduce, checkpoint=path, **job["options"]
+            )
+        else:
+            res = fit_measurement_only(
+                job["model"],
+                data.y,
+                data.u,
+                all_reduce=dist.all_reduce,
+                checkpoint=path,
+                **job["options"],
+            )
     finally:
         dist.destroy_process_group()
-    return {"result": res if rank == 0 else None, "parameters": res.parameters}
+    return {"result": res if rank == 0 else None}
 
 
 def calibrate_ray(
@@ -734,13 +744,6 @@ def calibrate_ray(
         MissingDependencyError: Ray is not installed.
         InputError: ``workers`` below 1 or more than the recordings or the cluster's CPUs.
     """
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise InputError(f"workers must be a positive integer, got {workers!r}")
-    count = len(recordings.y) if hasattr(recordings, "y") else len(list(recordings))
-    if workers > count:
-        raise InputError(f"workers: {workers} workers for {count} recordings; use at most {count}")
-    if checkpoint is not None:
-        Path(checkpoint).mkdir(parents=True, exist_ok=True)
     options: dict[str, Any] = {
         "x0": x0,
         "P0": P0,
@@ -758,7 +761,28 @@ def calibrate_ray(
         "resume": resume,
         "checkpoint_every": checkpoint_every,
     }
+    return _run_group("calibrate", model, recordings, options, workers, address, checkpoint)
+
+
+def _run_group(
+    kind: str,
+    model: Any,
+    recordings: Any,
+    options: dict[str, Any],
+    workers: int,
+    address: str | None,
+    checkpoint: str | Path | None,
+) -> Any:
+    """Run a data-parallel fit on ``workers`` Ray actors in one ``gloo`` group; actor 0's result."""
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise InputError(f"workers must be a positive integer, got {workers!r}")
+    count = len(recordings.y) if hasattr(recordings, "y") else len(list(recordings))
+    if workers > count:
+        raise InputError(f"workers: {workers} workers for {count} recordings; use at most {count}")
+    if checkpoint is not None:
+        Path(checkpoint).mkdir(parents=True, exist_ok=True)
     job = {
+        "kind": kind,
         "model": model,
         "recordings": recordings,
         "options": options,
@@ -780,8 +804,60 @@ def calibrate_ray(
     return outs[0]["result"]
 
 
+def fit_measurement_only_ray(
+    model: Any,
+    recordings: Any,
+    *,
+    x0: torch.Tensor,
+    P0: torch.Tensor,
+    known_channels: Sequence[int] | None,
+    workers: int = 2,
+    address: str | None = None,
+    iterations: int = 100,
+    window: int | None = None,
+    burn_in: int = 0,
+    validation: Any = None,
+    optimizer: str = "lbfgs",
+    lr: float | None = None,
+    dtype: torch.dtype = torch.float64,
+    checkpoint: str | Path | None = None,
+    resume: bool = False,
+    checkpoint_every: int = 1,
+) -> Any:
+    """:func:`~torchfilt.training.fit_measurement_only` with ``method="likelihood"`` as a
+    data-parallel job on Ray: the same group of actors as :func:`calibrate_ray` (recordings dealt
+    round-robin, gradients summed over ``gloo``, one checkpoint per actor, ``resume``).
+
+    Args:
+        model, x0, P0, known_channels, iterations, window, burn_in, validation, optimizer, lr,
+        dtype, checkpoint_every: as in :func:`~torchfilt.training.fit_measurement_only`.
+        recordings: a :class:`~torchfilt.training.likelihood.Sequences` (``y``, ``u``; shared
+            ``x0``/``P0``).
+        workers, address, checkpoint, resume: as in :func:`calibrate_ray`.
+
+    Returns:
+        Actor 0's :class:`~torchfilt.training.measurement_only.MeasurementOnlyFit`.
+    """
+    options: dict[str, Any] = {
+        "x0": x0,
+        "P0": P0,
+        "known_channels": known_channels,
+        "method": "likelihood",
+        "iterations": iterations,
+        "window": window,
+        "burn_in": burn_in,
+        "validation": validation,
+        "optimizer": optimizer,
+        "lr": lr,
+        "dtype": dtype,
+        "resume": resume,
+        "checkpoint_every": checkpoint_every,
+    }
+    return _run_group("measurement_only", model, recordings, options, workers, address, checkpoint)
+
+
 class _Rank:
-    """A Ray actor of :func:`calibrate_ray`."""
+    """A Ray actor of :func:`calibrate_ray` and :func:`fit_measurement_only_ray`."""
 
     def address(self) -> str:
         return _free_address()

@@ -723,6 +723,7 @@ def fit_measurement_only(
     checkpoint: str | Path | None = None,
     checkpoint_every: int = 1,
     resume: bool = False,
+    all_reduce: Callable[[Tensor], None] | None = None,
 ) -> MeasurementOnlyFit:
     """Learn a state-space model from measurements alone (no states), by EM or by the filter's
     likelihood (see the module docstring).
@@ -753,6 +754,8 @@ def fit_measurement_only(
         dtype: floating dtype.
         checkpoint, checkpoint_every, resume: checkpointing; resuming equals an uninterrupted
             fit.
+        all_reduce: a data-parallel fit over processes with their own recordings
+            (``"likelihood"`` only; see :func:`~torchfilt.training.fit_likelihood`).
 
     Returns:
         A :class:`MeasurementOnlyFit`.
@@ -765,6 +768,11 @@ def fit_measurement_only(
     if not isinstance(model, StateSpaceModel):
         raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
     known = check_gauge(model, known_channels)
+    if method == "em" and all_reduce is not None:
+        raise InputError(
+            "all_reduce: a data-parallel fit runs through the filter likelihood; use "
+            "method='likelihood' (EM's sufficient statistics are not reduced across processes)"
+        )
     if method == "em":
         em = fit_em(
             model,
@@ -817,6 +825,7 @@ def fit_measurement_only(
         checkpoint=checkpoint,
         checkpoint_every=checkpoint_every,
         resume=resume,
+        all_reduce=all_reduce,
     )
     return MeasurementOnlyFit(
         model=model,
