@@ -687,25 +687,30 @@ def fit_likelihood(
     )
 
 
-def _load_checkpoint(path: Path, fingerprint: str) -> dict[str, Any]:
+def _load_checkpoint(
+    path: Path, fingerprint: str, schema: str = _CKPT_SCHEMA, kind: str = "likelihood"
+) -> dict[str, Any]:
+    """A checkpoint of this fit (``schema``, ``fingerprint``), or a :class:`RunError` naming the
+    file; also EM's (:mod:`torchfilt.training.measurement_only`)."""
     try:
         ck = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
         raise RunError(
             f"{path}: unreadable checkpoint ({type(e).__name__}); delete it to start again"
         ) from None
-    if not isinstance(ck, dict) or ck.get("schema") != _CKPT_SCHEMA:
-        raise RunError(f"{path}: not a torchfilt likelihood checkpoint; delete it to start again")
+    if not isinstance(ck, dict) or ck.get("schema") != schema:
+        raise RunError(f"{path}: not a torchfilt {kind} checkpoint; delete it to start again")
     if ck.get("fingerprint") != fingerprint:
         raise RunError(
-            f"{path}: the checkpoint belongs to another fit (different data, parameters or "
-            "initial values); delete it to start again"
+            f"{path}: the checkpoint belongs to another fit (different data, model, parameters "
+            "or initial values); delete it to start again"
         )
     return ck
 
 
-def _save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
-    data = {"schema": _CKPT_SCHEMA, **payload}
+def _save_checkpoint(path: Path, payload: dict[str, Any], schema: str = _CKPT_SCHEMA) -> None:
+    """Write a checkpoint atomically, tagged with ``schema``."""
+    data = {"schema": schema, **payload}
 
     def write(fh: Any) -> None:
         torch.save(data, fh)

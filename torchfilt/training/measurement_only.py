@@ -59,9 +59,8 @@ import torch
 from torch import Tensor, nn
 
 from torchfilt.cubature import CubatureRule, SphericalRadialRule, sigma_points
-from torchfilt.exceptions import GaugeError, InputError, ModelError, RunError
+from torchfilt.exceptions import GaugeError, InputError, ModelError
 from torchfilt.filters import CKF, FilterResult, rts_smooth
-from torchfilt.io import atomic_write
 from torchfilt.models import (
     CovarianceParameter,
     LinearGaussianModel,
@@ -74,7 +73,9 @@ from torchfilt.training.likelihood import (
     LikelihoodState,
     Sequences,
     _digest,
+    _load_checkpoint,
     _recordings,
+    _save_checkpoint,
     fit_likelihood,
 )
 from torchfilt.training.progress import ProgressBar
@@ -339,6 +340,21 @@ def _linear_m_step(
     return _Lin(A, H, Q, R, B, lin.D)
 
 
+def _point_cov(side: Any, pred: Any) -> Tensor:
+    """Per-point covariance ``(..., P, d, d)`` of a side's output: its additive noise plus the
+    covariance (or variance) its prediction ``pred`` reports."""
+    d = pred.mean.shape[-1]
+    noise = side.noise_cov()
+    dtype = pred.mean.dtype
+    cov = torch.zeros(d, d, dtype=dtype) if noise is None else noise.to(dtype)
+    cov = cov.expand(*pred.mean.shape[:-1], d, d)
+    if pred.cov is not None:
+        return cov + pred.cov
+    if pred.var is not None:
+        return cov + torch.diag_embed(pred.var)
+    return cov
+
+
 def _expected_loglik(
     model: StateSpaceModel,
     sp: SmoothedPairs,
@@ -366,14 +382,7 @@ def _expected_loglik(
     if U is not None:
         uu = U.reshape(-1, U.shape[-1]).unsqueeze(-2).expand(-1, pts.shape[-2], -1)
     pred = model.transition.predict(xa, uu)
-    Qn = model.transition.noise_cov()
-    cov = torch.zeros(n, n, dtype=dtype) if Qn is None else Qn.to(dtype)
-    cov = cov.expand(*pred.mean.shape[:-1], n, n)
-    if pred.cov is not None:
-        cov = cov + pred.cov
-    elif pred.var is not None:
-        cov = cov + torch.diag_embed(pred.var)
-    L = safe_cholesky(cov, name="transition covariance")
+    L = safe_cholesky(_point_cov(model.transition, pred), name="transition covariance")
     q = (gaussian_log_prob(xb - pred.mean, L) * wm).sum()
     if measurement_term:
         m = model.obs_dim
@@ -386,36 +395,12 @@ def _expected_loglik(
         if U is not None:
             u1 = U.reshape(-1, U.shape[-1])[ok].unsqueeze(-2).expand(-1, p1.shape[-2], -1)
         hp = model.measurement.predict(p1, u1)
-        Rn = model.measurement.noise_cov()
-        rc = torch.zeros(m, m, dtype=dtype) if Rn is None else Rn.to(dtype)
-        rc = rc.expand(*hp.mean.shape[:-1], m, m)
-        if hp.cov is not None:
-            rc = rc + hp.cov
-        elif hp.var is not None:
-            rc = rc + torch.diag_embed(hp.var)
-        Lr = safe_cholesky(rc, name="measurement covariance")
+        Lr = safe_cholesky(_point_cov(model.measurement, hp), name="measurement covariance")
         q = q + (gaussian_log_prob(y[ok].unsqueeze(-2) - hp.mean, Lr) * wm1).sum()
     return q
 
 
 # ----------------------------------------------------------------------------------- EM
-def _em_checkpoint(path: Path, fingerprint: str) -> dict[str, Any]:
-    try:
-        ck = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:
-        raise RunError(
-            f"{path}: unreadable checkpoint ({type(e).__name__}); delete it to start again"
-        ) from None
-    if not isinstance(ck, dict) or ck.get("schema") != _EM_SCHEMA:
-        raise RunError(f"{path}: not a torchfilt EM checkpoint; delete it to start again")
-    if ck.get("fingerprint") != fingerprint:
-        raise RunError(
-            f"{path}: the checkpoint belongs to another fit (different data, model or initial "
-            "values); delete it to start again"
-        )
-    return ck
-
-
 def fit_em(
     model: StateSpaceModel,
     y: Tensor | Sequence[Tensor],
@@ -551,7 +536,7 @@ def fit_em(
     initial: float | None = None
     finished: str | None = None
     if resume and ckpt_path is not None and ckpt_path.is_file():
-        ck = _em_checkpoint(ckpt_path, fingerprint)
+        ck = _load_checkpoint(ckpt_path, fingerprint, _EM_SCHEMA, "EM")
         load(list(ck["state"]))
         it0, history, initial = int(ck["iteration"]), list(ck["history"]), float(ck["initial"])
         finished = ck.get("done")  # a fit that had stopped by itself stays stopped
@@ -603,20 +588,18 @@ def fit_em(
         if ckpt_path is not None and (
             it % checkpoint_every == 0 or it == iterations or done is not None
         ):
-            payload = {
-                "schema": _EM_SCHEMA,
-                "fingerprint": fingerprint,
-                "iteration": it,
-                "state": state(),
-                "history": history,
-                "initial": initial,
-                "done": done,
-            }
-
-            def write(fh: Any, data: dict[str, Any] = payload) -> None:
-                torch.save(data, fh)
-
-            atomic_write(ckpt_path, write)
+            _save_checkpoint(
+                ckpt_path,
+                {
+                    "fingerprint": fingerprint,
+                    "iteration": it,
+                    "state": state(),
+                    "history": history,
+                    "initial": initial,
+                    "done": done,
+                },
+                _EM_SCHEMA,
+            )
         if stop:
             stopped = "callback"
             break
