@@ -886,7 +886,7 @@ def select_outputs(res: FilterResult, outputs: Collection[str] | None) -> Filter
 def smoother_elements(res: FilterResult, steps: LinearSteps) -> SmootherElements:
     """The smoother gains and offsets, all at once from a filter result."""
     m, P, mp, Pp = res.mean, res.cov, res.predicted_mean, res.predicted_cov
-    T, n = m.shape[-2], m.shape[-1]
+    n = m.shape[-1]
     A1 = steps.A[..., 1:, :, :]
     P_now = P[..., :-1, :, :]
     Pp1 = Pp[..., 1:, :, :]
@@ -897,7 +897,6 @@ def smoother_elements(res: FilterResult, steps: LinearSteps) -> SmootherElements
     E = torch.cat([G, G.new_zeros(()).expand(*G.shape[:-3], 1, n, n)], -3)
     g = torch.cat([g, m[..., -1:, :]], -2)
     L = torch.cat([L, P[..., -1:, :, :]], -3)
-    del T
     return SmootherElements(E, g, L)
 
 

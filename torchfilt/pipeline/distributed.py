@@ -663,8 +663,9 @@ def _free_address() -> str:
     return f"tcp://{ray.util.get_node_ip_address()}:{port}"
 
 
-def _calibrate_rank(rank: int, world: int, init: str, job: dict[str, Any]) -> dict[str, Any]:
-    """One process of a data-parallel calibration: its shard, gradients summed over ``gloo``."""
+def _fit_rank(rank: int, world: int, init: str, job: dict[str, Any]) -> dict[str, Any]:
+    """One process of a data-parallel fit (``job["kind"]``): its shard, gradients summed over
+    ``gloo``."""
     import torch.distributed as dist
 
     from torchfilt.training.calibrate import calibrate
@@ -863,4 +864,4 @@ class _Rank:
         return _free_address()
 
     def run(self, rank: int, world: int, init: str, job: dict[str, Any]) -> dict[str, Any]:
-        return _calibrate_rank(rank, world, init, job)
+        return _fit_rank(rank, world, init, job)

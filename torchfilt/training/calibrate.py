@@ -107,11 +107,10 @@ def _refit_copy(side: ConditionalModel, name: str) -> Any:
 
     if not isinstance(side, GPModel):
         return None
-    bad = [g.structure for g in side.groups if g.structure != "independent"]  # type: ignore[union-attr]
-    if bad:
+    if not side.has_twin:
         raise InputError(
             f"gp: refitting GP hyperparameters needs independent exact GPs; the {name} GP has "
-            f"structure {bad[0]!r} (use gp = 'none')"
+            f"structure {side.config.structure!r} (use gp = 'none')"
         )
     return copy.deepcopy(side)
 
@@ -281,7 +280,6 @@ def calibrate(
             f"gp: {gp!r} refits GP hyperparameters, but no side in {list(sides)} is a GP"
         )
     params += [p for g in refit.values() for p in g.hyperparameter_tensors(gp)]
-    refreeze = {name: g.freeze_options for name, g in refit.items()}
     # the base models' own parameters (GP hyperparameters) stay fixed during the fit and get
     # their requires_grad flags back afterwards
     frozen = [
@@ -330,8 +328,8 @@ def calibrate(
         for p in frozen:
             p.requires_grad_(True)
         with torch.no_grad():
-            for name, g in refit.items():
-                opts = refreeze[name]
+            for g in refit.values():
+                opts = g.freeze_options  # the fit swaps predictors, never the options
                 if opts is None:
                     g.unfreeze()
                 else:

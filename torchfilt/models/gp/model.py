@@ -517,6 +517,11 @@ class GPModel(ConditionalModel):
         """The options of the last :meth:`freeze` (``None`` when not frozen)."""
         return None if self._freeze_opts is None else dict(self._freeze_opts)
 
+    @property
+    def has_twin(self) -> bool:
+        """Whether :meth:`twin` is available (independent exact GPs)."""
+        return self.config.structure == "independent"
+
     def twin(self) -> FrozenGP:
         """The frozen predictor's differentiable twin, built from the current hyperparameters.
 
@@ -532,11 +537,10 @@ class GPModel(ConditionalModel):
         Raises:
             InputError: the model has a multitask or sparse group.
         """
-        bad = [g.structure for g in self.groups if g.structure != "independent"]  # type: ignore[union-attr]
-        if bad:
+        if not self.has_twin:
             raise InputError(
                 f"twin: only independent exact GPs have a differentiable twin; this model has "
-                f"structure {bad[0]!r}"
+                f"structure {self.config.structure!r}"
             )
         chunk = CHUNK_SIZE if self._freeze_opts is None else int(self._freeze_opts["chunk_size"])
         with torch.enable_grad():
