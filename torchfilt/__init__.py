@@ -55,6 +55,7 @@ from torchfilt.filters import (
 from torchfilt.io import Recording, load_dataset, read_recording, write_recording
 from torchfilt.io.synth import simulate_dataset
 from torchfilt.models import (
+    AffineSensor,
     Bounded,
     CalibratedModel,
     CholeskyCovariance,
@@ -132,6 +133,7 @@ __all__ = [
     "CKF",
     "FOPDT",
     "IPDT",
+    "AffineSensor",
     "Bounded",
     "Box",
     "BundleError",

@@ -30,8 +30,10 @@ from torchfilt.models.params import (
     Positive,
     ScalarCovariance,
 )
+from torchfilt.models.sensor import AffineSensor
 
 __all__ = [
+    "AffineSensor",
     "Bounded",
     "CalibratedModel",
     "CholeskyCovariance",

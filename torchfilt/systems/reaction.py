@@ -71,7 +71,9 @@ def _start(start: str) -> tuple[tuple[float, float], tuple[float, float]]:
     return STARTS[start]
 
 
-def transition(x: Tensor, u: Tensor | None = None, *, k1: float = K1, dt: float = DT) -> Tensor:
+def transition(
+    x: Tensor, u: Tensor | None = None, *, k1: float | Tensor = K1, dt: float = DT
+) -> Tensor:
     """One Euler step of the reaction, ``(..., 2) -> (..., 2)``."""
     pa, pb = x[..., 0], x[..., 1]
     rate = k1 * pa * pa * dt

@@ -74,7 +74,7 @@ def transition(
     *,
     dt: float = DT,
     substeps: int = SUBSTEPS,
-    gamma: float = GAMMA,
+    gamma: float | Tensor = GAMMA,
 ) -> Tensor:
     """One sampling period of the dynamics (RK4), ``(..., 3) -> (..., 3)``.
 

@@ -30,6 +30,7 @@ from __future__ import annotations
 import hashlib
 import math
 import time
+import warnings
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,7 +40,7 @@ import torch
 from torch import Tensor, nn
 
 from torchfilt.cubature import CubatureRule
-from torchfilt.exceptions import InputError, RunError, ShapeError
+from torchfilt.exceptions import DivergenceWarning, InputError, RunError, ShapeError
 from torchfilt.filters import CKF, FilterResult, rts_smooth
 from torchfilt.io import atomic_write
 from torchfilt.models import StateSpaceModel
@@ -486,7 +487,10 @@ def fit_likelihood(
     def train_loglik(wx0: Tensor, wP0: Tensor) -> Tensor:
         if prepare is not None:
             prepare()
-        res = filt.filter(win.y, win.u, x0=x0_windows(wx0), P0=wP0)
+        with warnings.catch_warnings():
+            # a trial step of the optimiser may diverge: the fit scores it -inf and steps back
+            warnings.simplefilter("ignore", DivergenceWarning)
+            res = filt.filter(win.y, win.u, x0=x0_windows(wx0), P0=wP0)
         ll = step_log_likelihood(res)
         return (ll * win.counted.to(ll.dtype)).sum()
 
@@ -558,6 +562,7 @@ def fit_likelihood(
     stopped = "iterations"
     last_loss = math.inf if not history else float(history[-1]["loss"])
     good = snapshot()
+    retried = False
     it = it0
     for it in range(it0 + 1, iterations + 1):
         if it > 1 and (it - 1) % refresh_every == 0:
@@ -569,7 +574,9 @@ def fit_likelihood(
                 loss = -train_loglik(ux0, uP0) / counted
                 if bool(torch.isfinite(loss)):
                     loss.backward()
-                return loss.detach()
+                    return loss.detach()
+                # +inf, not NaN: L-BFGS's line search then shortens the step
+                return torch.full_like(loss.detach(), math.inf)
             # data-parallel: local sums, then one collective for the loss and the gradient
             # (called on every process whatever its loss, so that none waits forever)
             ll = train_loglik(ux0, uP0)
@@ -587,7 +594,8 @@ def fit_likelihood(
                 k = p.numel()
                 p.grad = (flat[offset : offset + k] / counted).reshape(p.shape).to(p.dtype)
                 offset += k
-            return (-flat[0] / counted).to(ll.dtype)
+            total = (-flat[0] / counted).to(ll.dtype)
+            return total if bool(torch.isfinite(total)) else torch.full_like(total, math.inf)
 
         if optimizer == "adam":
             loss_t = closure()
@@ -599,7 +607,11 @@ def fit_likelihood(
                     project()
         else:
             good = snapshot()
-            loss_t = opt.step(closure)  # type: ignore[assignment]
+            try:
+                loss_t = opt.step(closure)  # type: ignore[assignment]
+            except (IndexError, RuntimeError):
+                # torch's strong-Wolfe search fails when every trial step was non-finite
+                loss_t = torch.tensor(math.nan)
             if project is not None:
                 project()
             finite = bool(torch.isfinite(loss_t))
@@ -610,8 +622,15 @@ def fit_likelihood(
         elapsed = time.perf_counter() - t_start
         if not finite:
             restore(good)
+            if optimizer == "lbfgs" and not retried:
+                # a line search that left the finite region: forget the curvature history and
+                # start again from the last good parameters with a short first step
+                retried = True
+                opt.state.clear()
+                continue
             stopped = "non-finite"
             break
+        retried = False
         rec: dict[str, Any] = {"iteration": it, "loss": loss, "elapsed": elapsed}
         vscore = None
         if val is not None and it % validate_every == 0:

@@ -67,6 +67,7 @@ from torchfilt.models import (
     StateSpaceModel,
     linear_system,
 )
+from torchfilt.models.sensor import AffineSensor
 from torchfilt.numerics import gaussian_log_prob, psd_solve, safe_cholesky, symmetrize
 from torchfilt.training.likelihood import (
     LikelihoodFit,
@@ -92,6 +93,10 @@ __all__ = [
 ]
 
 _EM_SCHEMA = "torchfilt.em-checkpoint/1"
+
+#: The M-step's parameter blocks of a non-linear model, tried in this order until one raises the
+#: filter likelihood: the joint step, the maps alone, the noises alone.
+_M_STEP_BLOCKS: tuple[tuple[str, ...], ...] = (("noise", "maps", "noise"), ("maps",), ("noise",))
 
 
 # ----------------------------------------------------------------------------------- gauge
@@ -138,6 +143,13 @@ def check_gauge(
         id(p): name for name, p in model.measurement.named_parameters() if id(p) not in noise_ids
     }
     suspects = [p for p in learned if id(p) in map_params]
+    calibrations = [mod for mod in model.measurement.modules() if isinstance(mod, AffineSensor)]
+    cal_ids = {id(p) for mod in calibrations for p in (mod.log_scale, mod.bias)}
+    if any(id(p) in cal_ids for p in suspects):
+        for mod in calibrations:
+            if any(p.requires_grad for p in (mod.log_scale, mod.bias)):
+                _check_nonlinear(mod, sorted(set(mod.channels) & set(ch)), model.state_dim)
+        suspects = [p for p in suspects if id(p) not in cal_ids]
     if suspects:
         n = model.state_dim
         dtype = suspects[0].dtype
@@ -158,6 +170,35 @@ def check_gauge(
                     "known channel must not be learned"
                 )
     return sorted(ch)
+
+
+def _check_nonlinear(sensor: AffineSensor, channels: list[int], n: int) -> None:
+    """Refuse a learned gain and offset on a known channel whose map is affine in the state
+    (its Hessian-vector products are zero at random points): ``x -> a x + c`` would absorb them."""
+    if not channels:
+        return
+    dtype = sensor.log_scale.dtype
+    gen = torch.Generator().manual_seed(1)
+    x = torch.randn(1, 4, n, generator=gen, dtype=dtype).requires_grad_(True)
+    v = torch.randn(1, 4, n, generator=gen, dtype=dtype)
+    u = None
+    nu = getattr(sensor.base, "input_dim", None)
+    if isinstance(nu, int) and nu > 0:
+        u = torch.randn(1, 4, nu, generator=gen, dtype=dtype)
+    with torch.enable_grad():
+        out = sensor.base.predict(x, u).mean
+        for j in channels:
+            (g,) = torch.autograd.grad(out[..., j].sum(), x, create_graph=True, retain_graph=True)
+            hv = None
+            if g.requires_grad:
+                (hv,) = torch.autograd.grad((g * v).sum(), x, retain_graph=True, allow_unused=True)
+            if hv is None or not bool((hv != 0).any()):
+                raise GaugeError(
+                    f"known_channels: channel {j} has a learned gain and offset (AffineSensor) "
+                    "on a map that is affine in the state, so x -> a x + c absorbs them and the "
+                    "gauge is not fixed; freeze its scale and bias, or know the gain and "
+                    "offset of another channel"
+                )
 
 
 # ----------------------------------------------------------------------------------- E-step
@@ -561,21 +602,35 @@ def fit_em(
             lin = _linear_m_step(lin, sp, Y, U, known, learn_measurement_noise)
             ll_new, sp_new = e_step()
         else:
-            _gradient_m_step(
-                model, plist, sp, Y, U, rule, learn_measurement_noise, m_step_iterations
-            )
-            ll_new, sp_new = e_step()
             # The E-step of a non-linear model is the CKF's Gaussian approximation, so a better
             # Q need not mean a better likelihood: halve the step until it is (safeguarded GEM).
-            after = state()
-            for k in range(1, backtracks + 1):
+            # If the joint step still lowers it, try the maps alone, then the noises alone
+            # (expectation-conditional maximisation): a wrong model's smoothed states look
+            # noisy, and the noise step alone can be what lowers the likelihood.
+            for blocks in _M_STEP_BLOCKS:
+                _gradient_m_step(
+                    model,
+                    plist,
+                    sp,
+                    Y,
+                    U,
+                    rule,
+                    learn_measurement_noise,
+                    m_step_iterations,
+                    blocks=blocks,
+                )
+                ll_new, sp_new = e_step()
+                after = state()
+                for k in range(1, backtracks + 1):
+                    if ll_new >= ll:
+                        break
+                    t = 0.5**k
+                    load([b + t * (a - b) for a, b in zip(after, before, strict=True)])
+                    ll_new, sp_new = e_step()
                 if ll_new >= ll:
                     break
-                t = 0.5**k
-                load([b + t * (a - b) for a, b in zip(after, before, strict=True)])
-                ll_new, sp_new = e_step()
-            if ll_new < ll:
                 load(before)
+            if ll_new < ll:
                 ll_new, sp_new = ll, sp
                 stalled = True
         change = (ll_new - ll) / counted
@@ -628,11 +683,13 @@ def _gradient_m_step(
     rule: CubatureRule,
     measurement_term: bool,
     iterations: int,
+    *,
+    blocks: tuple[str, ...] = ("noise", "maps", "noise"),
 ) -> None:
-    """Block coordinate L-BFGS on ``-Q(theta)``: the noise covariances, then the other
-    parameters, then the noise again (the maps' gradients dwarf the noises', so a joint step
-    leaves ``Q`` and ``R`` almost where they were); undone if ``Q`` does not improve
-    (generalised EM)."""
+    """Block coordinate L-BFGS on ``-Q(theta)`` over ``blocks`` in turn: by default the noise
+    covariances, then the other parameters (the maps), then the noise again (the maps'
+    gradients dwarf the noises', so a joint step leaves ``Q`` and ``R`` almost where they
+    were); undone if ``Q`` does not improve (generalised EM)."""
     scale = float(sp.mean.shape[:-1].numel())
     before = [p.detach().clone() for p in plist]
     noise_ids = {
@@ -666,13 +723,14 @@ def _gradient_m_step(
         opt.step(closure)  # type: ignore[arg-type]
 
     try:
-        for group in (noise, rest, noise):
+        for group in ({"noise": noise, "maps": rest}[b] for b in blocks):
             if group:
                 run(group)
         with torch.no_grad():
             q1 = float(_expected_loglik(model, sp, Y, U, rule, measurement_term))
         ok = math.isfinite(q1) and q1 >= q0
-    except (RuntimeError, ValueError):  # a failed factorisation on a wild line-search step
+    except (RuntimeError, ValueError, IndexError):  # a failed factorisation, or torch's
+        # strong-Wolfe search left without a finite bracket, on a wild line-search step
         ok = False
     if not ok:
         with torch.no_grad():
