@@ -114,7 +114,7 @@ def test_training_split_has_no_states_and_logged_recipes_still_refuse_it(data, t
     assert len(train) == 3 and all(bool(r.states.isnan().all()) for r in train)
     logged = RECIPE.replace('states = "none"\n', "").split("[measurement_only]")[0]
     logged = logged.replace("[dataset]", "[transition]\n[dataset]")
-    with pytest.raises(DataError, match="rec_000.csv, column 'PA'.*missing column"):
+    with pytest.raises(DataError, match=r"rec_000\.csv, column 'PA'.*missing column"):
         train_recipe(write(tmp_path / "logged.toml", data, logged), tmp_path / "r", progress=False)
 
 

@@ -108,9 +108,14 @@ class Key:
         }.get(self.kind, True)
         if not ok:
             raise RecipeError(
-                f"{path}: [{where}] {self.name} must be {self.allowed.replace('`', '')}, "
+                f"{_file(path)}[{where}] {self.name} must be {self.allowed.replace('`', '')}, "
                 f"got {value!r}"
             )
+
+
+def _file(path: Path | None) -> str:
+    """The ``"FILE: "`` prefix of a message (none for a recipe built in code)."""
+    return "" if path is None else f"{path}: "
 
 
 def _gp_keys() -> tuple[Key, ...]:
@@ -547,11 +552,11 @@ def _check_keys(
     table: Any, allowed: set[str] | frozenset[str], where: str, path: Path | None
 ) -> dict[str, Any]:
     if not isinstance(table, dict):
-        raise RecipeError(f"{path}: [{where}] must be a table")
+        raise RecipeError(f"{_file(path)}[{where}] must be a table")
     unknown = sorted(set(table) - set(allowed))
     if unknown:
         raise RecipeError(
-            f"{path}: unknown key(s) {unknown} in [{where}]; allowed: {sorted(allowed)}"
+            f"{_file(path)}unknown key(s) {unknown} in [{where}]; allowed: {sorted(allowed)}"
         )
     return dict(table)
 
