@@ -14,6 +14,7 @@ from __future__ import annotations
 import copy
 import csv
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -326,3 +327,49 @@ def test_malformed_inducing_entry_is_refused(fresh, edit, where):
     b["measurement"] = {**b["transition"]}
     with pytest.raises(BundleError, match="kind 'inducing' is a transition"):
         check_bundle(b, fresh)
+
+
+def _add_input(src: Path, dst: Path) -> Path:
+    """``src`` with an input channel ``valve`` (a sine) added to every recording."""
+    dst.mkdir()
+    man = json.loads((src / "manifest.json").read_text())
+    man["channels"].append({"name": "valve", "role": "input", "unit": ""})
+    (dst / "manifest.json").write_text(json.dumps(man))
+    for rec in man["recordings"]:
+        with (src / rec["file"]).open() as fh:
+            rows = list(csv.reader(fh))
+        out = [[*rows[0], "valve"]] + [
+            [*r, repr(math.sin(0.3 * k))] for k, r in enumerate(rows[1:])
+        ]
+        with (dst / rec["file"]).open("w", newline="") as fh:
+            csv.writer(fh).writerows(out)
+    return dst
+
+
+def test_likelihood_method_with_inputs(tmp_path, data):
+    """``method = "likelihood"`` (windows, Adam) on a dataset with an input channel: the
+    transition takes ``[x; u]``, the fit raises the likelihood, the bundle filters."""
+    with_u = _add_input(data, tmp_path / "data_u")
+    text = (
+        RECIPE.replace("m_step_iterations = 5\n", "")
+        .replace("iterations = 6", 'method = "likelihood"\noptimizer = "adam"\nlr = 0.002')
+        .replace("inducing = 6", "inducing = 4\nwindow = 50\nburn_in = 5\niterations = 4")
+        .replace("iterations = 4\n", 'iterations = 4\nknown_channels = ["pressure"]\n', 1)
+        .replace("[calibrate]\niterations = 4", "[calibrate]\nenabled = false")
+    )
+    bundle = train_recipe(
+        write(tmp_path / "r.toml", with_u, text), tmp_path / "run", progress=False
+    )
+    b = load_bundle(bundle)
+    st, fit = b["transition"]["state"], b["transition"]["fit"]
+    assert (
+        st["input_dim"] == 1
+        and st["linear"].shape == (2, 3)
+        and st["inducing_inputs"].shape == (4, 3)
+    )
+    assert fit["method"] == "likelihood" and fit["iterations"] == 4
+    assert fit["log_likelihood"] > fit["initial_log_likelihood"]
+    lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in lines if r["stage"] == "transition"] == [1, 2, 3, 4]
+    summary = torchfilt.filter_recordings(bundle, [with_u / "rec_003.csv"], tmp_path / "est")
+    assert summary["recordings"][0]["finite"]
