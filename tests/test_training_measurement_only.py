@@ -273,13 +273,29 @@ def test_recipe_refusals_name_the_key(tmp_path, data, old, new, message):
         load_recipe(write(tmp_path / "bad.toml", data, text))
 
 
-def test_refusals_against_the_dataset_and_of_a_recipe_built_in_code(tmp_path, data):
-    text = RECIPE.replace("iterations = 6", 'known_channels = ["pressur"]\niterations = 6')
-    with pytest.raises(
-        RecipeError, match=r"known_channels: unknown measurement channel.*'pressur'"
-    ):
+@pytest.mark.parametrize(
+    ("old", "new", "message"),
+    [
+        (
+            "iterations = 6",
+            'known_channels = ["pressur"]\niterations = 6',
+            r"known_channels: unknown measurement channel.*'pressur'",
+        ),
+        ('model = "system:reaction"', 'model = "system:nosuch"', r"\[measurement\] model: unknown"),
+        ("k1 = 0.08", "kk = 0.08", r"\[measurement_only\] nominal: .*bad nominal-model param"),
+        ('model = "system:reaction"', 'model = "system:reentry"', r"maps 3 states to 1"),
+        ("process_noise = 0.01", "process_noise = [0.1, 0.1, 0.1]", "3 values for 2 states"),
+    ],
+)
+def test_refusals_against_the_dataset(tmp_path, data, old, new, message):
+    text = RECIPE.replace(old, new, 1)
+    assert text != RECIPE
+    with pytest.raises(RecipeError, match=message):
         train_recipe(write(tmp_path / "bad.toml", data, text), tmp_path / "r", progress=False)
     assert not (tmp_path / "r").exists()
+
+
+def test_refusal_of_a_recipe_built_in_code(tmp_path, data):
     r = Recipe(
         path=None,
         name="code",

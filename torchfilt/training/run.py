@@ -230,8 +230,10 @@ def train_recipe(
     except RecipeError as e:
         raise RecipeError(str(e) if r.path is None else f"{r.path}: {e}") from None
     # states = "none": the state columns are never read for training (absent or NaN is fine)
-    relaxed = {"require_finite": ("input",), "optional": ("state",)}
-    ds: Dataset = load_dataset(r.dataset, **(relaxed if r.states == "none" else {}))  # type: ignore[arg-type]
+    if r.states == "none":
+        ds: Dataset = load_dataset(r.dataset, require_finite=("input",), optional=("state",))
+    else:
+        ds = load_dataset(r.dataset)
     prior = _check_against_dataset(r, ds)
     out = Path(out)
     stream = stream if stream is not None else sys.stderr
@@ -357,7 +359,10 @@ def _check_measurement_only(r: Recipe, ds: Dataset) -> None:
     state."""
     n, nu, m = ds.state_dim, ds.input_dim, ds.obs_dim
     name = str(r.measurement["model"]).split(":", 1)[1]
-    spec = get_system(name)
+    try:
+        spec = get_system(name)
+    except InputError as e:
+        raise RecipeError(f"[measurement] model: {e}") from None
     if len(spec.states) != n or len(spec.measurements) != m:
         raise RecipeError(
             f'[measurement] model = "system:{name}" maps {len(spec.states)} states to '
@@ -367,7 +372,10 @@ def _check_measurement_only(r: Recipe, ds: Dataset) -> None:
     _known_channels(r, ds)
     o = r.measurement_only
     if o["nominal"] is not None:
-        g = nominal_model(o["nominal"])
+        try:
+            g = nominal_model(o["nominal"])
+        except (InputError, TypeError, ValueError) as e:
+            raise RecipeError(f"[measurement_only] nominal: {e}") from None
         u = torch.zeros(1, nu, dtype=torch.float64) if nu else None
         try:
             out = g(torch.zeros(1, n, dtype=torch.float64), u)
@@ -844,7 +852,6 @@ def _fit_measurement_only_stage(
                 f"transition: iteration {state.iteration}/{state.iterations} loss {loss:.6g} (checkpoint)"
             )
 
-    torch.manual_seed(r.seed)
     learn_R = any(p.requires_grad for p in model.measurement.parameters())
     try:
         fit = fit_measurement_only(
