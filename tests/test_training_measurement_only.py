@@ -66,10 +66,10 @@ iterations = 4
 """
 
 
-def _strip_states(root: Path) -> None:
-    """Remove every state value of the training split: drop the columns, or write NaN."""
+def _strip_states(root: Path, split: str = "train") -> None:
+    """Remove every state value of a split: drop the columns, or write NaN (the second file)."""
     man = json.loads((root / "manifest.json").read_text())
-    train = [r["file"] for r in man["recordings"] if r["split"] == "train"]
+    train = [r["file"] for r in man["recordings"] if r["split"] == split]
     for k, name in enumerate(train):
         p = root / name
         with p.open() as fh:
@@ -363,9 +363,11 @@ def _add_input(src: Path, dst: Path) -> Path:
 
 
 def test_likelihood_method_with_inputs(tmp_path, data):
-    """``method = "likelihood"`` (windows, Adam) on a dataset with an input channel: the
-    transition takes ``[x; u]``, the fit raises the likelihood, the bundle filters."""
+    """``method = "likelihood"`` (windows, Adam) on a dataset with an input channel and no
+    states in the validation split either: the transition takes ``[x; u]``, the fit raises the
+    likelihood, the state-based validation figures are skipped, the bundle filters."""
     with_u = _add_input(data, tmp_path / "data_u")
+    _strip_states(with_u, "validation")
     text = (
         RECIPE.replace("m_step_iterations = 5\n", "")
         .replace("iterations = 6", 'method = "likelihood"\noptimizer = "adam"\nlr = 0.002')
@@ -387,5 +389,9 @@ def test_likelihood_method_with_inputs(tmp_path, data):
     assert fit["log_likelihood"] > fit["initial_log_likelihood"]
     lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     assert [r["iteration"] for r in lines if r["stage"] == "transition"] == [1, 2, 3, 4]
+    val = json.loads((tmp_path / "run" / "validation.json").read_text())
+    assert val["one_step"].startswith("skipped") and "transition" not in val
+    assert "nis_mean" in val["filter"]["uncalibrated"]
+    assert "nees_mean" not in val["filter"]["uncalibrated"]
     summary = torchfilt.filter_recordings(bundle, [with_u / "rec_003.csv"], tmp_path / "est")
     assert summary["recordings"][0]["finite"]
