@@ -246,6 +246,15 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
             "filter likelihood)",
         ),
     ),
+    "dataset": (
+        Key(
+            "path",
+            REQUIRED,
+            "the dataset's `manifest.json` or its folder, relative to the recipe file",
+        ),
+    ),
+    "transition": _gp_keys(),
+    "measurement": _gp_keys(),
     "measurement_only": (
         Key(
             "method",
@@ -314,15 +323,6 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
             kind="posint",
         ),
     ),
-    "dataset": (
-        Key(
-            "path",
-            REQUIRED,
-            "the dataset's `manifest.json` or its folder, relative to the recipe file",
-        ),
-    ),
-    "transition": _gp_keys(),
-    "measurement": _gp_keys(),
     "train": (
         Key(
             "checkpoint_every",
