@@ -174,6 +174,15 @@ def _info(args: argparse.Namespace) -> int:
     print(f"  sample time:  {spec.sample_time}")
     print(f"  transition:   {type(spec.model.transition).__name__}")
     print(f"  measurement:  {type(spec.model.measurement).__name__}")
+    mo = spec.info.get("measurement_only")
+    if isinstance(mo, dict):
+        print(
+            f"  learned from: measurements alone (method {mo.get('method')}, known channels "
+            f"{', '.join(map(str, mo.get('known_channels', [])))}, {mo.get('iterations')} "
+            f"iterations, {mo.get('stopped')}; log-likelihood "
+            f"{float(mo.get('initial_log_likelihood', float('nan'))):.6g} -> "
+            f"{float(mo.get('log_likelihood', float('nan'))):.6g})"
+        )
     if spec.info:
         print(json.dumps(spec.info, indent=2, default=str))
     return 0

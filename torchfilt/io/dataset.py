@@ -19,7 +19,8 @@ __all__ = ["MANIFEST_NAME", "Dataset", "load_dataset"]
 
 #: File name of the manifest inside a dataset folder.
 MANIFEST_NAME = "manifest.json"
-#: Splits whose recordings must have finite states and inputs (they are used for training).
+#: Splits whose recordings must have finite states and inputs (they are used for training;
+#: states only when the training reads them: see ``load_dataset(require_finite=)``).
 TRAINING_SPLITS = ("train", "validation")
 
 
@@ -133,6 +134,7 @@ def load_dataset(
     *,
     require_finite: Sequence[str] = ("state", "input"),
     splits: Sequence[str] | None = None,
+    optional: Sequence[str] = (),
 ) -> Dataset:
     """Load a dataset from its manifest file or its folder, validating every recording.
 
@@ -140,6 +142,9 @@ def load_dataset(
         path: ``manifest.json`` or the folder holding it.
         require_finite: roles that may not be NaN in the training and validation splits.
         splits: load only these splits (default: all).
+        optional: roles whose columns may be absent from a recording (read as all-NaN), e.g.
+            ``("state",)`` for a recipe with ``states = "none"`` (learning from measurements
+            alone), which also leaves ``"state"`` out of ``require_finite``.
 
     Returns:
         The dataset.
@@ -157,7 +162,11 @@ def load_dataset(
         if splits is not None and entry.split not in splits:
             continue
         finite = tuple(require_finite) if entry.split in TRAINING_SPLITS else ()
-        recs.append(read_recording(mpath.parent / entry.file, manifest, require_finite=finite))
+        recs.append(
+            read_recording(
+                mpath.parent / entry.file, manifest, require_finite=finite, optional=optional
+            )
+        )
         spl.append(entry.split)
     if splits is not None:
         manifest = Manifest(

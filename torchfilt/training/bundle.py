@@ -45,7 +45,13 @@ from torch import Tensor
 
 from torchfilt.exceptions import BundleError, InputError, TorchfiltWarning
 from torchfilt.io import Channel, atomic_write_bytes
-from torchfilt.models import CalibratedModel, ConditionalModel, StateSpaceModel
+from torchfilt.models import (
+    CalibratedModel,
+    ConditionalModel,
+    InducingTransition,
+    StateSpaceModel,
+    as_conditional,
+)
 from torchfilt.systems import get_system
 
 __all__ = [
@@ -56,6 +62,7 @@ __all__ = [
     "UnverifiedBundleWarning",
     "build_side",
     "check_bundle",
+    "inducing_state",
     "load_bundle",
     "load_model",
     "load_model_spec",
@@ -139,9 +146,77 @@ def nominal_model(spec: dict[str, Any]) -> Any:
     return get_system(str(spec["system"])).nominal_transition(**params)
 
 
+#: The tensors of an ``"inducing"`` transition entry's state (besides ``state_dim``,
+#: ``input_dim`` and ``jitter``): the :class:`~torchfilt.models.InducingTransition` parameters and
+#: buffer, and the process noise ``Q``.
+INDUCING_TENSORS = (
+    "linear",
+    "bias",
+    "inducing_inputs",
+    "inducing_outputs",
+    "log_lengthscale",
+    "log_outputscale",
+    "floor",
+    "Q",
+)
+
+
+def inducing_state(side: ConditionalModel) -> dict[str, Any]:
+    """The plain-data state of an :class:`~torchfilt.models.InducingTransition` side (bare, or
+    with an additive process noise ``Q`` as :func:`~torchfilt.models.as_conditional` wraps it):
+    ``state_dim``, ``input_dim``, ``jitter`` and the tensors of :data:`INDUCING_TENSORS`
+    (detached copies; ``Q (n, n)`` zero if the side has no additive noise). The nominal model is
+    not part of it (the bundle entry names it by its recipe description)."""
+    base = getattr(side, "base", side)
+    if not isinstance(base, InducingTransition):
+        raise InputError(f"side: expected an InducingTransition, got {type(base).__name__}")
+    n = base.out_dim
+    with torch.no_grad():
+        Q = side.noise_cov()
+        Q = torch.zeros(n, n, dtype=base.linear.dtype) if Q is None else Q.detach().clone()
+        out: dict[str, Any] = {
+            "state_dim": n,
+            "input_dim": base.input_dim,
+            "jitter": base.jitter,
+        }
+        for name in INDUCING_TENSORS[:-1]:
+            out[name] = getattr(base, name).detach().clone()
+        out["Q"] = Q
+    return out
+
+
+def _build_inducing(entry: dict[str, Any]) -> ConditionalModel:
+    st = entry["state"]
+    nom = entry.get("nominal")
+    f = InducingTransition(
+        int(st["state_dim"]),
+        st["inducing_inputs"],
+        input_dim=int(st["input_dim"]),
+        linear=st["linear"],
+        bias=st["bias"],
+        lengthscale=st["log_lengthscale"].exp(),
+        outputscale=st["log_outputscale"].exp(),
+        floor=st["floor"],
+        jitter=float(st["jitter"]),
+        nominal=None if nom is None else nominal_model(nom),
+        dtype=st["linear"].dtype,
+    )
+    with torch.no_grad():
+        f.inducing_outputs.copy_(st["inducing_outputs"])
+        f.log_lengthscale.copy_(st["log_lengthscale"])
+        f.log_outputscale.copy_(st["log_outputscale"])
+    f.requires_grad_(False)
+    return as_conditional(f, st["Q"], name="transition", noise_name="Q")
+
+
 def build_side(entry: dict[str, Any], role: str) -> ConditionalModel:
-    """Rebuild one side (``"transition"`` or ``"measurement"``) of a model from its bundle entry."""
+    """Rebuild one side (``"transition"`` or ``"measurement"``) of a model from its bundle entry:
+    a built-in system's (``kind = "system"``), a GP (``"gp"``), or an
+    :class:`~torchfilt.models.InducingTransition` learned from measurements alone
+    (``"inducing"``, transition only; its parameters are frozen)."""
     kind = entry.get("kind")
+    if kind == "inducing" and role == "transition":
+        return _build_inducing(entry)
     if kind == "system":
         model = get_system(str(entry["system"])).model()
         return model.transition if role == "transition" else model.measurement
@@ -151,7 +226,9 @@ def build_side(entry: dict[str, Any], role: str) -> ConditionalModel:
         cls = GPTransition if role == "transition" else GPMeasurement
         pm = entry.get("prior_mean")
         return cls.from_state(entry["state"], prior_mean=None if pm is None else nominal_model(pm))
-    raise BundleError(f"unknown {role} kind {kind!r} (expected 'gp' or 'system')")
+    raise BundleError(
+        f"unknown {role} kind {kind!r} (expected 'gp', 'system' or, for the transition, 'inducing')"
+    )
 
 
 def _payload(bundle: dict[str, Any]) -> bytes:
@@ -272,10 +349,64 @@ def _bad(path: str | Path, where: str, what: str) -> BundleError:
     return BundleError(f"{path}: invalid value in {where}: {what}")
 
 
-def _check_side(entry: Any, role: str, path: str | Path) -> None:
-    if not isinstance(entry, dict) or entry.get("kind") not in ("gp", "system"):
-        raise BundleError(f"{path}: malformed {role} entry (expected kind 'gp' or 'system')")
+def _check_inducing(entry: dict[str, Any], role: str, path: str | Path, n: int) -> None:
+    """Shapes, finiteness and ranges of an ``"inducing"`` entry (``n``: the bundle's states)."""
+    if role != "transition":
+        raise BundleError(f"{path}: malformed {role} entry (kind 'inducing' is a transition)")
+    st = entry.get("state")
+    if not isinstance(st, dict):
+        raise BundleError(f"{path}: malformed {role} entry (no inducing state)")
+    where = f"{role}.state"
+    for key in ("state_dim", "input_dim"):
+        v = st.get(key)
+        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+            raise _bad(path, f"{where}.{key}", f"must be a non-negative integer, got {v!r}")
+    if st["state_dim"] != n:
+        raise _bad(path, f"{where}.state_dim", f"{st['state_dim']} does not match {n} states")
+    jit = st.get("jitter")
+    if isinstance(jit, bool) or not isinstance(jit, int | float) or not 0 <= jit < math.inf:
+        raise _bad(path, f"{where}.jitter", f"must be finite and non-negative, got {jit!r}")
+    D = n + int(st["input_dim"])
+    Z = st.get("inducing_inputs")
+    M = int(Z.shape[0]) if isinstance(Z, Tensor) and Z.dim() == 2 else -1
+    shapes = {
+        "linear": (n, D),
+        "bias": (n,),
+        "inducing_inputs": (M, D),
+        "inducing_outputs": (n, M),
+        "log_lengthscale": (D,),
+        "log_outputscale": (n,),
+        "floor": (n,),
+        "Q": (n, n),
+    }
+    for key, shape in shapes.items():
+        v = st.get(key)
+        if not isinstance(v, Tensor) or not v.is_floating_point():
+            raise _bad(path, f"{where}.{key}", "missing or not a floating tensor")
+        if M < 0 or tuple(v.shape) != shape:
+            raise _bad(path, f"{where}.{key}", f"shape {tuple(v.shape)}, expected {shape}")
+        if not bool(torch.isfinite(v).all()):
+            raise _bad(path, f"{where}.{key}", "not finite")
+    if not bool((st["floor"] >= 0).all()):
+        raise _bad(path, f"{where}.floor", "must be non-negative")
+    Q = st["Q"].double()
+    tol = PRIOR_PSD_RTOL * float(Q.abs().max()) if n else 0.0
+    if n and (float((Q - Q.mT).abs().max()) > tol or float(torch.linalg.eigvalsh(Q).min()) < -tol):
+        raise _bad(path, f"{where}.Q", "not symmetric positive semi-definite")
+    nom = entry.get("nominal")
+    if nom is not None and (not isinstance(nom, dict) or not isinstance(nom.get("system"), str)):
+        raise _bad(path, f"{role}.nominal", "must be a table with 'system' or None")
+
+
+def _check_side(entry: Any, role: str, path: str | Path, n: int = -1) -> None:
+    if not isinstance(entry, dict) or entry.get("kind") not in ("gp", "system", "inducing"):
+        raise BundleError(
+            f"{path}: malformed {role} entry (expected kind 'gp', 'system' or 'inducing')"
+        )
     if entry["kind"] == "system":
+        return
+    if entry["kind"] == "inducing":
+        _check_inducing(entry, role, path, n)
         return
     state = entry.get("state")
     if not isinstance(state, dict) or not isinstance(state.get("state_dict"), dict):
@@ -316,8 +447,6 @@ def check_bundle(b: dict[str, Any], path: str | Path) -> None:
     Raises:
         BundleError: naming the file and the offending entry.
     """
-    for role in ("transition", "measurement"):
-        _check_side(b[role], role, path)
     ch = b["channels"]
     try:
         n = len(ch["states"])
@@ -327,6 +456,8 @@ def check_bundle(b: dict[str, Any], path: str | Path) -> None:
                     raise TypeError
     except (TypeError, KeyError, AttributeError):
         raise BundleError(f"{path}: malformed channels entry") from None
+    for role in ("transition", "measurement"):
+        _check_side(b[role], role, path, n)
     dt = b["sample_time"]
     if isinstance(dt, bool) or not isinstance(dt, int | float) or not math.isfinite(dt) or dt <= 0:
         raise _bad(path, "sample_time", f"must be finite and positive, got {dt!r}")
@@ -412,9 +543,24 @@ def load_model_spec(path: str | Path) -> ModelSpec:
         prior_cov=b["prior"]["cov"],
         source=str(path),
         info={
-            k: b[k]
-            for k in ("schema", "name", "dataset", "calibration", "validation", "recipe", "created")
-            if b.get(k) is not None
+            **{
+                k: b[k]
+                for k in (
+                    "schema",
+                    "name",
+                    "dataset",
+                    "calibration",
+                    "validation",
+                    "recipe",
+                    "created",
+                )
+                if b.get(k) is not None
+            },
+            **(
+                {"measurement_only": b["transition"]["fit"]}
+                if b["transition"].get("kind") == "inducing" and "fit" in b["transition"]
+                else {}
+            ),
         },
         time_column=str(b.get("time_column", "time")),
     )

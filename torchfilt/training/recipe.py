@@ -42,10 +42,12 @@ from torchfilt.exceptions import RecipeError
 __all__ = [
     "CALIBRATE_DEFAULTS",
     "GP_OPTIONS",
+    "MEASUREMENT_ONLY_DEFAULTS",
     "RECIPE_SCHEMA",
     "Key",
     "Recipe",
     "RecipeError",
+    "check_states",
     "load_recipe",
     "recipe_reference",
 ]
@@ -54,6 +56,8 @@ __all__ = [
 KERNELS = ("rbf", "matern52", "matern32", "matern12")
 #: Marks a key without a default (it must be given).
 REQUIRED = "(required)"
+#: Values of the top-level ``states`` key.
+STATES = ("logged", "none")
 
 
 @dataclass(frozen=True)
@@ -66,7 +70,8 @@ class Key:
         default: the default, as the reference shows it.
         meaning: what it does.
         kind: ``"any"`` (checked later, against the dataset or by the fit), ``"bool"``,
-            ``"int"``, ``"posint"`` (an integer >= 1), ``"posfloat"`` (a finite number > 0) or
+            ``"int"``, ``"posint"`` (an integer >= 1), ``"nonnegint"`` (an integer >= 0),
+            ``"posfloat"`` (a finite number > 0) or
             ``"choice"`` (one of ``choices``).
         choices: the allowed strings of a ``"choice"`` key.
     """
@@ -84,6 +89,7 @@ class Key:
             "bool": "`true`, `false`",
             "int": "an integer",
             "posint": "an integer >= 1",
+            "nonnegint": "an integer >= 0",
             "posfloat": "a number > 0",
             "choice": ", ".join(f'`"{c}"`' for c in self.choices),
         }.get(self.kind, "")
@@ -96,14 +102,20 @@ class Key:
             "bool": isinstance(value, bool),
             "int": isinstance(value, int) and not isinstance(value, bool),
             "posint": isinstance(value, int) and not isinstance(value, bool) and value >= 1,
+            "nonnegint": isinstance(value, int) and not isinstance(value, bool) and value >= 0,
             "posfloat": number and math.isfinite(value) and value > 0,
             "choice": value in self.choices,
         }.get(self.kind, True)
         if not ok:
             raise RecipeError(
-                f"{path}: [{where}] {self.name} must be {self.allowed.replace('`', '')}, "
+                f"{_file(path)}[{where}] {self.name} must be {self.allowed.replace('`', '')}, "
                 f"got {value!r}"
             )
+
+
+def _file(path: Path | None) -> str:
+    """The ``"FILE: "`` prefix of a message (none for a recipe built in code)."""
+    return "" if path is None else f"{path}: "
 
 
 def _gp_keys() -> tuple[Key, ...]:
@@ -201,9 +213,30 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
             "seed of every random choice (subsets, initial values, minibatches)",
             kind="int",
         ),
+        Key(
+            "states",
+            '`"logged"`',
+            '`"logged"`: learn from the recordings\' logged states; `"none"`: learn from the '
+            "measurements and inputs alone (the training recordings' state columns are never "
+            "read and may be absent or NaN; the transition is set in `[measurement_only]`, the "
+            '`[measurement]` side must be a known `model = "system:NAME"` (the gauge) and the '
+            '`[filter]` prior `"system:NAME"` or `mean`/`cov_diag`)',
+            kind="choice",
+            choices=STATES,
+        ),
         Key("dataset", REQUIRED, "table: the training data"),
-        Key("transition", REQUIRED, "table: the transition model `x_{k+1} = f(x_k, u_k)`"),
+        Key(
+            "transition",
+            REQUIRED,
+            'table: the transition model `x_{k+1} = f(x_k, u_k)` (with `states = "none"`: '
+            "absent or empty)",
+        ),
         Key("measurement", REQUIRED, "table: the measurement model `y_k = h(x_k)`"),
+        Key(
+            "measurement_only",
+            "(defaults)",
+            'table: with `states = "none"`, the learned transition and how it is fitted',
+        ),
         Key("train", "(defaults)", "table: checkpointing, dtype, threads"),
         Key("filter", "(defaults)", "table: the default filter prior stored in the bundle"),
         Key(
@@ -222,6 +255,74 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
     ),
     "transition": _gp_keys(),
     "measurement": _gp_keys(),
+    "measurement_only": (
+        Key(
+            "method",
+            '`"em"`',
+            '`"em"` (expectation-maximisation with the cubature RTS smoother) or `"likelihood"` '
+            "(the filter's innovation likelihood maximised directly); see "
+            "`torchfilt.fit_measurement_only`",
+            kind="choice",
+            choices=("em", "likelihood"),
+        ),
+        Key("iterations", "`30`", "EM or optimiser iterations", kind="posint"),
+        Key(
+            "inducing",
+            "`16`",
+            "inducing points `M` of the `InducingTransition` (`0`: the linear part alone), "
+            "placed on the states a pilot filter with the nominal (or random-walk) model "
+            "estimates on the training recordings",
+            kind="nonnegint",
+        ),
+        Key(
+            "known_channels",
+            "(all measurement channels)",
+            "measurement channel names whose map is known (the gauge)",
+        ),
+        Key(
+            "nominal",
+            "(none: a random walk)",
+            "a built-in nominal physics model under the learned transition: "
+            '`{system = "NAME", parameter = value, ...}`',
+        ),
+        Key(
+            "process_noise",
+            "(1e-2 x the prior variances)",
+            "initial diagonal of the learned process noise `Q` (scalar or one per state); also "
+            "the initial GP output variance",
+        ),
+        Key(
+            "window",
+            "(whole recordings)",
+            'window length in steps (`"likelihood"` only)',
+            kind="posint",
+        ),
+        Key(
+            "burn_in",
+            "`0`",
+            'uncounted steps at the start of every window (`"likelihood"` only)',
+            kind="nonnegint",
+        ),
+        Key(
+            "optimizer",
+            '`"lbfgs"`',
+            '`"lbfgs"` or `"adam"` (`"likelihood"` only)',
+            kind="choice",
+            choices=("lbfgs", "adam"),
+        ),
+        Key(
+            "lr",
+            "(the optimiser's default)",
+            'learning rate (`"likelihood"` only)',
+            kind="posfloat",
+        ),
+        Key(
+            "m_step_iterations",
+            "`20`",
+            'L-BFGS iterations per M-step (`"em"` only)',
+            kind="posint",
+        ),
+    ),
     "train": (
         Key(
             "checkpoint_every",
@@ -324,6 +425,23 @@ CALIBRATE_DEFAULTS: dict[str, Any] = {
     "gp": "none",
 }
 
+#: Defaults of the ``[measurement_only]`` section (``states = "none"``); ``None``: see
+#: :data:`RECIPE_SCHEMA` (``known_channels``: all; ``process_noise``: 1e-2 x the prior variances;
+#: ``window``, ``lr``: those of :func:`~torchfilt.training.fit_measurement_only`).
+MEASUREMENT_ONLY_DEFAULTS: dict[str, Any] = {
+    "method": "em",
+    "iterations": 30,
+    "inducing": 16,
+    "known_channels": None,
+    "nominal": None,
+    "process_noise": None,
+    "window": None,
+    "burn_in": 0,
+    "optimizer": "lbfgs",
+    "lr": None,
+    "m_step_iterations": 20,
+}
+
 #: Options passed through to ``GPTransition.fit`` / ``GPMeasurement.fit``.
 GP_OPTIONS = frozenset(k.name for k in RECIPE_SCHEMA["transition"] if k.name != "model")
 
@@ -377,6 +495,10 @@ class Recipe:
         description: free text.
         calibrate: the ``[calibrate]`` section with its defaults filled in (see
             :data:`RECIPE_SCHEMA`).
+        states: ``"logged"`` (learn from the logged states) or ``"none"`` (from measurements
+            and inputs alone; see :func:`check_states`).
+        measurement_only: with ``states = "none"``, the ``[measurement_only]`` section with its
+            defaults filled in (:data:`MEASUREMENT_ONLY_DEFAULTS`); empty otherwise.
     """
 
     path: Path | None
@@ -391,10 +513,21 @@ class Recipe:
     filter: dict[str, Any] = field(default_factory=dict)
     description: str = ""
     calibrate: dict[str, Any] = field(default_factory=lambda: dict(CALIBRATE_DEFAULTS))
+    states: str = "logged"
+    measurement_only: dict[str, Any] = field(default_factory=dict)
 
     def resolved(self) -> dict[str, Any]:
-        """The fully resolved configuration (what a run directory records)."""
+        """The fully resolved configuration (what a run directory records). ``states`` and
+        ``measurement_only`` appear only with ``states = "none"``, so the digests of recipes
+        written before the option existed stay the same."""
+        extra: dict[str, Any] = {}
+        if self.states != "logged":
+            extra = {
+                "states": self.states,
+                "measurement_only": copy.deepcopy(self.measurement_only),
+            }
         return {
+            **extra,
             "name": self.name,
             "description": self.description,
             "seed": self.seed,
@@ -419,11 +552,11 @@ def _check_keys(
     table: Any, allowed: set[str] | frozenset[str], where: str, path: Path | None
 ) -> dict[str, Any]:
     if not isinstance(table, dict):
-        raise RecipeError(f"{path}: [{where}] must be a table")
+        raise RecipeError(f"{_file(path)}[{where}] must be a table")
     unknown = sorted(set(table) - set(allowed))
     if unknown:
         raise RecipeError(
-            f"{path}: unknown key(s) {unknown} in [{where}]; allowed: {sorted(allowed)}"
+            f"{_file(path)}unknown key(s) {unknown} in [{where}]; allowed: {sorted(allowed)}"
         )
     return dict(table)
 
@@ -467,12 +600,22 @@ def load_recipe(path: str | Path) -> Recipe:
     every = int(train.get("checkpoint_every", 25))
     threads = None if train.get("threads") is None else int(train["threads"])
     seed = int(d.get("seed", 0))
-    return Recipe(
+    states = str(d.get("states", "logged"))
+    mo = _check_keys(
+        d.get("measurement_only", {}), _allowed("measurement_only"), "measurement_only", path
+    )
+    _check_values(mo, "measurement_only", path)
+    if states == "none":
+        tr = _check_keys(d.get("transition", {}), _allowed("transition"), "transition", path)
+        transition: dict[str, Any] = tr
+    else:
+        transition = _side(d.get("transition"), "transition", path)
+    r = Recipe(
         path=path,
         name=str(d.get("name", path.stem)),
         seed=seed,
         dataset=(path.parent / str(ds["path"])).resolve(),
-        transition=_side(d.get("transition"), "transition", path),
+        transition=transition,
         measurement=_side(d.get("measurement"), "measurement", path),
         checkpoint_every=every,
         dtype=dtype,
@@ -480,7 +623,120 @@ def load_recipe(path: str | Path) -> Recipe:
         filter=filt,
         description=str(d.get("description", "")),
         calibrate=_calibrate(d.get("calibrate", {}), path),
+        states=states,
+        measurement_only=mo,
     )
+    try:
+        check_states(r)
+    except RecipeError as e:
+        raise RecipeError(f"{path}: {e}") from None
+    return r
+
+
+def check_states(r: Recipe) -> None:
+    """Check the ``states`` option against the rest of a recipe and, with ``states = "none"``,
+    validate ``[measurement_only]`` and fill in its defaults (in place; idempotent). Runs when a
+    recipe is loaded and again when a :class:`Recipe` built in code is trained.
+
+    With ``states = "none"`` there are no logged states to fit GPs on, so: ``[transition]`` must
+    be empty (the transition is the ``InducingTransition`` of ``[measurement_only]``), the
+    ``[measurement]`` side must be a known ``model = "system:NAME"`` (the gauge: it pins the state
+    coordinates), the ``[filter]`` prior cannot be ``"data"``, and ``[calibrate] gp`` must be
+    ``"none"``.
+
+    Raises:
+        RecipeError: naming the table and key (without the file; the callers add it).
+    """
+    if r.states not in STATES:
+        raise RecipeError(f'states must be "logged" or "none", got {r.states!r}')
+    if r.states == "logged":
+        if r.measurement_only:
+            raise RecipeError(
+                '[measurement_only] applies only with states = "none" (learning from '
+                'measurements alone); remove the table or set states = "none"'
+            )
+        return
+    if r.transition:
+        raise RecipeError(
+            f'[transition] {sorted(r.transition)}: with states = "none" there are no logged '
+            "states to fit a GP transition on; the transition is the InducingTransition of "
+            "[measurement_only] (method, iterations, inducing, nominal, ...): remove these keys"
+        )
+    if "model" not in r.measurement:
+        raise RecipeError(
+            '[measurement]: with states = "none" the measurement model must be known: give '
+            '[measurement] model = "system:NAME". A learned measurement GP has no training '
+            "targets without logged states, and a known sensor model is the gauge that pins the "
+            "state coordinates (without it every change of coordinates x -> T x fits equally well)"
+        )
+    f = r.filter
+    prior = str(f.get("prior", "data"))
+    if "mean" not in f and "cov_diag" not in f and not prior.startswith("system:"):
+        raise RecipeError(
+            f'[filter] prior = "{prior}": the prior "data" is the mean and covariance of the '
+            'logged initial states, which states = "none" does not have; give prior = '
+            '"system:NAME" or an explicit mean and cov_diag'
+        )
+    if r.calibrate.get("gp", "none") != "none":
+        raise RecipeError(
+            f'[calibrate] gp = "{r.calibrate["gp"]}" refits the hyperparameters of exact GP '
+            'sides; the states = "none" transition is an InducingTransition fitted by '
+            '[measurement_only]: use gp = "none"'
+        )
+    mo = _check_keys(r.measurement_only, _allowed("measurement_only"), "measurement_only", None)
+    _check_values({k: v for k, v in mo.items() if v is not None}, "measurement_only", None)
+    out = {**MEASUREMENT_ONLY_DEFAULTS, **mo}
+    if out["method"] == "em":
+        wrong = [
+            k
+            for k in ("window", "burn_in", "optimizer", "lr")
+            if out[k] != MEASUREMENT_ONLY_DEFAULTS[k]
+        ]
+        other = "likelihood"
+    else:
+        wrong = [k for k in ("m_step_iterations",) if out[k] != MEASUREMENT_ONLY_DEFAULTS[k]]
+        other = "em"
+    if wrong:
+        raise RecipeError(
+            f'[measurement_only] {wrong}: not an option of method = "{out["method"]}" (they '
+            f'belong to method = "{other}"); remove them or change the method'
+        )
+    kc = out["known_channels"]
+    if kc is not None and (
+        not isinstance(kc, list)
+        or not kc
+        or not all(isinstance(c, str) and c for c in kc)
+        or len(set(kc)) != len(kc)
+    ):
+        raise RecipeError(
+            "[measurement_only] known_channels must be a non-empty list of distinct measurement "
+            f"channel names, got {kc!r}"
+        )
+    nom = out["nominal"]
+    if nom is not None and (not isinstance(nom, dict) or "system" not in nom):
+        raise RecipeError(
+            "[measurement_only] nominal must be a table with 'system' (and parameters), "
+            f"got {nom!r}"
+        )
+    pn = out["process_noise"]
+    if pn is not None:
+        vals = pn if isinstance(pn, list) else [pn]
+        if not vals or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+            for v in vals
+        ):
+            raise RecipeError(
+                "[measurement_only] process_noise must be a number > 0 or a list of them (one "
+                f"per state), got {pn!r}"
+            )
+    if out["window"] is not None and not 0 <= out["burn_in"] < out["window"]:
+        raise RecipeError(
+            f"[measurement_only] burn_in must be an integer in [0, window), got {out['burn_in']!r}"
+        )
+    if out["lr"] is not None:
+        out["lr"] = float(out["lr"])
+    r.measurement_only.clear()
+    r.measurement_only.update(out)
 
 
 def _calibrate(table: Any, path: Path | None) -> dict[str, Any]:

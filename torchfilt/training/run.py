@@ -10,15 +10,22 @@ A run directory holds:
 - ``train.log``: plain progress lines;
 - ``calibration.pt`` once the calibration stage is done (``calibrate.ckpt`` while it runs): the
   variance scales and noise floors fitted by the filter likelihood (``[calibrate]`` in the recipe);
-- ``validation.json``: one-step RMSE, NLPD and 95% coverage on the validation recordings, and the
-  filter's consistency there (NIS; NEES and 95% coverage where states are logged) before and
-  after calibration;
+- ``validation.json``: one-step RMSE, NLPD and 95% coverage on the validation recordings (where
+  they log states), and the filter's consistency there (NIS; NEES and 95% coverage where states
+  are logged) before and after calibration;
 - ``model.pt``: the final model bundle.
 
 The recipe, the dataset and the recipe's channel names are checked before anything is written,
 and a run that fails on an invalid option before any stage is trained removes the files it wrote,
 so the next attempt is not blocked. ``force=True`` (``--force``) discards a run already in the
 directory (its files above, nothing else) and starts afresh.
+
+With ``states = "none"`` (learning from measurements alone) the ``transition`` stage builds an
+:class:`~torchfilt.models.InducingTransition` (its inducing inputs spread over the states a pilot
+CKF with the nominal or random-walk model estimates on the training recordings) and fits it with
+:func:`~torchfilt.training.fit_measurement_only` on the training measurements and inputs, the
+known ``[measurement]`` system being the gauge; the fit checkpoints into ``transition.ckpt``.
+The state columns of the training recordings are never read.
 
 A run killed at any moment resumes from its last checkpoint with ``resume=True`` (``torchfilt train
 ... --resume``) and reaches the same model as an uninterrupted run with the same seed.
@@ -39,21 +46,24 @@ from torch import Tensor
 
 from torchfilt._version import __version__
 from torchfilt.exceptions import DataError, InputError, RecipeError, RunError
+from torchfilt.filters import CKF
 from torchfilt.io import Dataset, atomic_write_bytes, atomic_write_text, load_dataset
 from torchfilt.io.atomic import output_dir, output_error
 from torchfilt.io.recording import Recording
-from torchfilt.models import StateSpaceModel
+from torchfilt.models import CholeskyCovariance, InducingTransition, StateSpaceModel
 from torchfilt.systems import get_system
 from torchfilt.training.bundle import (
     BUNDLE_SCHEMA,
     apply_calibration,
     build_side,
+    inducing_state,
     nominal_model,
     save_bundle,
 )
 from torchfilt.training.calibrate import calibrate, consistency
+from torchfilt.training.measurement_only import fit_measurement_only
 from torchfilt.training.progress import ProgressBar
-from torchfilt.training.recipe import Recipe, load_recipe
+from torchfilt.training.recipe import Recipe, check_states, load_recipe
 from torchfilt.training.validation import one_step_metrics
 
 __all__ = ["RunError", "train_recipe"]
@@ -61,6 +71,8 @@ __all__ = ["RunError", "train_recipe"]
 STAGES = ("transition", "measurement")
 #: The calibration stage's checkpoint in a run directory.
 CALIBRATE_CHECKPOINT = "calibrate.ckpt"
+#: The checkpoint of a ``states = "none"`` transition fit (``fit_measurement_only``'s own).
+MEASUREMENT_ONLY_CHECKPOINT = "transition.ckpt"
 #: The files a run writes into its directory (``force`` removes these, and only these).
 RUN_FILES = (
     "config.json",
@@ -74,6 +86,7 @@ RUN_FILES = (
     "model.pt",
     "calibration.pt",
     CALIBRATE_CHECKPOINT,
+    MEASUREMENT_ONLY_CHECKPOINT,
 )
 #: A directory holding any of these holds a run (``resume`` continues it, ``force`` discards it).
 _RUN_MARKERS = (
@@ -83,6 +96,7 @@ _RUN_MARKERS = (
     "measurement.pt",
     "calibration.pt",
     CALIBRATE_CHECKPOINT,
+    MEASUREMENT_ONLY_CHECKPOINT,
     "model.pt",
 )
 
@@ -211,7 +225,15 @@ def train_recipe(
     if resume and force:
         raise InputError("--resume continues the run in --out and --force discards it: pick one")
     r = recipe if isinstance(recipe, Recipe) else load_recipe(recipe)
-    ds: Dataset = load_dataset(r.dataset)
+    try:
+        check_states(r)  # again for a Recipe built in code
+    except RecipeError as e:
+        raise RecipeError(str(e) if r.path is None else f"{r.path}: {e}") from None
+    # states = "none": the state columns are never read for training (absent or NaN is fine)
+    if r.states == "none":
+        ds: Dataset = load_dataset(r.dataset, require_finite=("input",), optional=("state",))
+    else:
+        ds = load_dataset(r.dataset)
     prior = _check_against_dataset(r, ds)
     out = Path(out)
     stream = stream if stream is not None else sys.stderr
@@ -297,6 +319,9 @@ def _check_channels(r: Recipe, ds: Dataset) -> tuple[Tensor, Tensor, str]:
     if not train:
         raise DataError("the dataset has no training recordings", path=ds.manifest_path)
     states, inputs = ds.manifest.names("state"), ds.manifest.names("input")
+    if r.states == "none":
+        _check_measurement_only(r, ds)
+        return _prior(r, train, len(states))
     for stage in STAGES:
         opts = getattr(r, stage)
         if "model" in opts:
@@ -311,6 +336,64 @@ def _check_channels(r: Recipe, ds: Dataset) -> tuple[Tensor, Tensor, str]:
         if opts.get("prior_mean") is not None:
             nominal_model(opts["prior_mean"])
     return _prior(r, train, len(states))
+
+
+def _known_channels(r: Recipe, ds: Dataset) -> list[int]:
+    """``[measurement_only] known_channels`` as measurement indices (default: all)."""
+    names = ds.manifest.names("measurement")
+    kc = r.measurement_only.get("known_channels")
+    if kc is None:
+        return list(range(len(names)))
+    unknown = [c for c in kc if c not in names]
+    if unknown:
+        raise RecipeError(
+            f"[measurement_only] known_channels: unknown measurement channel(s) {unknown}; the "
+            f"measurement channels are {names}"
+        )
+    return [names.index(c) for c in kc]
+
+
+def _check_measurement_only(r: Recipe, ds: Dataset) -> None:
+    """``states = "none"`` against the dataset: the measurement system fits its channels, the
+    known channels exist, the nominal model maps the states, ``process_noise`` has one value per
+    state."""
+    n, nu, m = ds.state_dim, ds.input_dim, ds.obs_dim
+    name = str(r.measurement["model"]).split(":", 1)[1]
+    try:
+        spec = get_system(name)
+    except InputError as e:
+        raise RecipeError(f"[measurement] model: {e}") from None
+    if len(spec.states) != n or len(spec.measurements) != m:
+        raise RecipeError(
+            f'[measurement] model = "system:{name}" maps {len(spec.states)} states to '
+            f"{len(spec.measurements)} measurements, but the dataset declares {n} state and {m} "
+            "measurement channels"
+        )
+    _known_channels(r, ds)
+    o = r.measurement_only
+    if o["nominal"] is not None:
+        try:
+            g = nominal_model(o["nominal"])
+        except (InputError, TypeError, ValueError) as e:
+            raise RecipeError(f"[measurement_only] nominal: {e}") from None
+        u = torch.zeros(1, nu, dtype=torch.float64) if nu else None
+        try:
+            out = g(torch.zeros(1, n, dtype=torch.float64), u)
+        except Exception as e:
+            raise RecipeError(
+                f"[measurement_only] nominal {o['nominal']!r} does not map the dataset's {n} "
+                f"states ({type(e).__name__}: {e})"
+            ) from None
+        if tuple(out.shape) != (1, n):
+            raise RecipeError(
+                f"[measurement_only] nominal {o['nominal']!r} maps {n} states to shape "
+                f"{tuple(out.shape)[1:]}, expected ({n},)"
+            )
+    pn = o["process_noise"]
+    if isinstance(pn, list) and len(pn) not in (1, n):
+        raise RecipeError(
+            f"[measurement_only] process_noise: {len(pn)} values for {n} states {ds.manifest.names('state')}"
+        )
 
 
 def _run(
@@ -371,10 +454,28 @@ def _run_recipe(
     metrics_path = out / "metrics.jsonl"
     _trim_metrics(metrics_path, ckpt if resume else None, fresh=not resume)
 
+    m0, P0, how = prior
     entries: dict[str, dict[str, Any]] = {}
     for stage in STAGES:
         opts = dict(getattr(r, stage))
         done = out / f"{stage}.pt"
+        if stage == "transition" and r.states == "none":
+            if resume and done.is_file():
+                entries[stage] = _load_stage(done)
+                log(f"{stage}: already trained (resumed)")
+                continue
+            h0 = build_side(
+                {"kind": "system", "system": str(r.measurement["model"]).split(":", 1)[1]},
+                "measurement",
+            )
+            entries[stage] = _fit_measurement_only_stage(
+                r, ds, h0, train, m0, P0, dtype, out, resume, progress, stream, log
+            )
+            _save(done, entries[stage])
+            mo_ckpt = out / MEASUREMENT_ONLY_CHECKPOINT
+            if mo_ckpt.exists():
+                mo_ckpt.unlink()
+            continue
         if "model" in opts:
             entries[stage] = {"kind": "system", "system": str(opts["model"]).split(":", 1)[1]}
             log(f"{stage}: built-in model {opts['model']}")
@@ -390,7 +491,6 @@ def _run_recipe(
 
     f = build_side(entries["transition"], "transition")
     h = build_side(entries["measurement"], "measurement")
-    m0, P0, how = prior
     calibration = _calibrate_stage(
         r,
         entries,
@@ -413,7 +513,12 @@ def _run_recipe(
             entries[stage] = {**entries[stage], "state": state}
         f = build_side(entries["transition"], "transition")
         h = build_side(entries["measurement"], "measurement")
-    validation = one_step_metrics(f, h, val) if val else {}
+    # one-step metrics need logged states: computed where every validation recording has them
+    # (with states = "none" they are evaluation only, in the learned state coordinates)
+    with_states = bool(val) and all(bool(torch.isfinite(rec.states).all()) for rec in val)
+    validation = one_step_metrics(f, h, val) if with_states else {}
+    if val and not with_states:
+        validation["one_step"] = "skipped: the validation recordings do not all log the states"
     if val:
         validation["filter"] = {"uncalibrated": consistency(uncal, val, x0=m0, P0=P0)}
         if calibration is not None:
@@ -430,7 +535,7 @@ def _run_recipe(
     atomic_write_text(
         out / "validation.json", json.dumps(validation, indent=2, default=float) + "\n"
     )
-    if validation:
+    if "transition" in validation:
         log(
             f"validation one-step RMSE: transition {_fmt(validation['transition']['rmse'])}, "
             f"measurement {_fmt(validation['measurement']['rmse'])}; 95% coverage: transition "
@@ -515,6 +620,10 @@ def _trim_metrics(path: Path, ckpt: dict[str, Any] | None, fresh: bool) -> None:
     cal_done = (path.parent / "calibration.pt").is_file()
     cal_ckpt = path.parent / CALIBRATE_CHECKPOINT
     cal_it = _checkpoint_iteration(cal_ckpt) if cal_ckpt.is_file() else 0
+    # a states = "none" transition fit keeps its own checkpoint (fit_measurement_only's)
+    mo_ckpt = path.parent / MEASUREMENT_ONLY_CHECKPOINT
+    mo_open = mo_ckpt.is_file() and not (path.parent / "transition.pt").is_file()
+    mo_it = _checkpoint_iteration(mo_ckpt) if mo_open else 0
     lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
     for i, line in enumerate(lines):
         try:
@@ -530,6 +639,10 @@ def _trim_metrics(path: Path, ckpt: dict[str, Any] | None, fresh: bool) -> None:
             ) from None
         if rec.get("stage") == "calibrate":
             if cal_done or rec["iteration"] <= cal_it:
+                keep.append(line)
+            continue
+        if mo_open and rec.get("stage") == "transition":
+            if rec["iteration"] <= mo_it:
                 keep.append(line)
             continue
         if ckpt is None:
@@ -626,6 +739,168 @@ def _fit_stage(
     return {"kind": "gp", "state": model.to_state(), "prior_mean": pm}
 
 
+def _measurement_only_model(
+    r: Recipe,
+    h: Any,
+    train: list[Recording],
+    n: int,
+    nu: int,
+    m0: Tensor,
+    P0: Tensor,
+    dtype: torch.dtype,
+) -> StateSpaceModel:
+    """The initial model of a ``states = "none"`` fit: an :class:`InducingTransition` on the
+    nominal model (or a random walk), its inducing inputs spread over the filtered states of a
+    pilot CKF with that model on the training recordings, its lengthscales their spread; a
+    learnable process noise ``Q`` (``process_noise``, default 1e-2 x the prior variances)."""
+    o = r.measurement_only
+    g = None if o["nominal"] is None else nominal_model(o["nominal"])
+    pn = o["process_noise"]
+    if pn is None:
+        q0 = 1e-2 * P0.diagonal().to(dtype)
+    else:
+        q0 = torch.as_tensor(pn, dtype=dtype).expand(n).clone()
+    pilot = StateSpaceModel(
+        InducingTransition(n, 0, input_dim=nu, nominal=g, dtype=dtype), h, Q=torch.diag(q0)
+    )
+    xs, us = [], []
+    with torch.no_grad():
+        for rec in train:
+            y = rec.measurements[1:].to(dtype)
+            u = None if not nu else rec.inputs[:-1].to(dtype)  # type: ignore[index]
+            res = CKF(pilot).filter(y, u, x0=m0.to(dtype), P0=P0.to(dtype))
+            xs.append(res.mean)
+            us.append(u)
+    X = torch.cat(xs)
+    U = torch.cat(us) if nu else None  # type: ignore[arg-type]
+    ok = torch.isfinite(X).all(-1)
+    X, U = X[ok], None if U is None else U[ok]
+    cloud = X if U is None else torch.cat([X, U], -1)
+    M = int(o["inducing"])
+    if cloud.shape[0] < max(M, 2):
+        raise RunError(
+            f"[measurement_only] inducing = {M}: the pilot filter estimated only "
+            f"{cloud.shape[0]} finite states on the training recordings; use fewer inducing "
+            "points, more data, or a [filter] prior and nominal model closer to the data"
+        )
+    spread = cloud.std(0)
+    ls = torch.where(spread > 1e-6, spread, torch.ones_like(spread))
+    f = InducingTransition(
+        n, M, input_dim=nu, nominal=g, lengthscale=ls, outputscale=q0, dtype=dtype
+    )
+    f.init_inducing(X, U)
+    return StateSpaceModel(f, h, Q=CholeskyCovariance(torch.diag(q0)))
+
+
+def _fit_measurement_only_stage(
+    r: Recipe,
+    ds: Dataset,
+    h: Any,
+    train: list[Recording],
+    m0: Tensor,
+    P0: Tensor,
+    dtype: torch.dtype,
+    out: Path,
+    resume: bool,
+    progress: bool,
+    stream: TextIO,
+    log: _Log,
+) -> dict[str, Any]:
+    """The ``states = "none"`` transition stage: :func:`fit_measurement_only` on the training
+    recordings' measurements and inputs; returns the ``"inducing"`` bundle entry."""
+    o = r.measurement_only
+    n, nu = ds.state_dim, ds.input_dim
+    known = _known_channels(r, ds)
+    model = _measurement_only_model(r, h, train, n, nu, m0, P0, dtype)
+    ys = [rec.measurements[1:].to(dtype) for rec in train]
+    us = [rec.inputs[:-1].to(dtype) for rec in train] if nu else None  # type: ignore[index]
+    counted = max(1, sum(int(torch.isfinite(y).sum()) for y in ys))
+    iterations = int(o["iterations"])
+    ckpt = out / MEASUREMENT_ONLY_CHECKPOINT
+    if resume and ckpt.is_file():
+        log(f"transition: resuming from iteration {_checkpoint_iteration(ckpt)}")
+    log(
+        f"transition: learning from measurements alone ({o['method']}, {model.transition.base.num_inducing} "  # type: ignore[union-attr]
+        f"inducing points, known channels {[ds.manifest.names('measurement')[i] for i in known]})"
+    )
+    bar = ProgressBar("train transition", iterations, stream, enabled=progress)
+    every = r.checkpoint_every
+    try:
+        metrics = open(out / "metrics.jsonl", "a", encoding="utf-8")
+    except OSError as e:
+        raise output_error(out / "metrics.jsonl", e) from None
+
+    def callback(state: Any) -> None:
+        ll = float(state.log_likelihood)
+        loss = float(getattr(state, "loss", -ll / counted))
+        metrics.write(
+            json.dumps(
+                {
+                    "stage": "transition",
+                    "iteration": state.iteration,
+                    "loss": loss,
+                    "log_likelihood": ll,
+                    "elapsed": state.elapsed,
+                }
+            )
+            + "\n"
+        )
+        metrics.flush()
+        bar.update(state.iteration, f"loss {loss:.4g}")
+        if state.iteration % every == 0 or state.iteration == state.iterations:
+            log(
+                f"transition: iteration {state.iteration}/{state.iterations} loss {loss:.6g} (checkpoint)"
+            )
+
+    learn_R = any(p.requires_grad for p in model.measurement.parameters())
+    try:
+        fit = fit_measurement_only(
+            model,
+            ys,
+            us,
+            x0=m0.to(dtype),
+            P0=P0.to(dtype),
+            known_channels=known,
+            method=o["method"],
+            iterations=iterations,
+            window=o["window"],
+            burn_in=int(o["burn_in"]),
+            optimizer=o["optimizer"],
+            lr=o["lr"],
+            learn_measurement_noise=learn_R,
+            m_step_iterations=int(o["m_step_iterations"]),
+            callback=callback,
+            progress=False,
+            dtype=dtype,
+            checkpoint=ckpt,
+            checkpoint_every=every,
+            resume=resume,
+        )
+    finally:
+        metrics.close()
+    names = ds.manifest.names("measurement")
+    info = {
+        "method": fit.method,
+        "known_channels": [names[i] for i in fit.known_channels],
+        "iterations": fit.iterations,
+        "stopped": fit.stopped,
+        "log_likelihood": fit.log_likelihood,
+        "initial_log_likelihood": fit.detail.initial_log_likelihood,
+        "per_measurement": fit.per_measurement,
+        "options": dict(o),
+    }
+    log(
+        f"transition: {fit.stopped} after {fit.iterations} iterations; log-likelihood "
+        f"{info['initial_log_likelihood']:.6g} -> {fit.log_likelihood:.6g}"
+    )
+    return {
+        "kind": "inducing",
+        "nominal": o["nominal"],
+        "state": inducing_state(fit.model.transition),
+        "fit": info,
+    }
+
+
 def _checkpoint_iteration(path: Path) -> int:
     try:
         ck = torch.load(path, map_location="cpu", weights_only=True)
@@ -654,7 +929,7 @@ def _calibrate_stage(
     if not c["enabled"]:
         log("calibrate: off ([calibrate] enabled = false)")
         return None
-    learned = [s for s in STAGES if entries[s].get("kind") == "gp"]
+    learned = [s for s in STAGES if entries[s].get("kind") in ("gp", "inducing")]
     sides = learned if c["sides"] == "learned" else list(c["sides"])
     if not sides:
         log("calibrate: no learned side to calibrate; skipped")
