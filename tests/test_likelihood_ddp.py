@@ -5,12 +5,10 @@ as one process with all of them."""
 from __future__ import annotations
 
 import ddp_support
-import pytest
 import torch
 import torch.multiprocessing as mp
 
 import torchfilt
-from torchfilt.exceptions import InputError
 
 
 def test_two_processes_fit_like_one(tmp_path):
@@ -58,7 +56,3 @@ def test_measurement_only_likelihood_fit_in_two_processes(tmp_path):
     for r in ranks:
         assert torch.allclose(r["values"], want, rtol=1e-8, atol=0), (r["values"], want)
     assert not torch.allclose(want, torch.ones(2, dtype=torch.float64), rtol=1e-2)
-    with pytest.raises(InputError, match="all_reduce"):
-        torchfilt.fit_measurement_only(
-            model, y, known_channels=[0], method="em", all_reduce=lambda t: None, **kw
-        )
