@@ -154,3 +154,40 @@ def test_em_on_two_actors_survives_a_lost_actor(ray_local, tmp_path):
     ll = [h["log_likelihood"] for h in res.history]
     assert ll == pytest.approx([h["log_likelihood"] for h in local.history], rel=1e-10)
     assert local.log_likelihood > local.detail.initial_log_likelihood + 10  # the fit moved
+
+
+def _sleep_on_rank_1(state) -> None:
+    """A callback that makes rank 1 miss the next collective (a hung worker)."""
+    import time
+
+    import torch.distributed
+
+    if torch.distributed.get_rank() == 1 and state.iteration == 2:
+        time.sleep(120)
+
+
+@pytest.mark.slow
+def test_hung_actor_fails_after_the_timeout_and_a_foreign_checkpoint_is_refused(
+    ray_local, tmp_path
+):
+    """A rank that does not reach a collective: a WorkerError naming it once the others have
+    waited ``timeout`` seconds; a rank's own TorchfiltError (checkpoints of another fit) is
+    raised as it is."""
+    import time
+
+    import ddp_support
+
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    y = ddp_support.em_data(ddp_support.EM_LENGTHS)
+    kw = dict(ddp_support.EM_KW, method="em", iterations=4, workers=2, checkpoint=tmp_path / "ck")
+    t0 = time.perf_counter()
+    with pytest.raises(
+        WorkerError, match=r"rank 1 of 2 did not reach a collective within timeout=3 s"
+    ):
+        fit_measurement_only_ray(
+            ddp_support.em_linear(), Sequences(y), callback=_sleep_on_rank_1, timeout=3.0, **kw
+        )
+    assert time.perf_counter() - t0 < 60
+    with pytest.raises(torchfilt.RunError, match="another fit") as info:
+        fit_measurement_only_ray(ddp_support.em_linear(), Sequences(y[:3]), resume=True, **kw)
+    assert not isinstance(info.value, WorkerError)

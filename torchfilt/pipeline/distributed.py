@@ -822,10 +822,10 @@ def _run_group(
 
     The driver waits for the actors one at a time: at the first failure it gives the others a
     few seconds to report theirs (an actor whose peer died fails in its next collective, or after
-    ``timeout``), stops them all, and raises: the first actor's own
+    ``timeout``), stops them all, and raises: an actor's own
     :class:`~torchfilt.exceptions.TorchfiltError` if one raised one (a bad argument, a
     checkpoint of another fit), else a :class:`~torchfilt.exceptions.WorkerError` naming the
-    lost rank."""
+    rank that died, or the one still running when the others had given up waiting for it."""
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise InputError(f"workers must be a positive integer, got {workers!r}")
     timeout = _check_timeout(timeout)
@@ -870,7 +870,8 @@ def _run_group(
             for a in ranks:
                 ray.kill(a)
     if errors:
-        raise _group_error(ray, caller, errors, workers, job["checkpoint"])
+        stuck = sorted(rank_of[r] for r in pending)
+        raise _group_error(ray, caller, errors, stuck, workers, job["checkpoint"], timeout)
     return outs[0]["result"]
 
 
@@ -889,22 +890,36 @@ def _collect(
 
 
 def _group_error(
-    ray: Any, caller: str, errors: dict[int, BaseException], world: int, checkpoint: str | None
+    ray: Any,
+    caller: str,
+    errors: dict[int, BaseException],
+    stuck: list[int],
+    world: int,
+    checkpoint: str | None,
+    timeout: float,
 ) -> TorchfiltError:
-    """The error a failed data-parallel job raises (see :func:`_run_group`)."""
-    for rank in sorted(errors):
-        cause = getattr(errors[rank], "cause", None)
-        if isinstance(cause, TorchfiltError) and not isinstance(cause, WorkerError):
-            return cause
+    """The error a failed data-parallel job raises (see :func:`_run_group`): a rank's own
+    TorchfiltError, else a WorkerError naming the rank that died, else the one still running
+    when the others had failed (it did not reach a collective in time), else the one that
+    failed."""
+    causes = [getattr(errors[r], "cause", None) for r in sorted(errors)]
+    own = [c for c in causes if isinstance(c, TorchfiltError)]
+    # a rank's own error before one that only says another rank failed (``peer``)
+    own.sort(key=lambda c: bool(getattr(c, "peer", False)))
+    if own:
+        return own[0]
     died = [r for r in sorted(errors) if isinstance(errors[r], ray.exceptions.RayActorError)]
     if died:
         what = f"rank {died[0]} of {world} was lost (its Ray actor died: process killed or exited)"
+    elif stuck:
+        first = min(errors)
+        what = (
+            f"rank {stuck[0]} of {world} did not reach a collective within timeout={timeout:g} s "
+            f"(rank {first} stopped waiting: {_cause_line(errors[first])})"
+        )
     else:
         rank = min(errors)
-        what = (
-            f"rank {rank} of {world} failed ({_one_line(errors[rank])}); a worker died or did "
-            "not reach a collective within the timeout"
-        )
+        what = f"rank {rank} of {world} failed ({_cause_line(errors[rank])})"
     if checkpoint is None:
         hint = (
             "no checkpoints were kept, so the fit must start again; pass checkpoint=DIR to be "
@@ -916,6 +931,14 @@ def _group_error(
             f"{checkpoint} (every rank restarts from the latest iteration all of them saved)"
         )
     return WorkerError(f"{caller}: {what}; the other ranks were stopped; {hint}")
+
+
+def _cause_line(e: BaseException) -> str:
+    """An actor's exception in one short line: the original one Ray wraps, if any."""
+    cause = getattr(e, "cause", None)
+    err = cause if isinstance(cause, BaseException) else e
+    text = " ".join(str(err).split())
+    return f"{type(err).__name__}: {text[:200]}"
 
 
 def fit_measurement_only_ray(

@@ -769,10 +769,14 @@ def _resume_checkpoint(
     all_reduce(flat)
     world, total, errors = (float(v) for v in flat)
     if errors > 0:
-        raise error or RunError(
+        if error is not None:
+            raise error
+        peer = RunError(
             f"{path}: another process of this data-parallel fit cannot use its checkpoint (its "
             "own error says why); delete the checkpoints of all processes to start again"
         )
+        peer.peer = True  # type: ignore[attr-defined]  # a launcher reports the other's first
+        raise peer
     if it * world > total and ck is not None:  # ahead of another process
         ck = ck.get("previous")
     it = 0 if ck is None else int(ck["iteration"])
