@@ -52,7 +52,10 @@ def worker(rank: int, world: int, init: str, out: str, measurement_only: bool = 
             fit = torchfilt.fit_likelihood(model, y[rank::world], **OPTIONS, **kw)
         with torch.no_grad():
             values = torch.stack([Q().reshape(()), R().reshape(())])
-        result = {
+        result: dict[str, object] = {}
+        if not measurement_only:
+            result["resumed"] = _resume_apart(rank, world, y, Path(out), kw)
+        result |= {
             "values": values,
             "loss": torch.tensor([h["loss"] for h in fit.history]),
             "log_likelihood": fit.log_likelihood,
@@ -61,6 +64,33 @@ def worker(rank: int, world: int, init: str, out: str, measurement_only: bool = 
         torch.save(result, Path(out) / f"rank{rank}.pt")
     finally:
         dist.destroy_process_group()
+
+
+def _resume_apart(rank: int, world: int, y: torch.Tensor, out: Path, kw: dict) -> torch.Tensor:
+    """The likelihood fit resumed from checkpoints one checkpoint apart (rank 0 at iteration 10,
+    rank 1 at 5, as after rank 1 was lost between the two saves): its final Q and R."""
+    import shutil
+
+    a, b = out / "lik_a", out / "lik_b"
+    a.mkdir(exist_ok=True)
+    b.mkdir(exist_ok=True)
+    opts = dict(OPTIONS, checkpoint_every=5)
+
+    def fit(iterations: int, path: Path) -> torch.Tensor:
+        model, _, (Q, R) = problem()
+        opts["iterations"] = iterations
+        torchfilt.fit_likelihood(model, y[rank::world], checkpoint=path, resume=True, **opts, **kw)
+        with torch.no_grad():
+            return torch.stack([Q().reshape(()), R().reshape(())])
+
+    fit(5, a / f"rank{rank}.pt")
+    if rank == 1:
+        shutil.copy(a / "rank1.pt", b / "rank1.pt")
+    fit(10, a / f"rank{rank}.pt")
+    if rank == 0:
+        shutil.copy(a / "rank0.pt", b / "rank0.pt")
+    dist.barrier()
+    return fit(int(OPTIONS["iterations"]), b / f"rank{rank}.pt")
 
 
 # ----------------------------------------------------------------------------------- EM
@@ -133,17 +163,21 @@ def em_worker(rank: int, world: int, init: str, out: str) -> None:
         gp = torchfilt.fit_em(
             gp_model, em_data(GP_LENGTHS, seed=4)[rank::world], iterations=3, **GP_KW, **red
         )
-        # checkpoints one iteration apart
-        a, b = Path(out) / "a", Path(out) / "b"
-        a.mkdir(exist_ok=True)
-        b.mkdir(exist_ok=True)
-        ck = dict(checkpoint=a / f"rank{rank}.pt", resume=True)
-        torchfilt.fit_em(em_linear(), y, iterations=2, **EM_KW, **red, **ck)
+        # checkpoints one iteration apart: rank 1's from a fit of 2 iterations, rank 0's from one
+        # of 3 (whose last checkpoint keeps the one of iteration 2 it made itself)
+        a, b, c = Path(out) / "a", Path(out) / "b", Path(out) / "c"
+        for d in (a, b, c):
+            d.mkdir(exist_ok=True)
+        torchfilt.fit_em(
+            em_linear(), y, iterations=2, checkpoint=a / f"rank{rank}.pt", **EM_KW, **red
+        )
+        torchfilt.fit_em(
+            em_linear(), y, iterations=3, checkpoint=c / f"rank{rank}.pt", **EM_KW, **red
+        )
         if rank == 1:
             shutil.copy(a / "rank1.pt", b / "rank1.pt")  # rank 1 "lost" after iteration 2
-        torchfilt.fit_em(em_linear(), y, iterations=3, **EM_KW, **red, **ck)
-        if rank == 0:
-            shutil.copy(a / "rank0.pt", b / "rank0.pt")  # rank 0 saved iteration 3
+        else:
+            shutil.copy(c / "rank0.pt", b / "rank0.pt")  # rank 0 saved iteration 3
         dist.barrier()
         resumed = torchfilt.fit_em(
             em_linear(), y, iterations=6, checkpoint=b / f"rank{rank}.pt", resume=True,

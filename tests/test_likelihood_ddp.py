@@ -34,6 +34,8 @@ def test_two_processes_fit_like_one(tmp_path):
         assert torch.allclose(r["loss"], losses, rtol=1e-10, atol=0)
         assert abs(r["log_likelihood"] - fit.log_likelihood) <= 1e-9 * abs(fit.log_likelihood)
         assert r["measurements"] == fit.measurements
+        # resumed from checkpoints one checkpoint apart: the same fit
+        assert torch.allclose(r["resumed"], want, rtol=1e-9, atol=0), (r["resumed"], want)
     # the fit moved: the test would notice a reduction that did nothing
     assert not torch.allclose(want, torch.ones(2, dtype=torch.float64), rtol=1e-2)
     assert torch.equal(ranks[0]["values"], ranks[1]["values"])

@@ -27,6 +27,7 @@ with the current parameters. ``x0`` may itself be a learnable tensor listed in `
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import math
 import time
@@ -539,7 +540,9 @@ def fit_likelihood(
     ck = None
     if resume:
         ck = _resume_checkpoint(ckpt_path, fingerprint, _CKPT_SCHEMA, "likelihood", all_reduce)
-    saved: dict[str, Any] | None = ck  # the last checkpoint: a data-parallel save keeps it
+    # the last checkpoint, which a data-parallel save keeps (a copy: the optimiser updates the
+    # state tensors it loaded from a checkpoint in place)
+    saved = _kept(ck) if all_reduce is not None else None
     if ck is not None:
         restore(ck["params"])
         opt.load_state_dict(ck["optimizer"])
@@ -634,27 +637,26 @@ def fit_likelihood(
         if all_reduce is not None:  # one process's callback stops them all
             stop = bool(summed(torch.tensor([float(stop)]))[0] > 0)
         if ckpt_path is not None and (it % checkpoint_every == 0 or it == iterations):
-            saved = _save_checkpoint(
-                ckpt_path,
-                {
-                    "fingerprint": fingerprint,
-                    "iteration": it,
-                    "params": snapshot(),
-                    "optimizer": opt.state_dict(),
-                    "history": history,
-                    "bad": bad,
-                    "best_iteration": best_it,
-                    "best_score": best_score,
-                    "best_params": best_params,
-                    "wx0": wx0,
-                    "wP0": wP0,
-                    "initial": initial,
-                    "best_train_loss": best_train[0],
-                    "best_train_params": best_train[1],
-                    "best_train_iteration": best_train[2],
-                },
-                previous=saved if all_reduce is not None else None,
-            )
+            payload = {
+                "fingerprint": fingerprint,
+                "iteration": it,
+                "params": snapshot(),
+                "optimizer": opt.state_dict(),
+                "history": history,
+                "bad": bad,
+                "best_iteration": best_it,
+                "best_score": best_score,
+                "best_params": best_params,
+                "wx0": wx0,
+                "wP0": wP0,
+                "initial": initial,
+                "best_train_loss": best_train[0],
+                "best_train_params": best_train[1],
+                "best_train_iteration": best_train[2],
+            }
+            _save_checkpoint(ckpt_path, payload, previous=saved)
+            if all_reduce is not None:
+                saved = _kept(payload)
         if stop:
             stopped = "callback"
             break
@@ -721,10 +723,10 @@ def _save_checkpoint(
     payload: dict[str, Any],
     schema: str = _CKPT_SCHEMA,
     previous: dict[str, Any] | None = None,
-) -> dict[str, Any]:
+) -> None:
     """Write a checkpoint atomically, tagged with ``schema``; with ``previous`` (the last
     checkpoint, of a data-parallel fit) that one is kept in it too (see
-    :func:`_resume_checkpoint`). Returns the checkpoint written, without its ``previous``."""
+    :func:`_resume_checkpoint`)."""
     data = {"schema": schema, **payload}
     if previous is not None:
         data["previous"] = {k: v for k, v in previous.items() if k != "previous"}
@@ -733,7 +735,14 @@ def _save_checkpoint(
         torch.save(data, fh)
 
     atomic_write(path, write)
-    return {k: v for k, v in data.items() if k != "previous"}
+
+
+def _kept(ck: dict[str, Any] | None) -> dict[str, Any] | None:
+    """A deep copy of a checkpoint without its ``previous``: what the next data-parallel save
+    keeps as its previous (the live history and optimiser state change after a save)."""
+    if ck is None:
+        return None
+    return copy.deepcopy({k: v for k, v in ck.items() if k != "previous"})
 
 
 def _resume_checkpoint(

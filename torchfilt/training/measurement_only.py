@@ -73,6 +73,7 @@ from torchfilt.training.likelihood import (
     LikelihoodState,
     Sequences,
     _digest,
+    _kept,
     _recordings,
     _resume_checkpoint,
     _save_checkpoint,
@@ -593,7 +594,7 @@ def fit_em(
     initial: float | None = None
     finished: str | None = None
     ck = _resume_checkpoint(ckpt_path, fingerprint, _EM_SCHEMA, "EM", reduce) if resume else None
-    saved: dict[str, Any] | None = ck  # the last checkpoint: a data-parallel save keeps it
+    saved = _kept(ck) if reduce is not None else None  # a data-parallel save keeps it
     if ck is not None:
         load(list(ck["state"]))
         it0, history, initial = int(ck["iteration"]), list(ck["history"]), float(ck["initial"])
@@ -658,19 +659,17 @@ def fit_em(
         if ckpt_path is not None and (
             it % checkpoint_every == 0 or it == iterations or done is not None
         ):
-            saved = _save_checkpoint(
-                ckpt_path,
-                {
-                    "fingerprint": fingerprint,
-                    "iteration": it,
-                    "state": state(),
-                    "history": history,
-                    "initial": initial,
-                    "done": done,
-                },
-                _EM_SCHEMA,
-                previous=saved if reduce is not None else None,
-            )
+            payload = {
+                "fingerprint": fingerprint,
+                "iteration": it,
+                "state": state(),
+                "history": history,
+                "initial": initial,
+                "done": done,
+            }
+            _save_checkpoint(ckpt_path, payload, _EM_SCHEMA, previous=saved)
+            if reduce is not None:
+                saved = _kept(payload)
         if stop:
             stopped = "callback"
             break
