@@ -35,6 +35,13 @@ machine, or a shared filesystem).
 **Training.** :func:`train_recipes_ray` trains several recipes, or one recipe over several
 datasets, as parallel Ray tasks, each :func:`~torchfilt.training.train_recipe` with its own run
 directory (and so its own checkpoints and ``--resume``).
+
+**Data-parallel fits.** :func:`calibrate_ray` and :func:`fit_measurement_only_ray` (likelihood or
+EM) deal the recordings to Ray actors in one ``torch.distributed`` ``gloo`` group that sums what
+the fit needs at every step, so the result is that of one process on all recordings. A lost
+actor (killed, or past ``timeout`` at a collective) stops the group with a
+:class:`~torchfilt.exceptions.WorkerError` naming its rank; ``resume=True`` continues from the
+actors' checkpoints.
 """
 
 from __future__ import annotations
