@@ -52,12 +52,146 @@ def worker(rank: int, world: int, init: str, out: str, measurement_only: bool = 
             fit = torchfilt.fit_likelihood(model, y[rank::world], **OPTIONS, **kw)
         with torch.no_grad():
             values = torch.stack([Q().reshape(()), R().reshape(())])
-        result = {
+        result: dict[str, object] = {}
+        if not measurement_only:
+            result["resumed"] = _resume_apart(rank, world, y, Path(out), kw)
+        result |= {
             "values": values,
             "loss": torch.tensor([h["loss"] for h in fit.history]),
             "log_likelihood": fit.log_likelihood,
             "measurements": fit.measurements,
         }
         torch.save(result, Path(out) / f"rank{rank}.pt")
+    finally:
+        dist.destroy_process_group()
+
+
+def _resume_apart(rank: int, world: int, y: torch.Tensor, out: Path, kw: dict) -> torch.Tensor:
+    """The likelihood fit resumed from checkpoints one checkpoint apart (rank 0 at iteration 10,
+    rank 1 at 5, as after rank 1 was lost between the two saves): its final Q and R."""
+    import shutil
+
+    a, b = out / "lik_a", out / "lik_b"
+    a.mkdir(exist_ok=True)
+    b.mkdir(exist_ok=True)
+    opts = dict(OPTIONS, checkpoint_every=5)
+
+    def fit(iterations: int, path: Path) -> torch.Tensor:
+        model, _, (Q, R) = problem()
+        opts["iterations"] = iterations
+        torchfilt.fit_likelihood(model, y[rank::world], checkpoint=path, resume=True, **opts, **kw)
+        with torch.no_grad():
+            return torch.stack([Q().reshape(()), R().reshape(())])
+
+    fit(5, a / f"rank{rank}.pt")
+    if rank == 1:
+        shutil.copy(a / "rank1.pt", b / "rank1.pt")
+    fit(10, a / f"rank{rank}.pt")
+    if rank == 0:
+        shutil.copy(a / "rank0.pt", b / "rank0.pt")
+    dist.barrier()
+    return fit(int(OPTIONS["iterations"]), b / f"rank{rank}.pt")
+
+
+# ----------------------------------------------------------------------------------- EM
+A_EM = torch.tensor([[0.8, 0.4], [-0.4, 0.6]], dtype=DT)
+H_EM = torch.tensor([[1.0, 0.0]], dtype=DT)
+A_EM_INIT = torch.tensor([[0.5, 0.2], [-0.1, 0.4]], dtype=DT)
+#: recordings of different lengths: a shard pads to its own longest, the whole set to 60
+EM_LENGTHS = (60, 45, 60, 50)
+GP_LENGTHS = (40, 30, 40, 35)
+EM_KW = dict(x0=torch.zeros(2, dtype=DT), P0=torch.eye(2, dtype=DT), known_channels=[0], tol=0.0)
+GP_KW = dict(EM_KW, m_step_iterations=3)
+
+
+def em_data(lengths: tuple[int, ...], seed: int = 3) -> list[torch.Tensor]:
+    """Measurements of a 2-state linear system with a known H = [1, 0], one per length."""
+    g = torch.Generator().manual_seed(seed)
+    LQ = torch.linalg.cholesky(torch.tensor([[0.2, 0.05], [0.05, 0.3]], dtype=DT))
+    out = []
+    for T in lengths:
+        x, ys = torch.zeros(2, dtype=DT), []
+        for _ in range(T):
+            x = A_EM @ x + LQ @ torch.randn(2, generator=g, dtype=DT)
+            ys.append(H_EM @ x + 0.2 * torch.randn(1, generator=g, dtype=DT))
+        out.append(torch.stack(ys))
+    return out
+
+
+def em_linear() -> torchfilt.LinearGaussianModel:
+    return torchfilt.LinearGaussianModel(
+        A_EM_INIT, H_EM, 0.3 * torch.eye(2, dtype=DT), torch.eye(1, dtype=DT)
+    )
+
+
+def em_gp() -> torchfilt.StateSpaceModel:
+    """A GP transition (4 inducing points) around the initial linear map, learnable Q and R."""
+    from torchfilt.models import CholeskyCovariance, InducingTransition, LinearModel
+
+    f = InducingTransition(2, 4, linear=A_EM_INIT, outputscale=0.01)
+    f.init_inducing(torch.randn(40, 2, generator=torch.Generator().manual_seed(2), dtype=DT))
+    h = LinearModel(H_EM, CholeskyCovariance(torch.eye(1, dtype=DT)), name="measurement")
+    return torchfilt.StateSpaceModel(f, h, Q=CholeskyCovariance(0.3 * torch.eye(2, dtype=DT)))
+
+
+def linear_values(m: torchfilt.StateSpaceModel) -> torch.Tensor:
+    """A, Q, R of a fitted linear model, flattened."""
+    sys = torchfilt.models.linear_system(m)
+    assert sys is not None
+    return torch.cat(
+        [
+            sys.A.reshape(-1),
+            m.transition.noise_cov().reshape(-1),
+            m.measurement.noise_cov().reshape(-1),
+        ]
+    ).detach()
+
+
+def em_worker(rank: int, world: int, init: str, out: str) -> None:
+    """Data-parallel EM on the recordings ``rank::world``: the linear EM (6 iterations), a GP EM
+    (3 iterations), and the linear EM resumed from checkpoints one iteration apart (rank 0 at 3,
+    rank 1 at 2, as after a process lost between the two saves)."""
+    import shutil
+
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=init, rank=rank, world_size=world)
+    try:
+        red = dict(all_reduce=dist.all_reduce)
+        y = em_data(EM_LENGTHS)[rank::world]
+        lin = torchfilt.fit_em(em_linear(), y, iterations=6, **EM_KW, **red)
+        gp_model = em_gp()
+        gp = torchfilt.fit_em(
+            gp_model, em_data(GP_LENGTHS, seed=4)[rank::world], iterations=3, **GP_KW, **red
+        )
+        # checkpoints one iteration apart: rank 1's from a fit of 2 iterations, rank 0's from one
+        # of 3 (whose last checkpoint keeps the one of iteration 2 it made itself)
+        a, b, c = Path(out) / "a", Path(out) / "b", Path(out) / "c"
+        for d in (a, b, c):
+            d.mkdir(exist_ok=True)
+        torchfilt.fit_em(
+            em_linear(), y, iterations=2, checkpoint=a / f"rank{rank}.pt", **EM_KW, **red
+        )
+        torchfilt.fit_em(
+            em_linear(), y, iterations=3, checkpoint=c / f"rank{rank}.pt", **EM_KW, **red
+        )
+        if rank == 1:
+            shutil.copy(a / "rank1.pt", b / "rank1.pt")  # rank 1 "lost" after iteration 2
+        else:
+            shutil.copy(c / "rank0.pt", b / "rank0.pt")  # rank 0 saved iteration 3
+        dist.barrier()
+        resumed = torchfilt.fit_em(
+            em_linear(), y, iterations=6, checkpoint=b / f"rank{rank}.pt", resume=True,
+            **EM_KW, **red,
+        )  # fmt: skip
+        result = {
+            "linear": linear_values(lin.model),
+            "linear_ll": torch.tensor([h["log_likelihood"] for h in lin.history]),
+            "measurements": lin.measurements,
+            "gp": torch.cat([p.detach().reshape(-1) for p in gp_model.parameters()]),
+            "gp_ll": torch.tensor([h["log_likelihood"] for h in gp.history]),
+            "resumed": linear_values(resumed.model),
+            "resumed_ll": torch.tensor([h["log_likelihood"] for h in resumed.history]),
+        }
+        torch.save(result, Path(out) / f"em_rank{rank}.pt")
     finally:
         dist.destroy_process_group()

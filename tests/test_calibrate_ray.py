@@ -11,7 +11,7 @@ import ray
 import torch
 
 import torchfilt
-from torchfilt.exceptions import InputError
+from torchfilt.exceptions import InputError, WorkerError
 from torchfilt.models.params import ScalarCovariance
 from torchfilt.pipeline import calibrate_ray, fit_measurement_only_ray
 from torchfilt.systems import pendulum
@@ -72,6 +72,10 @@ def test_calibrate_ray_refuses(ray_local, data):
         calibrate_ray(model, seqs, x0=x0, P0=P0, workers=7)
     with pytest.raises(InputError, match="has 2 CPUs"):
         calibrate_ray(model, seqs, x0=x0, P0=P0, workers=3)
+    with pytest.raises(InputError, match="timeout"):
+        calibrate_ray(model, seqs, x0=x0, P0=P0, timeout=0)
+    with pytest.raises(InputError, match="method"):
+        fit_measurement_only_ray(model, seqs, x0=x0, P0=P0, known_channels=[0], method="mle")
 
 
 def test_measurement_only_on_two_actors_equals_one_process(ray_local):
@@ -106,3 +110,84 @@ def test_measurement_only_on_two_actors_equals_one_process(ray_local):
     want, got = noises(local), noises(res.model)
     assert torch.allclose(got, want, rtol=1e-8, atol=0), (got, want)
     assert not torch.allclose(want, torch.ones(2, dtype=DT), rtol=1e-2)  # the fit moved
+
+
+#: the iteration at whose end rank 1's process exits in the interrupted EM below
+KILL_AT = 3
+
+
+def _exit_on_rank_1(state) -> None:
+    """A callback that kills rank 1's actor process (as a lost machine would) at ``KILL_AT``."""
+    import os
+
+    import torch.distributed
+
+    if torch.distributed.get_rank() == 1 and state.iteration == KILL_AT:
+        os._exit(1)
+
+
+def test_em_on_two_actors_survives_a_lost_actor(ray_local, tmp_path):
+    """``fit_measurement_only_ray(method="em")`` whose rank 1 dies mid-fit: a WorkerError naming
+    the rank within the timeout (no hang); the same call with ``resume=True`` completes and
+    equals the EM of one process on all recordings (which the data-parallel EM equals)."""
+    import time
+
+    import ddp_support
+
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    y = ddp_support.em_data(ddp_support.EM_LENGTHS)
+    kw = dict(ddp_support.EM_KW, method="em", iterations=6)
+    local = torchfilt.fit_measurement_only(ddp_support.em_linear(), y, **kw)
+    ck = tmp_path / "ck"
+    ray_kw = dict(kw, workers=2, checkpoint=ck, timeout=10.0)
+    t0 = time.perf_counter()
+    with pytest.raises(WorkerError, match=r"rank 1 of 2 was lost.*resume=True"):
+        fit_measurement_only_ray(
+            ddp_support.em_linear(), Sequences(y), callback=_exit_on_rank_1, **ray_kw
+        )
+    assert time.perf_counter() - t0 < 30  # bounded: the group fails, never hangs
+    done = [torch.load(ck / f"rank{r}.ckpt", weights_only=True)["iteration"] for r in (0, 1)]
+    assert max(done) < kw["iterations"]
+    res = fit_measurement_only_ray(ddp_support.em_linear(), Sequences(y), resume=True, **ray_kw)
+    got, want = ddp_support.linear_values(res.model), ddp_support.linear_values(local.model)
+    assert torch.allclose(got, want, rtol=1e-9, atol=1e-12), (got, want)
+    ll = [h["log_likelihood"] for h in res.history]
+    assert ll == pytest.approx([h["log_likelihood"] for h in local.history], rel=1e-10)
+    assert local.log_likelihood > local.detail.initial_log_likelihood + 10  # the fit moved
+
+
+def _sleep_on_rank_1(state) -> None:
+    """A callback that makes rank 1 miss the next collective (a hung worker)."""
+    import time
+
+    import torch.distributed
+
+    if torch.distributed.get_rank() == 1 and state.iteration == 2:
+        time.sleep(120)
+
+
+@pytest.mark.slow
+def test_hung_actor_fails_after_the_timeout_and_a_foreign_checkpoint_is_refused(
+    ray_local, tmp_path
+):
+    """A rank that does not reach a collective: a WorkerError naming it once the others have
+    waited ``timeout`` seconds; a rank's own TorchfiltError (checkpoints of another fit) is
+    raised as it is."""
+    import time
+
+    import ddp_support
+
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    y = ddp_support.em_data(ddp_support.EM_LENGTHS)
+    kw = dict(ddp_support.EM_KW, method="em", iterations=4, workers=2, checkpoint=tmp_path / "ck")
+    t0 = time.perf_counter()
+    with pytest.raises(
+        WorkerError, match=r"rank 1 of 2 did not reach a collective within timeout=3 s"
+    ):
+        fit_measurement_only_ray(
+            ddp_support.em_linear(), Sequences(y), callback=_sleep_on_rank_1, timeout=3.0, **kw
+        )
+    assert time.perf_counter() - t0 < 60
+    with pytest.raises(torchfilt.RunError, match="another fit") as info:
+        fit_measurement_only_ray(ddp_support.em_linear(), Sequences(y[:3]), resume=True, **kw)
+    assert not isinstance(info.value, WorkerError)

@@ -38,6 +38,7 @@ from torchfilt.exceptions import (
     RunError,
     ShapeError,
     TorchfiltError,
+    WorkerError,
 )
 from torchfilt.filters import (
     CKF,
@@ -182,6 +183,7 @@ __all__ = [
     "TimeVarying",
     "TorchfiltError",
     "UnscentedRule",
+    "WorkerError",
     "__version__",
     "bounded_least_squares",
     "calibrate",

@@ -27,6 +27,7 @@ __all__ = [
     "ShapeError",
     "TorchfiltError",
     "TorchfiltWarning",
+    "WorkerError",
 ]
 
 
@@ -99,6 +100,12 @@ class RecipeError(InputError):
 
 class RunError(TorchfiltError, RuntimeError):
     """A run directory cannot be used as asked (resume without a run, a changed recipe, ...)."""
+
+
+class WorkerError(RunError):
+    """A data-parallel job lost a worker (its process died or was killed, or it did not reach a
+    collective within the timeout). The message names the rank and says how to continue (the
+    same call with ``resume=True`` continues from the workers' checkpoints)."""
 
 
 class OutputError(TorchfiltError, OSError):

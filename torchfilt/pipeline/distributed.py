@@ -35,6 +35,13 @@ machine, or a shared filesystem).
 **Training.** :func:`train_recipes_ray` trains several recipes, or one recipe over several
 datasets, as parallel Ray tasks, each :func:`~torchfilt.training.train_recipe` with its own run
 directory (and so its own checkpoints and ``--resume``).
+
+**Data-parallel fits.** :func:`calibrate_ray` and :func:`fit_measurement_only_ray` (likelihood or
+EM) deal the recordings to Ray actors in one ``torch.distributed`` ``gloo`` group that sums what
+the fit needs at every step, so the result is that of one process on all recordings. A lost
+actor (killed, or past ``timeout`` at a collective) stops the group with a
+:class:`~torchfilt.exceptions.WorkerError` naming its rank; ``resume=True`` continues from the
+actors' checkpoints.
 """
 
 from __future__ import annotations
@@ -49,7 +56,7 @@ import socket
 import sys
 import time
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -61,6 +68,7 @@ from torchfilt.exceptions import (
     OutputError,
     RunError,
     TorchfiltError,
+    WorkerError,
 )
 from torchfilt.filters import CKF
 from torchfilt.io import DataError, atomic_write_text, read_recording, sha256_file
@@ -663,16 +671,29 @@ def _free_address() -> str:
     return f"tcp://{ray.util.get_node_ip_address()}:{port}"
 
 
+#: Seconds a collective of a data-parallel fit waits for the other actors by default.
+GROUP_TIMEOUT = 1800.0
+#: Seconds the driver waits, after a first actor failed, for the others to report theirs.
+_FAILURE_GRACE = 10.0
+
+
 def _fit_rank(rank: int, world: int, init: str, job: dict[str, Any]) -> dict[str, Any]:
-    """One process of a data-parallel fit (``job["kind"]``): its shard, gradients summed over
-    ``gloo``."""
+    """One process of a data-parallel fit (``job["kind"]``): its shard, sums over ``gloo``."""
+    import datetime
+
     import torch.distributed as dist
 
     from torchfilt.training.calibrate import calibrate
     from torchfilt.training.measurement_only import fit_measurement_only
 
     torch.set_num_threads(1)
-    dist.init_process_group("gloo", init_method=init, rank=rank, world_size=world)
+    dist.init_process_group(
+        "gloo",
+        init_method=init,
+        rank=rank,
+        world_size=world,
+        timeout=datetime.timedelta(seconds=float(job["timeout"])),
+    )
     try:
         ckpt = job["checkpoint"]
         path = None if ckpt is None else Path(ckpt) / f"rank{rank}.ckpt"
@@ -695,6 +716,14 @@ def _fit_rank(rank: int, world: int, init: str, job: dict[str, Any]) -> dict[str
     return {"result": res if rank == 0 else None}
 
 
+def _check_timeout(timeout: float) -> float:
+    if isinstance(timeout, bool) or not isinstance(timeout, (int, float)):
+        raise InputError(f"timeout must be a number of seconds, got {timeout!r}")
+    if not (timeout > 0 and timeout < float("inf")):
+        raise InputError(f"timeout must be a positive finite number of seconds, got {timeout}")
+    return float(timeout)
+
+
 def calibrate_ray(
     model: Any,
     recordings: Any,
@@ -714,9 +743,11 @@ def calibrate_ray(
     inflate_only: bool = True,
     gp: str = "none",
     dtype: torch.dtype = torch.float64,
+    callback: Callable[[Any], bool | None] | None = None,
     checkpoint: str | Path | None = None,
     resume: bool = False,
     checkpoint_every: int = 10,
+    timeout: float = GROUP_TIMEOUT,
 ) -> Any:
     """:func:`~torchfilt.training.calibrate` as a data-parallel job on Ray.
 
@@ -724,9 +755,14 @@ def calibrate_ray(
     which form a ``torch.distributed`` ``gloo`` group: each filters its own windows and the
     log-likelihood, the measurement count and the gradient are summed over the group at every
     evaluation, so all take the steps of one calibration on all recordings (equal to it up to the
-    order of the sums; tested). Each actor checkpoints into ``checkpoint/rank{r}.ckpt``; after a
-    lost worker, run the same call again with ``resume=True`` to continue from the checkpoints
-    (the whole group restarts: a collective cannot lose a member).
+    order of the sums; tested). Each actor checkpoints into ``checkpoint/rank{r}.ckpt``.
+
+    **A lost worker.** A collective cannot lose a member: when an actor dies (its process killed,
+    out of memory) or does not reach a collective within ``timeout`` seconds, the others fail in
+    their next collective, every actor is stopped, and a :class:`~torchfilt.exceptions.WorkerError`
+    names the rank. Run the same call again with ``resume=True`` to continue from the checkpoints:
+    the actors agree on the latest iteration all of them saved (each checkpoint also keeps the
+    one before it), and the result equals an uninterrupted fit (tested).
 
     Args:
         model, recordings, x0, P0, validation, sides, window, burn_in, iterations, lr,
@@ -735,15 +771,24 @@ def calibrate_ray(
             :class:`~torchfilt.training.likelihood.Sequences` whose ``x0``/``P0`` are shared).
         workers: Ray actors, one CPU each; the cluster must have that many free at once.
         address: Ray cluster (see :func:`ray_session`).
-        checkpoint: folder of the actors' checkpoints (``None``: no checkpoints).
+        callback: called in every actor's process after each iteration (its rank is
+            ``torch.distributed.get_rank()``); one returning ``True`` stops all. Sent to the
+            actors, so it must pickle.
+        checkpoint: folder of the actors' checkpoints (``None``: no checkpoints, and a lost
+            worker means starting again).
         resume: continue from the checkpoints in ``checkpoint``.
+        timeout: seconds a collective waits for the other actors before it fails (the longest
+            one actor may compute between two collectives, e.g. filter its shard, must stay
+            below it).
 
     Returns:
         The :class:`~torchfilt.training.calibrate.CalibrationResult` of actor 0.
 
     Raises:
         MissingDependencyError: Ray is not installed.
-        InputError: ``workers`` below 1 or more than the recordings or the cluster's CPUs.
+        InputError: ``workers`` below 1 or more than the recordings or the cluster's CPUs, or a
+            bad ``timeout``.
+        WorkerError: an actor was lost (see above).
     """
     options: dict[str, Any] = {
         "x0": x0,
@@ -759,13 +804,18 @@ def calibrate_ray(
         "inflate_only": inflate_only,
         "gp": gp,
         "dtype": dtype,
+        "callback": callback,
         "resume": resume,
         "checkpoint_every": checkpoint_every,
     }
-    return _run_group("calibrate", model, recordings, options, workers, address, checkpoint)
+    return _run_group(
+        "calibrate_ray", "calibrate", model, recordings, options, workers, address, checkpoint,
+        timeout,
+    )  # fmt: skip
 
 
 def _run_group(
+    caller: str,
     kind: str,
     model: Any,
     recordings: Any,
@@ -773,10 +823,19 @@ def _run_group(
     workers: int,
     address: str | None,
     checkpoint: str | Path | None,
+    timeout: float,
 ) -> Any:
-    """Run a data-parallel fit on ``workers`` Ray actors in one ``gloo`` group; actor 0's result."""
+    """Run a data-parallel fit on ``workers`` Ray actors in one ``gloo`` group; actor 0's result.
+
+    The driver waits for the actors one at a time: at the first failure it gives the others a
+    few seconds to report theirs (an actor whose peer died fails in its next collective, or after
+    ``timeout``), stops them all, and raises: an actor's own
+    :class:`~torchfilt.exceptions.TorchfiltError` if one raised one (a bad argument, a
+    checkpoint of another fit), else a :class:`~torchfilt.exceptions.WorkerError` naming the
+    rank that died, or the one still running when the others had given up waiting for it."""
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise InputError(f"workers must be a positive integer, got {workers!r}")
+    timeout = _check_timeout(timeout)
     count = len(recordings.y) if hasattr(recordings, "y") else len(list(recordings))
     if workers > count:
         raise InputError(f"workers: {workers} workers for {count} recordings; use at most {count}")
@@ -788,6 +847,7 @@ def _run_group(
         "recordings": recordings,
         "options": options,
         "checkpoint": None if checkpoint is None else str(Path(checkpoint).resolve()),
+        "timeout": timeout,
     }
     with ray_session(address) as ray:
         total = int(ray.cluster_resources().get("CPU", 0))
@@ -795,14 +855,97 @@ def _run_group(
             raise InputError(
                 f"workers: {workers} actors must run at once, but the Ray cluster has {total} CPUs"
             )
-        actor = ray.remote(num_cpus=1, max_restarts=0)(_Rank)
+        actor = ray.remote(num_cpus=1, max_restarts=0, max_task_retries=0)(_Rank)
         ranks = [actor.remote() for _ in range(workers)]
-        init = ray.get(ranks[0].address.remote())
-        ref = ray.put(job)
-        outs = ray.get([a.run.remote(r, workers, init, ref) for r, a in enumerate(ranks)])
-        for a in ranks:
-            ray.kill(a)
+        try:
+            init = ray.get(ranks[0].address.remote())
+            ref = ray.put(job)
+            refs = [a.run.remote(r, workers, init, ref) for r, a in enumerate(ranks)]
+            rank_of = {r: i for i, r in enumerate(refs)}
+            outs: dict[int, Any] = {}
+            errors: dict[int, BaseException] = {}
+            pending = list(refs)
+            while pending and not errors:
+                ready, pending = ray.wait(pending, num_returns=1)
+                _collect(ray, ready, rank_of, outs, errors)
+            if errors and pending:
+                ready, pending = ray.wait(
+                    pending, num_returns=len(pending), timeout=min(_FAILURE_GRACE, timeout)
+                )
+                _collect(ray, ready, rank_of, outs, errors)
+        finally:
+            for a in ranks:
+                ray.kill(a)
+    if errors:
+        stuck = sorted(rank_of[r] for r in pending)
+        raise _group_error(ray, caller, errors, stuck, workers, job["checkpoint"], timeout)
     return outs[0]["result"]
+
+
+def _collect(
+    ray: Any,
+    ready: list[Any],
+    rank_of: dict[Any, int],
+    outs: dict[int, Any],
+    errors: dict[int, BaseException],
+) -> None:
+    for r in ready:
+        try:
+            outs[rank_of[r]] = ray.get(r)
+        except Exception as e:
+            errors[rank_of[r]] = e
+
+
+def _group_error(
+    ray: Any,
+    caller: str,
+    errors: dict[int, BaseException],
+    stuck: list[int],
+    world: int,
+    checkpoint: str | None,
+    timeout: float,
+) -> TorchfiltError:
+    """The error a failed data-parallel job raises (see :func:`_run_group`): a rank's own
+    TorchfiltError, else a WorkerError naming the rank that died, else the one still running
+    when the others had failed (it did not reach a collective in time), else the one that
+    failed."""
+    causes = [getattr(errors[r], "cause", None) for r in sorted(errors)]
+    own = [c for c in causes if isinstance(c, TorchfiltError)]
+    # a rank's own error before one that only says another rank failed (``peer``)
+    own.sort(key=lambda c: bool(getattr(c, "peer", False)))
+    if own:
+        return own[0]
+    died = [r for r in sorted(errors) if isinstance(errors[r], ray.exceptions.RayActorError)]
+    if died:
+        what = f"rank {died[0]} of {world} was lost (its Ray actor died: process killed or exited)"
+    elif stuck:
+        first = min(errors)
+        what = (
+            f"rank {stuck[0]} of {world} did not reach a collective within timeout={timeout:g} s "
+            f"(rank {first} stopped waiting: {_cause_line(errors[first])})"
+        )
+    else:
+        rank = min(errors)
+        what = f"rank {rank} of {world} failed ({_cause_line(errors[rank])})"
+    if checkpoint is None:
+        hint = (
+            "no checkpoints were kept, so the fit must start again; pass checkpoint=DIR to be "
+            "able to resume after a lost worker"
+        )
+    else:
+        hint = (
+            f"run the same call again with resume=True to continue from the checkpoints in "
+            f"{checkpoint} (every rank restarts from the latest iteration all of them saved)"
+        )
+    return WorkerError(f"{caller}: {what}; the other ranks were stopped; {hint}")
+
+
+def _cause_line(e: BaseException) -> str:
+    """An actor's exception in one short line: the original one Ray wraps, if any."""
+    cause = getattr(e, "cause", None)
+    err = cause if isinstance(cause, BaseException) else e
+    text = " ".join(str(err).split())
+    return f"{type(err).__name__}: {text[:200]}"
 
 
 def fit_measurement_only_ray(
@@ -812,6 +955,7 @@ def fit_measurement_only_ray(
     x0: torch.Tensor,
     P0: torch.Tensor,
     known_channels: Sequence[int] | None,
+    method: str = "likelihood",
     workers: int = 2,
     address: str | None = None,
     iterations: int = 100,
@@ -820,41 +964,64 @@ def fit_measurement_only_ray(
     validation: Any = None,
     optimizer: str = "lbfgs",
     lr: float | None = None,
+    tol: float | None = None,
+    learn_measurement_noise: bool = True,
+    m_step_iterations: int = 20,
     dtype: torch.dtype = torch.float64,
+    callback: Callable[[Any], bool | None] | None = None,
     checkpoint: str | Path | None = None,
     resume: bool = False,
     checkpoint_every: int = 1,
+    timeout: float = GROUP_TIMEOUT,
 ) -> Any:
-    """:func:`~torchfilt.training.fit_measurement_only` with ``method="likelihood"`` as a
-    data-parallel job on Ray: the same group of actors as :func:`calibrate_ray` (recordings dealt
-    round-robin, gradients summed over ``gloo``, one checkpoint per actor, ``resume``).
+    """:func:`~torchfilt.training.fit_measurement_only` as a data-parallel job on Ray: the same
+    group of actors as :func:`calibrate_ray` (recordings dealt round-robin, one checkpoint per
+    actor, ``resume``, a :class:`~torchfilt.exceptions.WorkerError` for a lost worker). With
+    ``method="likelihood"`` the gradients are summed over ``gloo`` at every L-BFGS evaluation;
+    with ``method="em"`` each actor runs the E-step on its recordings and the M-step sums the
+    expected sufficient statistics (linear model) or the expected complete-data log-likelihood
+    and its gradient (any other), see :func:`~torchfilt.training.fit_em`.
 
     Args:
-        model, x0, P0, known_channels, iterations, window, burn_in, validation, optimizer, lr,
-        dtype, checkpoint_every: as in :func:`~torchfilt.training.fit_measurement_only`.
+        model, x0, P0, known_channels, method, iterations, window, burn_in, validation,
+        optimizer, lr, tol, learn_measurement_noise, m_step_iterations, dtype,
+        checkpoint_every: as in :func:`~torchfilt.training.fit_measurement_only`.
         recordings: a :class:`~torchfilt.training.likelihood.Sequences` (``y``, ``u``; shared
             ``x0``/``P0``).
-        workers, address, checkpoint, resume: as in :func:`calibrate_ray`.
+        workers, address, callback, checkpoint, resume, timeout: as in :func:`calibrate_ray`.
 
     Returns:
         Actor 0's :class:`~torchfilt.training.measurement_only.MeasurementOnlyFit`.
+
+    Raises:
+        InputError: ``method`` not ``"em"`` or ``"likelihood"``; see :func:`calibrate_ray`.
+        WorkerError: an actor was lost.
     """
+    if method not in ("em", "likelihood"):
+        raise InputError(f"method must be 'em' or 'likelihood', got {method!r}")
     options: dict[str, Any] = {
         "x0": x0,
         "P0": P0,
         "known_channels": known_channels,
-        "method": "likelihood",
+        "method": method,
         "iterations": iterations,
         "window": window,
         "burn_in": burn_in,
         "validation": validation,
         "optimizer": optimizer,
         "lr": lr,
+        "tol": tol,
+        "learn_measurement_noise": learn_measurement_noise,
+        "m_step_iterations": m_step_iterations,
         "dtype": dtype,
+        "callback": callback,
         "resume": resume,
         "checkpoint_every": checkpoint_every,
     }
-    return _run_group("measurement_only", model, recordings, options, workers, address, checkpoint)
+    return _run_group(
+        "fit_measurement_only_ray", "measurement_only", model, recordings, options, workers,
+        address, checkpoint, timeout,
+    )  # fmt: skip
 
 
 class _Rank:

@@ -27,6 +27,7 @@ with the current parameters. ``x0`` may itself be a learnable tensor listed in `
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import math
 import time
@@ -382,7 +383,9 @@ def fit_likelihood(
             same ``validation`` (or none); the log-likelihood, the measurement count and the
             gradient are summed over the processes, so every process takes the same steps and
             ends with the parameters of one fit on all recordings (up to the order of the sums).
-            Give each process its own ``checkpoint`` file.
+            A callback that stops one process stops all. Give each process its own
+            ``checkpoint`` file; each also keeps the checkpoint before it, so that after a lost
+            process a resume starts every process from the same iteration.
         progress: show a progress bar on stderr.
         dtype: floating dtype of the fit (float64 by default).
         sqrt: use the square-root CKF.
@@ -538,8 +541,13 @@ def fit_likelihood(
     initial: float | None = None
     # without held-out data: the parameters with the lowest training loss seen (loss, values, it)
     best_train: tuple[float, list[Tensor], int] = (math.inf, snapshot(), 0)
-    if resume and ckpt_path is not None and ckpt_path.is_file():
-        ck = _load_checkpoint(ckpt_path, fingerprint)
+    ck = None
+    if resume:
+        ck = _resume_checkpoint(ckpt_path, fingerprint, _CKPT_SCHEMA, "likelihood", all_reduce)
+    # the last checkpoint, which a data-parallel save keeps (a copy: the optimiser updates the
+    # state tensors it loaded from a checkpoint in place)
+    saved = _kept(ck) if all_reduce is not None else None
+    if ck is not None:
         restore(ck["params"])
         opt.load_state_dict(ck["optimizer"])
         it0, history, bad = int(ck["iteration"]), list(ck["history"]), int(ck["bad"])
@@ -609,8 +617,9 @@ def fit_likelihood(
             good = snapshot()
             try:
                 loss_t = opt.step(closure)  # type: ignore[assignment]
-            except (IndexError, RuntimeError):
-                # torch's strong-Wolfe search fails when every trial step was non-finite
+            except IndexError:
+                # torch's strong-Wolfe search fails when every trial step was non-finite (and
+                # the same on every process of a data-parallel fit: the loss is their sum)
                 loss_t = torch.tensor(math.nan)
             if project is not None:
                 project()
@@ -645,27 +654,29 @@ def fit_likelihood(
         bar.update(it, info)
         state = LikelihoodState(it, iterations, loss, -loss * counted, vscore, elapsed)
         stop = bool(callback(state)) if callback is not None else False
+        if all_reduce is not None:  # one process's callback stops them all
+            stop = bool(summed(torch.tensor([float(stop)]))[0] > 0)
         if ckpt_path is not None and (it % checkpoint_every == 0 or it == iterations):
-            _save_checkpoint(
-                ckpt_path,
-                {
-                    "fingerprint": fingerprint,
-                    "iteration": it,
-                    "params": snapshot(),
-                    "optimizer": opt.state_dict(),
-                    "history": history,
-                    "bad": bad,
-                    "best_iteration": best_it,
-                    "best_score": best_score,
-                    "best_params": best_params,
-                    "wx0": wx0,
-                    "wP0": wP0,
-                    "initial": initial,
-                    "best_train_loss": best_train[0],
-                    "best_train_params": best_train[1],
-                    "best_train_iteration": best_train[2],
-                },
-            )
+            payload = {
+                "fingerprint": fingerprint,
+                "iteration": it,
+                "params": snapshot(),
+                "optimizer": opt.state_dict(),
+                "history": history,
+                "bad": bad,
+                "best_iteration": best_it,
+                "best_score": best_score,
+                "best_params": best_params,
+                "wx0": wx0,
+                "wP0": wP0,
+                "initial": initial,
+                "best_train_loss": best_train[0],
+                "best_train_params": best_train[1],
+                "best_train_iteration": best_train[2],
+            }
+            _save_checkpoint(ckpt_path, payload, previous=saved)
+            if all_reduce is not None:
+                saved = _kept(payload)
         if stop:
             stopped = "callback"
             break
@@ -727,11 +738,83 @@ def _load_checkpoint(
     return ck
 
 
-def _save_checkpoint(path: Path, payload: dict[str, Any], schema: str = _CKPT_SCHEMA) -> None:
-    """Write a checkpoint atomically, tagged with ``schema``."""
+def _save_checkpoint(
+    path: Path,
+    payload: dict[str, Any],
+    schema: str = _CKPT_SCHEMA,
+    previous: dict[str, Any] | None = None,
+) -> None:
+    """Write a checkpoint atomically, tagged with ``schema``; with ``previous`` (the last
+    checkpoint, of a data-parallel fit) that one is kept in it too (see
+    :func:`_resume_checkpoint`)."""
     data = {"schema": schema, **payload}
+    if previous is not None:
+        data["previous"] = {k: v for k, v in previous.items() if k != "previous"}
 
     def write(fh: Any) -> None:
         torch.save(data, fh)
 
     atomic_write(path, write)
+
+
+def _kept(ck: dict[str, Any] | None) -> dict[str, Any] | None:
+    """A deep copy of a checkpoint without its ``previous``: what the next data-parallel save
+    keeps as its previous (the live history and optimiser state change after a save)."""
+    if ck is None:
+        return None
+    return copy.deepcopy({k: v for k, v in ck.items() if k != "previous"})
+
+
+def _resume_checkpoint(
+    path: Path | None,
+    fingerprint: str,
+    schema: str,
+    kind: str,
+    all_reduce: Callable[[Tensor], None] | None,
+) -> dict[str, Any] | None:
+    """The checkpoint to resume from (``None``: start afresh); a :class:`RunError` for one that
+    belongs to another fit.
+
+    In a data-parallel fit (``all_reduce``) the processes must resume from the same iteration,
+    but a process that died stopped saving while the others may have saved one checkpoint more
+    (the collectives keep them within one checkpoint of each other). So every checkpoint of a
+    data-parallel fit also holds the one before it, and the processes agree here, with two
+    collectives, on the latest iteration all of them have: one ahead of another resumes from its
+    previous checkpoint. A process whose checkpoint cannot be used makes all of them raise (none
+    is left waiting in a collective)."""
+    ck: dict[str, Any] | None = None
+    error: RunError | None = None
+    if path is not None and path.is_file():
+        try:
+            ck = _load_checkpoint(path, fingerprint, schema, kind)
+        except RunError as e:
+            error = e
+    if all_reduce is None:
+        if error is not None:
+            raise error
+        return ck
+    it = 0 if ck is None else int(ck["iteration"])
+    flat = torch.tensor([1.0, float(it), float(error is not None)], dtype=torch.float64)
+    all_reduce(flat)
+    world, total, errors = (float(v) for v in flat)
+    if errors > 0:
+        if error is not None:
+            raise error
+        peer = RunError(
+            f"{path}: another process of this data-parallel fit cannot use its checkpoint (its "
+            "own error says why); delete the checkpoints of all processes to start again"
+        )
+        peer.peer = True  # type: ignore[attr-defined]  # a launcher reports the other's first
+        raise peer
+    if it * world > total and ck is not None:  # ahead of another process
+        ck = ck.get("previous")
+    it = 0 if ck is None else int(ck["iteration"])
+    flat = torch.tensor([float(it), float(it) ** 2], dtype=torch.float64)
+    all_reduce(flat)
+    if abs(float(flat[0]) ** 2 - world * float(flat[1])) > 0.5:  # not all equal
+        raise RunError(
+            f"{path}: the checkpoints of this data-parallel fit's processes are more than one "
+            f"checkpoint apart (this one at iteration {it}, mean "
+            f"{float(flat[0]) / world:.4g}); delete the checkpoints of all processes to start again"
+        )
+    return ck

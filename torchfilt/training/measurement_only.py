@@ -74,8 +74,9 @@ from torchfilt.training.likelihood import (
     LikelihoodState,
     Sequences,
     _digest,
-    _load_checkpoint,
+    _kept,
     _recordings,
+    _resume_checkpoint,
     _save_checkpoint,
     fit_likelihood,
 )
@@ -329,55 +330,94 @@ class _Lin(NamedTuple):
     D: Tensor | None
 
 
+def _summed(all_reduce: Callable[[Tensor], None] | None, *values: Tensor) -> list[Tensor]:
+    """The values in float64, summed over the processes of a data-parallel fit with one
+    collective (unchanged without ``all_reduce``)."""
+    vals = [v.detach().to(torch.float64) for v in values]
+    if all_reduce is None:
+        return vals
+    flat = torch.cat([v.reshape(-1) for v in vals])
+    all_reduce(flat)
+    out, offset = [], 0
+    for v in vals:
+        out.append(flat[offset : offset + v.numel()].reshape(v.shape))
+        offset += v.numel()
+    return out
+
+
 def _linear_m_step(
     lin: _Lin,
     sp: SmoothedPairs,
     Y: Tensor,
     U: Tensor | None,
+    valid: Tensor,
     known: list[int],
     learn_R: bool,
+    all_reduce: Callable[[Tensor], None] | None = None,
 ) -> _Lin:
     """Closed-form M-step of a linear-Gaussian model (Shumway & Stoffer 1982; Ghahramani &
-    Hinton 1996), with inputs, known rows of ``H`` and missing measurement rows."""
-    n = lin.A.shape[-1]
-    m_prev, m_cur = sp.prev_mean.reshape(-1, n), sp.mean.reshape(-1, n)
-    P_prev, P_cur = sp.prev_cov.reshape(-1, n, n), sp.cov.reshape(-1, n, n)
-    C = sp.cross_cov.reshape(-1, n, n)  # Cov(x_{t-1}, x_t)
-    N = m_cur.shape[0]
-    Sxx = (P_cur + m_cur.unsqueeze(-1) * m_cur.unsqueeze(-2)).sum(0)
-    Spp = (P_prev + m_prev.unsqueeze(-1) * m_prev.unsqueeze(-2)).sum(0)
-    Sxp = (C.mT + m_cur.unsqueeze(-1) * m_prev.unsqueeze(-2)).sum(0)  # E[x_t x_{t-1}^T]
-    if lin.B is not None and U is not None:
-        u = U.reshape(-1, U.shape[-1])
-        Szz = torch.cat(
-            [torch.cat([Spp, m_prev.mT @ u], -1), torch.cat([u.mT @ m_prev, u.mT @ u], -1)], -2
-        )
-        Sxz = torch.cat([Sxp, m_cur.mT @ u], -1)
+    Hinton 1996), with inputs, known rows of ``H`` and missing measurement rows.
+
+    The expected sufficient statistics (float64) are sums over the steps ``valid (R, T)`` (a
+    padded step past a recording's end is no transition of it), so a data-parallel fit sums them
+    over the processes (one collective) before the closed form."""
+    n, dtype = lin.A.shape[-1], lin.A.dtype
+    f64 = torch.float64
+    keep = valid.reshape(-1)
+    m_prev = sp.prev_mean.reshape(-1, n)[keep].to(f64)
+    m_cur = sp.mean.reshape(-1, n)[keep].to(f64)
+    P_prev = sp.prev_cov.reshape(-1, n, n)[keep].to(f64)
+    P_cur = sp.cov.reshape(-1, n, n)[keep].to(f64)
+    C = sp.cross_cov.reshape(-1, n, n)[keep].to(f64)  # Cov(x_{t-1}, x_t)
+    with_B = lin.B is not None and U is not None
+    u = U.reshape(-1, U.shape[-1])[keep].to(f64) if U is not None else None
+    stats = [
+        torch.tensor(float(m_cur.shape[0]), dtype=f64),  # N
+        (P_cur + m_cur.unsqueeze(-1) * m_cur.unsqueeze(-2)).sum(0),  # Sxx
+        (P_prev + m_prev.unsqueeze(-1) * m_prev.unsqueeze(-2)).sum(0),  # Spp
+        (C.mT + m_cur.unsqueeze(-1) * m_prev.unsqueeze(-2)).sum(0),  # Sxp = E[x_t x_{t-1}^T]
+    ]
+    if with_B:
+        assert u is not None
+        stats += [m_prev.mT @ u, u.mT @ u, m_cur.mT @ u]  # Spu, Suu, Sxu
+    # measurement: rows with every component observed
+    y = Y.reshape(-1, Y.shape[-1])[keep].to(f64)
+    ok = torch.isfinite(y).all(-1)
+    yo, mo, Po = y[ok], m_cur[ok], P_cur[ok]
+    if lin.D is not None and U is not None:
+        assert u is not None
+        yo = yo - u[ok] @ lin.D.to(f64).mT
+    stats += [
+        torch.tensor(float(ok.sum()), dtype=f64),  # observed rows
+        (Po + mo.unsqueeze(-1) * mo.unsqueeze(-2)).sum(0),  # Sxx_o
+        mo.mT @ yo,  # Sxy
+        yo.mT @ yo,  # Syy
+    ]
+    stats = _summed(all_reduce, *stats)
+    N, Sxx, Spp, Sxp = stats[:4]
+    if with_B:
+        Spu, Suu, Sxu = stats[4:7]
+        Szz = torch.cat([torch.cat([Spp, Spu], -1), torch.cat([Spu.mT, Suu], -1)], -2)
+        Sxz = torch.cat([Sxp, Sxu], -1)
     else:
         Szz, Sxz = Spp, Sxp
+    n_ok, Sxx_o, Sxy, Syy = stats[-4:]
     AB = psd_solve(Szz, Sxz.mT, name="expected state second moment").mT
-    Q = symmetrize((Sxx - AB @ Sxz.mT) / N)
-    A = AB[:, :n]
-    B = AB[:, n:] if lin.B is not None and U is not None else lin.B
-    # measurement: rows with every component observed
-    y = Y.reshape(-1, Y.shape[-1])
-    ok = torch.isfinite(y).all(-1)
+    Q = symmetrize((Sxx - AB @ Sxz.mT) / N).to(dtype)
+    A = AB[:, :n].to(dtype)
+    B = AB[:, n:].to(dtype) if with_B else lin.B
     H, R = lin.H, lin.R
-    if bool(ok.any()):
-        yo, mo, Po = y[ok], m_cur[ok], P_cur[ok]
-        if lin.D is not None and U is not None:
-            yo = yo - U.reshape(-1, U.shape[-1])[ok] @ lin.D.mT
+    if float(n_ok) > 0:
+        Hd = H.to(f64)
         unknown = [j for j in range(H.shape[0]) if j not in known]
         if unknown:
-            Sxx_o = (Po + mo.unsqueeze(-1) * mo.unsqueeze(-2)).sum(0)
-            Hu = psd_solve(Sxx_o, (yo[:, unknown].mT @ mo).mT, name="state second moment").mT
-            H = H.clone()
-            H[unknown] = Hu
+            Hu = psd_solve(Sxx_o, Sxy[:, unknown], name="state second moment").mT
+            Hd = Hd.clone()
+            Hd[unknown] = Hu
+            H = Hd.to(dtype)
         if learn_R:
-            e = yo - mo @ H.mT
-            R = symmetrize(
-                (e.unsqueeze(-1) * e.unsqueeze(-2) + H @ Po @ H.mT).sum(0) / int(ok.sum())
-            )
+            # sum_t E[(y_t - H x_t)(y_t - H x_t)^T] from the sums
+            R = symmetrize((Syy - Hd @ Sxy - Sxy.mT @ Hd.mT + Hd @ Sxx_o @ Hd.mT) / n_ok).to(dtype)
     return _Lin(A, H, Q, R, B, lin.D)
 
 
@@ -403,32 +443,35 @@ def _expected_loglik(
     U: Tensor | None,
     rule: CubatureRule,
     measurement_term: bool,
+    valid: Tensor,
 ) -> Tensor:
-    """``Q(theta)``: the cubature expectation of the complete-data log-likelihood."""
+    """``Q(theta)``: the cubature expectation of the complete-data log-likelihood over the steps
+    ``valid (R, T)``."""
     n = model.state_dim
     dtype = sp.mean.dtype
-    mean2 = torch.cat([sp.prev_mean, sp.mean], -1).reshape(-1, 2 * n)
+    keep = valid.reshape(-1)
+    mean2 = torch.cat([sp.prev_mean, sp.mean], -1).reshape(-1, 2 * n)[keep]
     cov2 = torch.cat(
         [
             torch.cat([sp.prev_cov, sp.cross_cov], -1),
             torch.cat([sp.cross_cov.mT, sp.cov], -1),
         ],
         -2,
-    ).reshape(-1, 2 * n, 2 * n)
+    ).reshape(-1, 2 * n, 2 * n)[keep]
     xi, wm, _ = rule.unit_points(2 * n, dtype=dtype, device=mean2.device)
     S = safe_cholesky(symmetrize(cov2), name="smoothed pair covariance")
     pts = sigma_points(mean2, S, xi)  # (N, P, 2n)
     xa, xb = pts[..., :n], pts[..., n:]
     uu = None
     if U is not None:
-        uu = U.reshape(-1, U.shape[-1]).unsqueeze(-2).expand(-1, pts.shape[-2], -1)
+        uu = U.reshape(-1, U.shape[-1])[keep].unsqueeze(-2).expand(-1, pts.shape[-2], -1)
     pred = model.transition.predict(xa, uu)
     L = safe_cholesky(_point_cov(model.transition, pred), name="transition covariance")
     q = (gaussian_log_prob(xb - pred.mean, L) * wm).sum()
     if measurement_term:
         m = model.obs_dim
         y = Y.reshape(-1, m)
-        ok = torch.isfinite(y).all(-1)
+        ok = torch.isfinite(y).all(-1) & keep
         xi1, wm1, _ = rule.unit_points(n, dtype=dtype, device=mean2.device)
         S1 = safe_cholesky(symmetrize(sp.cov.reshape(-1, n, n)[ok]), name="smoothed covariance")
         p1 = sigma_points(sp.mean.reshape(-1, n)[ok], S1, xi1)
@@ -462,6 +505,7 @@ def fit_em(
     checkpoint: str | Path | None = None,
     checkpoint_every: int = 1,
     resume: bool = False,
+    all_reduce: Callable[[Tensor], None] | None = None,
 ) -> EMFit:
     """Expectation-maximisation with the cubature RTS smoother (see the module docstring).
 
@@ -494,9 +538,20 @@ def fit_em(
             continued and the result equals an uninterrupted fit.
         checkpoint_every: iterations between checkpoints.
         resume: continue from ``checkpoint`` if it exists.
+        all_reduce: for a data-parallel fit: sums a flat tensor in place across the processes
+            (e.g. ``torch.distributed.all_reduce`` with a CPU ``gloo`` group). Each process
+            passes its own recordings and runs the E-step on them; the linear M-step sums the
+            expected sufficient statistics over the processes (one collective) before the closed
+            form, the gradient M-step sums ``Q`` and its gradient at every L-BFGS evaluation (one
+            collective each), and the backtracking and stopping decisions use the summed filter
+            log-likelihood, so every process takes the same steps and ends with the parameters
+            of one EM on all recordings (up to the order of the sums). A callback that stops one
+            process stops all. Give each process its own ``checkpoint`` file; each also keeps the
+            checkpoint before it, so that after a lost process a resume starts all from the same
+            iteration.
 
     Returns:
-        An :class:`EMFit`.
+        An :class:`EMFit` (log-likelihoods and ``measurements`` summed over the processes).
 
     Raises:
         GaugeError: no gauge; InputError, ShapeError: invalid arguments; RunError: a checkpoint
@@ -523,7 +578,10 @@ def fit_em(
     rule = SphericalRadialRule() if rule is None else rule
     recs = _recordings(model, y, u, x0, P0, dtype)
     Y, U, X0, C0 = recs.y, recs.u, recs.x0.detach(), recs.P0.detach()
-    counted = int(torch.isfinite(Y).sum())
+    reduce = None if all_reduce is None else _Reducer(all_reduce)
+    # the steps of each recording (a shorter one is NaN-padded: those steps are no transitions)
+    valid = torch.arange(Y.shape[-2]).unsqueeze(0) < torch.tensor(recs.lengths).unsqueeze(-1)
+    counted = int(_summed(reduce, torch.tensor(float(torch.isfinite(Y).sum())))[0])
     if counted == 0:
         raise InputError("y: no measurement observed")
     sys = linear_system(model)
@@ -576,8 +634,9 @@ def fit_em(
     it0, history = 0, []
     initial: float | None = None
     finished: str | None = None
-    if resume and ckpt_path is not None and ckpt_path.is_file():
-        ck = _load_checkpoint(ckpt_path, fingerprint, _EM_SCHEMA, "EM")
+    ck = _resume_checkpoint(ckpt_path, fingerprint, _EM_SCHEMA, "EM", reduce) if resume else None
+    saved = _kept(ck) if reduce is not None else None  # a data-parallel save keeps it
+    if ck is not None:
         load(list(ck["state"]))
         it0, history, initial = int(ck["iteration"]), list(ck["history"]), float(ck["initial"])
         finished = ck.get("done")  # a fit that had stopped by itself stays stopped
@@ -585,7 +644,8 @@ def fit_em(
     def e_step() -> tuple[float, SmoothedPairs]:
         with torch.no_grad():
             res = CKF(current(), rule=rule).filter(Y, U, x0=X0, P0=C0)
-            return float(res.log_likelihood.sum()), smoothed_pairs(res, X0, C0)
+            ll = _summed(reduce, res.log_likelihood.sum())[0]
+            return float(ll), smoothed_pairs(res, X0, C0)
 
     t_start = time.perf_counter()
     bar = ProgressBar("fit EM", iterations, enabled=progress)
@@ -599,7 +659,7 @@ def fit_em(
         stalled = False
         before = state()
         if lin is not None:
-            lin = _linear_m_step(lin, sp, Y, U, known, learn_measurement_noise)
+            lin = _linear_m_step(lin, sp, Y, U, valid, known, learn_measurement_noise, reduce)
             ll_new, sp_new = e_step()
         else:
             # The E-step of a non-linear model is the CKF's Gaussian approximation, so a better
@@ -614,9 +674,11 @@ def fit_em(
                     sp,
                     Y,
                     U,
+                    valid,
                     rule,
                     learn_measurement_noise,
                     m_step_iterations,
+                    reduce,
                     blocks=blocks,
                 )
                 ll_new, sp_new = e_step()
@@ -639,22 +701,23 @@ def fit_em(
         history.append({"iteration": it, "log_likelihood": ll, "elapsed": elapsed})
         bar.update(it, f"loglik/meas {ll / counted:.6g}")
         stop = bool(callback(EMState(it, iterations, ll, elapsed))) if callback else False
+        if reduce is not None:  # one process's callback stops them all
+            stop = bool(_summed(reduce, torch.tensor(float(stop)))[0] > 0)
         done = "no improvement" if stalled else ("converged" if abs(change) <= tol else None)
         if ckpt_path is not None and (
             it % checkpoint_every == 0 or it == iterations or done is not None
         ):
-            _save_checkpoint(
-                ckpt_path,
-                {
-                    "fingerprint": fingerprint,
-                    "iteration": it,
-                    "state": state(),
-                    "history": history,
-                    "initial": initial,
-                    "done": done,
-                },
-                _EM_SCHEMA,
-            )
+            payload = {
+                "fingerprint": fingerprint,
+                "iteration": it,
+                "state": state(),
+                "history": history,
+                "initial": initial,
+                "done": done,
+            }
+            _save_checkpoint(ckpt_path, payload, _EM_SCHEMA, previous=saved)
+            if reduce is not None:
+                saved = _kept(payload)
         if stop:
             stopped = "callback"
             break
@@ -674,23 +737,51 @@ def fit_em(
     )
 
 
+class _MStepFailed(RuntimeError):
+    """A process of a data-parallel gradient M-step failed to evaluate ``Q``: all undo it."""
+
+
+class _Reducer:
+    """``all_reduce`` that remembers whether a collective itself failed (a lost process), so that
+    such a failure is never mistaken for a failed M-step and swallowed."""
+
+    def __init__(self, all_reduce: Callable[[Tensor], None] | None) -> None:
+        self.all_reduce, self.broken = all_reduce, False
+
+    def __call__(self, flat: Tensor) -> None:
+        assert self.all_reduce is not None
+        try:
+            self.all_reduce(flat)
+        except BaseException:
+            self.broken = True
+            raise
+
+
 def _gradient_m_step(
     model: StateSpaceModel,
     plist: list[nn.Parameter],
     sp: SmoothedPairs,
     Y: Tensor,
     U: Tensor | None,
+    valid: Tensor,
     rule: CubatureRule,
     measurement_term: bool,
     iterations: int,
+    all_reduce: Callable[[Tensor], None] | None = None,
     *,
     blocks: tuple[str, ...] = ("noise", "maps", "noise"),
 ) -> None:
     """Block coordinate L-BFGS on ``-Q(theta)`` over ``blocks`` in turn: by default the noise
     covariances, then the other parameters (the maps), then the noise again (the maps'
     gradients dwarf the noises', so a joint step leaves ``Q`` and ``R`` almost where they
-    were); undone if ``Q`` does not improve (generalised EM)."""
-    scale = float(sp.mean.shape[:-1].numel())
+    were); undone if ``Q`` does not improve (generalised EM).
+
+    Data-parallel (``all_reduce``): every evaluation of ``Q`` and its gradient is one collective
+    that sums them over the processes (whatever the local outcome: a process whose evaluation
+    failed sends NaN and a flag, and then every process undoes the step), so all take the same
+    L-BFGS steps."""
+    reduce = None if all_reduce is None else _Reducer(all_reduce)
+    scale = float(_summed(reduce, torch.tensor(float(valid.sum())))[0])
     before = [p.detach().clone() for p in plist]
     noise_ids = {
         id(p)
@@ -700,8 +791,23 @@ def _gradient_m_step(
     }
     noise = [p for p in plist if id(p) in noise_ids]
     rest = [p for p in plist if id(p) not in noise_ids]
-    with torch.no_grad():
-        q0 = float(_expected_loglik(model, sp, Y, U, rule, measurement_term))
+
+    def q_value() -> float:
+        """``Q`` at the current parameters, summed over the processes."""
+        failed = False
+        with torch.no_grad():
+            try:
+                q = _expected_loglik(model, sp, Y, U, rule, measurement_term, valid).detach()
+            except (RuntimeError, ValueError):
+                if reduce is None:
+                    raise
+                q, failed = torch.tensor(math.nan), True
+        total, flag = _summed(reduce, q.reshape(()), torch.tensor(float(failed)))
+        if float(flag) > 0:
+            raise _MStepFailed("Q could not be evaluated on some process")
+        return float(total)
+
+    q0 = q_value()
 
     def run(group: list[nn.Parameter]) -> None:
         opt = torch.optim.LBFGS(
@@ -716,9 +822,33 @@ def _gradient_m_step(
 
         def closure() -> Tensor:
             opt.zero_grad()
-            loss = -_expected_loglik(model, sp, Y, U, rule, measurement_term) / scale
-            loss.backward()
-            return loss.detach()
+            if reduce is None:
+                loss = -_expected_loglik(model, sp, Y, U, rule, measurement_term, valid) / scale
+                loss.backward()
+                return loss.detach()
+            # data-parallel: local sums, then one collective for the value and the gradient
+            # (on every process whatever its outcome, so that none waits forever)
+            failed = False
+            try:
+                local = -_expected_loglik(model, sp, Y, U, rule, measurement_term, valid)
+                local.backward()
+                value = local.detach()
+            except (RuntimeError, ValueError):
+                value, failed = torch.tensor(math.nan), True
+            grads = [
+                torch.full_like(p, math.nan)
+                if failed
+                else (torch.zeros_like(p) if p.grad is None else p.grad)
+                for p in group
+            ]
+            total, flag, *summed = _summed(
+                reduce, value.reshape(()), torch.tensor(float(failed)), *grads
+            )
+            if float(flag) > 0:
+                raise _MStepFailed("Q could not be evaluated on some process")
+            for p, g in zip(group, summed, strict=True):
+                p.grad = (g / scale).to(p.dtype)
+            return (total / scale).to(before[0].dtype)
 
         opt.step(closure)  # type: ignore[arg-type]
 
@@ -726,11 +856,12 @@ def _gradient_m_step(
         for group in ({"noise": noise, "maps": rest}[b] for b in blocks):
             if group:
                 run(group)
-        with torch.no_grad():
-            q1 = float(_expected_loglik(model, sp, Y, U, rule, measurement_term))
+        q1 = q_value()
         ok = math.isfinite(q1) and q1 >= q0
     except (RuntimeError, ValueError, IndexError):  # a failed factorisation, or torch's
         # strong-Wolfe search left without a finite bracket, on a wild line-search step
+        if reduce is not None and reduce.broken:
+            raise  # a lost process, not a bad step
         ok = False
     if not ok:
         with torch.no_grad():
@@ -795,8 +926,8 @@ def fit_measurement_only(
         dtype: floating dtype.
         checkpoint, checkpoint_every, resume: checkpointing; resuming equals an uninterrupted
             fit.
-        all_reduce: a data-parallel fit over processes with their own recordings
-            (``"likelihood"`` only; see :func:`~torchfilt.training.fit_likelihood`).
+        all_reduce: a data-parallel fit over processes with their own recordings (see
+            :func:`fit_em` and :func:`~torchfilt.training.fit_likelihood`).
 
     Returns:
         A :class:`MeasurementOnlyFit`.
@@ -809,11 +940,6 @@ def fit_measurement_only(
     if not isinstance(model, StateSpaceModel):
         raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
     known = check_gauge(model, known_channels)
-    if method == "em" and all_reduce is not None:
-        raise InputError(
-            "all_reduce: a data-parallel fit runs through the filter likelihood; use "
-            "method='likelihood' (EM's sufficient statistics are not reduced across processes)"
-        )
     if method == "em":
         em = fit_em(
             model,
@@ -833,6 +959,7 @@ def fit_measurement_only(
             checkpoint=checkpoint,
             checkpoint_every=checkpoint_every,
             resume=resume,
+            all_reduce=all_reduce,
         )
         return MeasurementOnlyFit(
             model=em.model,
