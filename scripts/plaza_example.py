@@ -649,9 +649,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         f"({float(test.time[-1] - test.time[0]):.0f} s, {n_obs} ranges, at most one beacon per step)"
     )
     print("NEES: chi-square with 3 dof when consistent (mean 3, median 2.37).")
-    print(_table({k: results[k] for k in ["dead reckoning", *models]}))
+    print(results_table({k: results[k] for k in ["dead reckoning", *models]}))
     print("\nAblation (one learned model, the other textbook with the textbook CKF's tuned noise):")
-    print(_table({k: results[k] for k in ablation}))
+    print(results_table({k: results[k] for k in ablation}))
 
     args.out.mkdir(parents=True, exist_ok=True)
     plot_trajectory(train, test, estimates, beacons, ids).savefig(args.out / "trajectory.png")
@@ -728,7 +728,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     return payload
 
 
-def _table(results: dict[str, dict[str, Any]]) -> str:
+def results_table(results: dict[str, dict[str, Any]]) -> str:
     headers = ["estimator", "RMSE pos [m]", "RMSE heading [rad]", "NEES mean", "NEES median"]
     headers += [f"cov95 {s}" for s in STATE_NAMES]
     rows = []

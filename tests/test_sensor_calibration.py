@@ -179,3 +179,35 @@ def test_em_m_step_falls_back_to_the_maps_when_the_noise_step_lowers_the_likelih
     assert all(b >= a for a, b in itertools.pairwise(lls))
     assert fit.iterations > 5
     assert abs(float(kin.log_k1.detach().exp()) / reaction.K1 - 1) < 0.1
+
+
+def test_em_m_step_uses_partly_observed_steps():
+    """Two sensors that never report at the same step (as Plaza2's beacons): the M-step's
+    measurement term is the density of the observed components, so EM learns R. Before, only
+    fully observed steps counted, and R stayed at its start."""
+    A = torch.tensor([[0.9, 0.2], [-0.2, 0.8]], dtype=DT)
+    truth = torchfilt.LinearGaussianModel(
+        A,
+        torch.eye(2, dtype=DT),
+        0.05 * torch.eye(2, dtype=DT),
+        torch.diag(torch.tensor([0.2, 0.5], dtype=DT)),
+    )
+    x0, P0 = torch.zeros(2, dtype=DT), torch.eye(2, dtype=DT)
+    sim = torchfilt.simulate(
+        truth, 200, x0, batch_shape=(4,), generator=torch.Generator().manual_seed(3)
+    )
+    y = sim.measurements.clone()
+    y[:, 0::2, 0] = math.nan
+    y[:, 1::2, 1] = math.nan  # never both at once
+    model = StateSpaceModel(
+        lambda x, u=None: x @ A.mT,
+        lambda x, u=None: x,
+        Q=ScalarCovariance(torch.tensor(0.05, dtype=DT), 2),
+        R=DiagonalCovariance(torch.ones(2, dtype=DT)),
+    )
+    fit = fit_measurement_only(
+        model, y, x0=x0, P0=P0, known_channels=[0, 1], method="em", iterations=15
+    )
+    R = model.measurement.noise_cov().detach().diagonal()
+    assert fit.log_likelihood > fit.history[0]["log_likelihood"]
+    torch.testing.assert_close(R, torch.tensor([0.2, 0.5], dtype=DT), rtol=0.35, atol=0)

@@ -471,7 +471,8 @@ def _expected_loglik(
     if measurement_term:
         m = model.obs_dim
         y = Y.reshape(-1, m)
-        ok = torch.isfinite(y).all(-1) & keep
+        seen = torch.isfinite(y) & keep.unsqueeze(-1)  # (N, m): the observed components
+        ok = seen.any(-1)
         xi1, wm1, _ = rule.unit_points(n, dtype=dtype, device=mean2.device)
         S1 = safe_cholesky(symmetrize(sp.cov.reshape(-1, n, n)[ok]), name="smoothed covariance")
         p1 = sigma_points(sp.mean.reshape(-1, n)[ok], S1, xi1)
@@ -479,8 +480,18 @@ def _expected_loglik(
         if U is not None:
             u1 = U.reshape(-1, U.shape[-1])[ok].unsqueeze(-2).expand(-1, p1.shape[-2], -1)
         hp = model.measurement.predict(p1, u1)
-        Lr = safe_cholesky(_point_cov(model.measurement, hp), name="measurement covariance")
-        q = q + (gaussian_log_prob(y[ok].unsqueeze(-2) - hp.mean, Lr) * wm1).sum()
+        # the marginal density of the observed components of a partly observed step: a missing
+        # component gets residual 0, unit variance and no covariance with the others, and is
+        # not counted in the normalising constant (as in the filter's masked update)
+        o = seen[ok].unsqueeze(-2)  # (K, 1, m)
+        both = o.unsqueeze(-1) & o.unsqueeze(-2)
+        C = torch.where(both, _point_cov(model.measurement, hp), 0.0) + torch.diag_embed(
+            (~o).to(dtype)
+        )
+        r = torch.where(o, y[ok].nan_to_num().unsqueeze(-2) - hp.mean, 0.0)
+        Lr = safe_cholesky(C, name="measurement covariance")
+        lp = gaussian_log_prob(r, Lr, dim=o.sum(-1))
+        q = q + (lp * wm1).sum()
     return q
 
 
