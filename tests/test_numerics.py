@@ -130,3 +130,15 @@ def test_unrolled_cholesky_reports_failures_like_lapack():
     _, info_ref = torch.linalg.cholesky_ex(A[:8])
     assert info[5] == 2 and info[9] == 3 and info_ref[5] == 2
     assert (info[[i for i in range(small.SMALL_BATCH) if i not in (5, 9)]] == 0).all()
+
+
+def test_safe_cholesky_jitter_on_a_tensor_with_grad_warns_only_about_the_jitter():
+    """The jitter report read a tensor that carries a gradient into a float, which raised
+    torch's "Converting a tensor with requires_grad=True" UserWarning inside likelihood fits."""
+    A = torch.tensor([[1.0, 1.0], [1.0, 1.0]], dtype=torch.float64, requires_grad=True)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        L = safe_cholesky(A, name="A")
+    assert {type(w.message) for w in caught} == {CholeskyJitterWarning}
+    L.sum().backward()
+    assert A.grad is not None and bool(torch.isfinite(A.grad).all())

@@ -94,17 +94,22 @@ def safe_cholesky(
     scale = torch.where(scale > 0, scale, torch.ones_like(scale)) * torch.finfo(A.dtype).eps
     retry = bad & finite
     used = 0.0
-    for k in range(max_tries):
-        if not bool(retry.any()):
-            break
-        jitter = scale * JITTER_BASE ** (k + 1)
-        L2, info2 = small.cholesky_ex(A + jitter[..., None, None] * eye)
-        ok = retry & (info2 == 0)
-        L = torch.where(ok[..., None, None], L2, L)
-        if bool(ok.any()):
-            rel = float((jitter / scale * torch.finfo(A.dtype).eps)[ok].max())
-            used = max(used, rel)
-        retry = retry & ~ok
+    found = torch.zeros_like(scale)  # the jitter that factors each element (0: none needed)
+    with torch.no_grad():  # the search only picks the jitter
+        for k in range(max_tries):
+            if not bool(retry.any()):
+                break
+            jitter = scale * JITTER_BASE ** (k + 1)
+            _, info2 = small.cholesky_ex(A + jitter[..., None, None] * eye)
+            ok = retry & (info2 == 0)
+            found = torch.where(ok, jitter, found)
+            if bool(ok.any()):
+                used = max(used, float((jitter / scale * torch.finfo(A.dtype).eps)[ok].max()))
+            retry = retry & ~ok
+    if used > 0.0:
+        # one factorisation with the jitter found: its gradient does not pass through the failed
+        # first factor (whose NaN would poison it through torch.where)
+        L, _ = small.cholesky_ex(A + found.detach()[..., None, None] * eye)
     failed = retry | ~finite
     if used > 0.0 and warn:
         warnings.warn(
