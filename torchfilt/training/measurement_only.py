@@ -539,7 +539,9 @@ def fit_em(
             M-step (others).
         m_step_iterations: L-BFGS iterations per M-step (non-linear models).
         backtracks: step halvings of a non-linear M-step that lowered the filter likelihood
-            before it is undone (0: undone at once).
+            before it is undone (0: undone at once) and the next block of the M-step is tried:
+            the joint step, then the maps alone, then the noises alone (an iteration where none
+            raises the likelihood stops the fit with ``"no improvement"``).
         rule: cubature rule of the filter and of the M-step expectation (default third degree).
         callback: called after every iteration with an :class:`EMState`; return ``True`` to
             stop.
