@@ -17,8 +17,10 @@ Two methods, chosen by ``method`` of :func:`fit_measurement_only`:
 
     with the expectation under the smoothed Gaussian of ``(x_{t-1}, x_t)`` (of ``x_t`` for the
     measurement term) taken by the same cubature rule as the filter (``4 n`` points per pair for
-    the third-degree rule), in blocks: the noise covariances, the maps, the noise again. We chose this deterministic expectation over sampling trajectories
-    from the smoothed posterior because it has no Monte Carlo error, so the EM likelihood trace
+    the third-degree rule), in blocks: the noise covariances, the maps, the noise again (if that
+    joint step lowers the filter likelihood, the maps alone, then the noises alone; a partly
+    observed step counts with the density of its observed components). We chose this
+    deterministic expectation over sampling trajectories from the smoothed posterior because it has no Monte Carlo error, so the EM likelihood trace
     can be checked for monotonicity exactly (up to the Gaussian approximation of the E-step), it
     is reproducible without a generator, and it is the moment matching the filter itself does;
     it still accounts for the smoothed uncertainty of the GP's *inputs* (errors in variables),
