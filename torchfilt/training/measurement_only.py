@@ -154,14 +154,7 @@ def check_gauge(
                 _check_nonlinear(mod, sorted(set(mod.channels) & set(ch)), model.state_dim)
         suspects = [p for p in suspects if id(p) not in cal_ids]
     if suspects:
-        n = model.state_dim
-        dtype = suspects[0].dtype
-        gen = torch.Generator().manual_seed(0)
-        x = torch.randn(1, 4, n, generator=gen, dtype=dtype)
-        u = None
-        nu = getattr(model.measurement, "input_dim", None)
-        if isinstance(nu, int) and nu > 0:
-            u = torch.randn(1, 4, nu, generator=gen, dtype=dtype)
+        x, u, _ = _probe_points(model.measurement, model.state_dim, suspects[0].dtype, seed=0)
         out = model.measurement.predict(x, u).mean[..., ch].sum()
         grads = torch.autograd.grad(out, suspects, allow_unused=True)
         for p, g in zip(suspects, grads, strict=True):
@@ -175,19 +168,29 @@ def check_gauge(
     return sorted(ch)
 
 
+def _probe_points(
+    side: nn.Module, n: int, dtype: torch.dtype, *, seed: int
+) -> tuple[Tensor, Tensor | None, torch.Generator]:
+    """Seeded random states ``(1, 4, n)`` and, for a side with inputs, inputs ``(1, 4, nu)`` at
+    which the gauge checks probe a measurement map; the generator, for further draws."""
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.randn(1, 4, n, generator=gen, dtype=dtype)
+    u = None
+    nu = getattr(side, "input_dim", None)
+    if isinstance(nu, int) and nu > 0:
+        u = torch.randn(1, 4, nu, generator=gen, dtype=dtype)
+    return x, u, gen
+
+
 def _check_nonlinear(sensor: AffineSensor, channels: list[int], n: int) -> None:
     """Refuse a learned gain and offset on a known channel whose map is affine in the state
     (its Hessian-vector products are zero at random points): ``x -> a x + c`` would absorb them."""
     if not channels:
         return
     dtype = sensor.log_scale.dtype
-    gen = torch.Generator().manual_seed(1)
-    x = torch.randn(1, 4, n, generator=gen, dtype=dtype).requires_grad_(True)
+    x, u, gen = _probe_points(sensor.base, n, dtype, seed=1)
+    x.requires_grad_(True)
     v = torch.randn(1, 4, n, generator=gen, dtype=dtype)
-    u = None
-    nu = getattr(sensor.base, "input_dim", None)
-    if isinstance(nu, int) and nu > 0:
-        u = torch.randn(1, 4, nu, generator=gen, dtype=dtype)
     with torch.enable_grad():
         out = sensor.base.predict(x, u).mean
         for j in channels:
