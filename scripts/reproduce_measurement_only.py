@@ -422,29 +422,41 @@ def main(argv: list[str] | None = None) -> int:
         sm = torchfilt.rts_smooth(torchfilt.CKF(nominal).filter(train.measurements, x0=x0, P0=P0))
     cloud = sm.mean.reshape(-1, 2)
     fits: dict[str, Any] = {}
-    for method, iters in (("em", args.em_iterations), ("likelihood", args.likelihood_iterations)):
-        torch.manual_seed(args.seed)
-        model = learnable(cloud)
-        t0 = time.perf_counter()
-        fit = torchfilt.fit_measurement_only(
-            model,
-            train.measurements,
-            x0=x0,
-            P0=P0,
-            known_channels=[0],
-            method=method,  # type: ignore[arg-type]
-            iterations=iters,
-            m_step_iterations=args.m_step_iterations,
-        )
-        fits[method] = {
-            "log_likelihood": fit.log_likelihood,
-            "iterations": fit.iterations,
-            "stopped": fit.stopped,
-        }
-        rows[f"GP, measurements only ({method})"] = {
-            **evaluate(fit.model, test),
-            "train_s": time.perf_counter() - t0,
-        }
+
+    def measurement_only(prefix: str, fit_key: str, build: Any) -> dict[str, StateSpaceModel]:
+        """Train ``build()`` by both methods from the measurements; rows ``prefix,
+        measurements only (method)``, fit records ``fit_key + method``."""
+        models: dict[str, StateSpaceModel] = {}
+        for method, iters in (
+            ("em", args.em_iterations),
+            ("likelihood", args.likelihood_iterations),
+        ):
+            torch.manual_seed(args.seed)
+            model = build()
+            t0 = time.perf_counter()
+            fit = torchfilt.fit_measurement_only(
+                model,
+                train.measurements,
+                x0=x0,
+                P0=P0,
+                known_channels=[0],
+                method=method,  # type: ignore[arg-type]
+                iterations=iters,
+                m_step_iterations=args.m_step_iterations,
+            )
+            fits[fit_key + method] = {
+                "log_likelihood": fit.log_likelihood,
+                "iterations": fit.iterations,
+                "stopped": fit.stopped,
+            }
+            rows[f"{prefix}, measurements only ({method})"] = {
+                **evaluate(model, test),
+                "train_s": time.perf_counter() - t0,
+            }
+            models[method] = model
+        return models
+
+    measurement_only("GP", "", lambda: learnable(cloud))
 
     # grey-box: the physics with k1 learned, no residual
     t0 = time.perf_counter()
@@ -455,27 +467,7 @@ def main(argv: list[str] | None = None) -> int:
         "train_s": time.perf_counter() - t0,
     }
     k1s = {"trained with states": learned_k1(gb_states)}
-    for method, iters in (("em", args.em_iterations), ("likelihood", args.likelihood_iterations)):
-        model = grey_box()
-        t0 = time.perf_counter()
-        fit = torchfilt.fit_measurement_only(
-            model,
-            train.measurements,
-            x0=x0,
-            P0=P0,
-            known_channels=[0],
-            method=method,  # type: ignore[arg-type]
-            iterations=iters,
-        )
-        fits[f"grey-box {method}"] = {
-            "log_likelihood": fit.log_likelihood,
-            "iterations": fit.iterations,
-            "stopped": fit.stopped,
-        }
-        rows[f"grey-box k1, measurements only ({method})"] = {
-            **evaluate(model, test),
-            "train_s": time.perf_counter() - t0,
-        }
+    for method, model in measurement_only("grey-box k1", "grey-box ", grey_box).items():
         k1s[method] = learned_k1(model)
 
     headers = [
