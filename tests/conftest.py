@@ -26,6 +26,16 @@ def _seed() -> None:
     torch.manual_seed(0)
 
 
+@pytest.fixture(scope="module")
+def ray_local():
+    """A local Ray instance with 2 CPUs (the CI machine's), one per test module that asks."""
+    import ray  # the distributed extra; only the modules that use this fixture need it
+
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
 def random_spd(
     rng: np.random.Generator, n: int, scale: float = 1.0, cond: float = 10.0
 ) -> np.ndarray:

@@ -22,13 +22,6 @@ OPTIONS = dict(sides=("transition",), window=40, burn_in=5, iterations=12, lr=0.
 
 
 @pytest.fixture(scope="module")
-def ray_local():
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield ray
-    ray.shutdown()
-
-
-@pytest.fixture(scope="module")
 def data():
     """Pendulum recordings with 100x the model's process noise: calibration must inflate Q."""
     g = torch.Generator().manual_seed(0)

@@ -15,7 +15,6 @@ import time
 from pathlib import Path
 
 import pytest
-import ray
 from run_support import tiny_dataset, write_recipe
 
 from torchfilt.cli import main
@@ -30,13 +29,6 @@ from torchfilt.pipeline.distributed import (
 )
 
 SYSTEM = "system:pendulum"
-
-
-@pytest.fixture(scope="module")
-def ray_local():
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield ray
-    ray.shutdown()
 
 
 @pytest.fixture(scope="module")
