@@ -64,11 +64,13 @@ from torchfilt.models import (
     DiagonalCovariance,
     InducingTransition,
     LinearGaussianModel,
+    ParameterPosterior,
     Positive,
     Prediction,
     ScalarCovariance,
     StateSpaceModel,
     TimeVarying,
+    UncertainParameters,
 )
 from torchfilt.numerics import (
     Box,
@@ -91,6 +93,7 @@ if TYPE_CHECKING:
         fit_measurement_only,
         load_bundle,
         load_model,
+        parameter_posterior,
         train_recipe,
     )
 
@@ -109,6 +112,7 @@ _LAZY = {
     "fit_measurement_only": "torchfilt.training",
     "load_bundle": "torchfilt.training",
     "load_model": "torchfilt.training",
+    "parameter_posterior": "torchfilt.training",
     "train_recipe": "torchfilt.training",
 }
 _LAZY_MODULES = ("pipeline", "plots", "training")
@@ -167,6 +171,7 @@ __all__ = [
     "NotDetectableError",
     "NumericsWarning",
     "OpenLoopPredictor",
+    "ParameterPosterior",
     "Positive",
     "Prediction",
     "RecipeError",
@@ -182,6 +187,7 @@ __all__ = [
     "StepResponseModel",
     "TimeVarying",
     "TorchfiltError",
+    "UncertainParameters",
     "UnscentedRule",
     "WorkerError",
     "__version__",
@@ -204,6 +210,7 @@ __all__ = [
     "nees",
     "nis",
     "numerics",
+    "parameter_posterior",
     "read_recording",
     "rmse",
     "rts_smooth",

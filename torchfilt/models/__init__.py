@@ -31,6 +31,7 @@ from torchfilt.models.params import (
     ScalarCovariance,
 )
 from torchfilt.models.sensor import AffineSensor
+from torchfilt.models.uncertain import ParameterPosterior, UncertainParameters
 
 __all__ = [
     "AffineSensor",
@@ -45,11 +46,13 @@ __all__ = [
     "LinearGaussianModel",
     "LinearModel",
     "LinearSystem",
+    "ParameterPosterior",
     "Positive",
     "Prediction",
     "ScalarCovariance",
     "StateSpaceModel",
     "TimeVarying",
+    "UncertainParameters",
     "as_conditional",
     "check_output",
     "check_prediction",

@@ -34,6 +34,7 @@ from torchfilt.training.measurement_only import (
 )
 from torchfilt.training.recipe import Recipe, RecipeError, load_recipe
 from torchfilt.training.run import RunError, train_recipe
+from torchfilt.training.uncertainty import parameter_posterior
 from torchfilt.training.validation import one_step_metrics
 
 __all__ = [
@@ -62,6 +63,7 @@ __all__ = [
     "load_model_spec",
     "load_recipe",
     "one_step_metrics",
+    "parameter_posterior",
     "save_bundle",
     "smoothed_pairs",
     "step_log_likelihood",
