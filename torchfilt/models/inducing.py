@@ -195,6 +195,62 @@ class InducingTransition(ConditionalModel):
         self.inducing_inputs.copy_(z[idx])
         self.inducing_outputs.zero_()
 
+    @torch.no_grad()
+    def fit_residual(
+        self,
+        states: Tensor,
+        next_states: Tensor,
+        inputs: Tensor | None = None,
+        *,
+        noise: float | Tensor = 1e-2,
+    ) -> None:
+        """Set the inducing outputs from logged transitions ``x -> x'``: the GP posterior mean at
+        the inducing inputs of the residual ``r = x' - (nominal + W z + b)`` (the deterministic
+        training conditional, DTC), with the prior ``U_j ~ N(0, s_j C_ZZ)`` and noise ``noise_j``:
+
+            U_j = s_j C_ZZ (noise_j C_ZZ + s_j C_ZX C_XZ)^{-1} C_ZX r_j
+
+        Use it to start a measurement-only fit from whatever states a log does have (place the
+        inducing inputs first, e.g. with :meth:`init_inducing` on the same states).
+
+        Args:
+            states: ``(N, n)`` logged states ``x_t``.
+            next_states: ``(N, n)`` the logged states ``x_{t+1}`` that followed them.
+            inputs: ``(N, nu)`` the inputs ``u_t`` between them, or ``None``.
+            noise: the residual noise variance, a float or ``(n,)`` (e.g. the process noise).
+        """
+        n, M = self.out_dim, self.num_inducing
+        x = torch.as_tensor(states).to(self.linear.dtype)
+        xn = torch.as_tensor(next_states).to(self.linear.dtype)
+        if x.dim() != 2 or x.shape[-1] != n or xn.shape != x.shape:
+            raise ShapeError(
+                f"states, next_states: expected two (N, {n}) tensors, got {tuple(x.shape)} and "
+                f"{tuple(xn.shape)}"
+            )
+        if self.input_dim and (inputs is None or inputs.shape != (x.shape[0], self.input_dim)):
+            raise ShapeError(f"inputs: expected ({x.shape[0]}, {self.input_dim}) for the states")
+        u = None if not self.input_dim else torch.as_tensor(inputs).to(x.dtype)
+        if not bool(torch.isfinite(x).all() & torch.isfinite(xn).all()):
+            raise InputError("states, next_states: must be finite (drop the missing pairs)")
+        if M == 0:
+            return
+        nz = torch.as_tensor(noise, dtype=x.dtype).expand(n)
+        if not bool((nz > 0).all()):
+            raise InputError("noise: must be positive")
+        self.inducing_outputs.zero_()
+        r = xn - self.predict(x, u).mean  # (N, n): the residual with U = 0
+        z = self._inputs(x, u)
+        ls = self.log_lengthscale.exp()
+        Zs, zs = self.inducing_inputs / ls, z / ls
+        Czx = torch.exp(-0.5 * (Zs.unsqueeze(-2) - zs).pow(2).sum(-1))  # (M, N)
+        Czz = torch.exp(-0.5 * (Zs.unsqueeze(-2) - Zs).pow(2).sum(-1))
+        Czz = Czz + self.jitter * torch.eye(M, dtype=x.dtype)
+        sc = self.log_outputscale.exp()
+        for j in range(n):
+            S = nz[j] * Czz + sc[j] * Czx @ Czx.mT
+            w = torch.linalg.solve(S, Czx @ r[:, j])
+            self.inducing_outputs[j] = sc[j] * Czz @ w
+
     def _inputs(self, x: Tensor, u: Tensor | None) -> Tensor:
         if self.input_dim == 0:
             return x
