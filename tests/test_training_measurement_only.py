@@ -15,6 +15,11 @@ import copy
 import csv
 import json
 import math
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -395,3 +400,35 @@ def test_likelihood_method_with_inputs(tmp_path, data):
     assert "nees_mean" not in val["filter"]["uncalibrated"]
     summary = torchfilt.filter_recordings(bundle, [with_u / "rec_003.csv"], tmp_path / "est")
     assert summary["recordings"][0]["finite"]
+
+
+@pytest.mark.slow
+def test_sigkilled_run_resumes_to_the_uninterrupted_bundle(data, tmp_path):
+    """A real SIGKILL of ``torchfilt train`` during the measurement-only stage: ``--resume``
+    continues from the last checkpoint to the bundle of an uninterrupted run."""
+    text = RECIPE.replace(f"iterations = {ITERATIONS}", "iterations = 40", 1)
+    recipe = write(tmp_path / "r.toml", data, text)
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1"}
+    run = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "torchfilt", "train", str(recipe), "--out", str(run), "--quiet"]
+    log = tmp_path / "stderr.txt"
+    with open(log, "w") as err:
+        proc = subprocess.Popen(cmd, env=env, stderr=err, stdout=subprocess.DEVNULL)
+        t0 = time.time()
+        while not (run / "transition.ckpt").exists():
+            assert proc.poll() is None, f"training exited early: {log.read_text()}"
+            assert time.time() - t0 < 120, "no checkpoint appeared"
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    assert not (run / "transition.pt").exists(), "the stage finished before it could be killed"
+    torch.set_num_threads(1)
+    train_recipe(recipe, run, resume=True, progress=False)
+    ref = train_recipe(recipe, tmp_path / "fresh", progress=False)
+    a, b = load_bundle(run / "model.pt"), load_bundle(ref)
+    for k, v in b["transition"]["state"].items():
+        va = a["transition"]["state"][k]
+        assert torch.equal(va, v) if isinstance(v, torch.Tensor) else va == v, k
+    assert a["transition"]["fit"] == b["transition"]["fit"]
+    assert a["calibration"] == b["calibration"]
