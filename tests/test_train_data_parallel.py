@@ -144,6 +144,49 @@ def test_interrupted_data_parallel_run_resumes_to_the_same_bundle(gp_runs, monke
     assert "calibrate: resuming from iteration 3" in (run / "train.log").read_text()
 
 
+class _LosesRank1At4(dist_mod._DriverCallback):
+    """The actors' callback, except that rank 1's process exits (a lost machine) at iteration 4."""
+
+    def __call__(self, state):
+        import os
+
+        import torch.distributed
+
+        if torch.distributed.get_rank() == 1 and state.iteration == 4:
+            os._exit(1)
+        return super().__call__(state)
+
+
+@pytest.mark.slow
+def test_lost_actor_is_a_worker_error_and_the_run_resumes(gp_runs, tmp_path, monkeypatch, capsys):
+    """Rank 1 of the calibration stage dies after the checkpoint at iteration 3: a WorkerError
+    naming the rank and saying how to resume (one line at the CLI, exit 2); ``--resume`` gives
+    the uninterrupted run's bundle."""
+    import sys
+
+    import ray
+
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    recipe, _, dp = gp_runs
+    run = tmp_path / "lost"
+    monkeypatch.setattr(dist_mod, "_DriverCallback", _LosesRank1At4)
+    args = ["train", str(recipe), "--out", str(run), "--ray", "--data-parallel", "2", "--quiet"]
+    capsys.readouterr()
+    assert cli_main(args) == 2
+    err = capsys.readouterr().err.splitlines()[-1]
+    assert re.search(
+        r"error: calibrate_ray: rank 1 of 2 was lost.*--resume.*--data-parallel 2", err
+    )
+    monkeypatch.undo()
+    assert not (run / "model.pt").exists()
+    ck = run / "calibrate.ckpt"
+    assert [torch.load(ck / f"rank{r}.ckpt")["iteration"] for r in (0, 1)] == [3, 3]
+    assert cli_main([*args, "--resume"]) == 0
+    a, b = load_bundle(run / "model.pt"), load_bundle(dp / "model.pt")
+    assert a["calibration"] == b["calibration"]
+    assert _metrics(run, "calibrate") == list(range(1, CAL_ITERS + 1))
+
+
 MEASONLY = """
 name = "measonly"
 seed = 1
@@ -167,15 +210,24 @@ enabled = false
 """
 
 
-def test_data_parallel_measurement_only_stage_gives_the_local_bundle(ray_local, tmp_path, capsys):
-    """``states = "none"``: the EM of the transition stage on two actors (3 training recordings:
-    two and one) learns the transition of the local run."""
-    data = tmp_path / "data"
+@pytest.fixture(scope="module")
+def measonly_runs(ray_local, tmp_path_factory):
+    """A ``states = "none"`` recipe (EM, 4 iterations, no calibration) trained locally and with
+    ``workers=2`` (3 training recordings: two and one)."""
+    root = tmp_path_factory.mktemp("dp_measonly")
+    data = root / "data"
     simulate_dataset("reaction", data, recordings=4, steps=60, seed=0)
-    recipe = tmp_path / "measonly.toml"
+    recipe = root / "measonly.toml"
     recipe.write_text(MEASONLY.format(data=data.as_posix()))
-    local = train_recipe(recipe, tmp_path / "local", progress=False)
-    dp = train_recipe_data_parallel(recipe, tmp_path / "dp", workers=2, progress=False)
+    local = train_recipe(recipe, root / "local", progress=False)
+    dp = train_recipe_data_parallel(recipe, root / "dp", workers=2, progress=False)
+    return recipe, local, dp
+
+
+def test_data_parallel_measurement_only_stage_gives_the_local_bundle(measonly_runs, capsys):
+    """``states = "none"``: the EM of the transition stage on two actors learns the transition
+    of the local run."""
+    _, local, dp = measonly_runs
     a, b = load_bundle(local), load_bundle(dp)
     _close(a["transition"], b["transition"], "transition")
     _close(a["validation"], b["validation"], "validation")
@@ -188,6 +240,39 @@ def test_data_parallel_measurement_only_stage_gives_the_local_bundle(ray_local, 
     capsys.readouterr()
     assert cli_main(["info", str(dp)]) == 0
     assert "learned from: measurements alone (method em" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_interrupted_measurement_only_stage_resumes_to_the_same_bundle(measonly_runs, monkeypatch):
+    recipe, _, dp = measonly_runs
+    real = dist_mod.fit_measurement_only_ray
+
+    def interrupted_at_3(*args, **kwargs):
+        inner = kwargs["callback"]
+
+        def cb(state):
+            inner(state)
+            if state.iteration == 3:  # after the checkpoint at 2
+                raise KeyboardInterrupt
+
+        return real(*args, **{**kwargs, "callback": cb})
+
+    run = recipe.parent / "killed"
+    monkeypatch.setattr(dist_mod, "fit_measurement_only_ray", interrupted_at_3)
+    with pytest.raises(KeyboardInterrupt):
+        train_recipe_data_parallel(recipe, run, workers=2, progress=False)
+    monkeypatch.setattr(dist_mod, "fit_measurement_only_ray", real)
+    ck = run / "transition.ckpt"
+    assert [torch.load(ck / f"rank{r}.ckpt")["iteration"] for r in (0, 1)] == [2, 2]
+    assert not (run / "transition.pt").exists()
+    train_recipe_data_parallel(recipe, run, workers=2, resume=True, progress=False)
+    a, b = load_bundle(run / "model.pt"), load_bundle(dp)
+    for k, v in b["transition"]["state"].items():
+        va = a["transition"]["state"][k]
+        assert torch.equal(va, v) if isinstance(v, torch.Tensor) else va == v, k
+    assert a["transition"]["fit"] == b["transition"]["fit"]
+    assert _metrics(run, "transition") == [1, 2, 3, 4]
+    assert not ck.exists()
 
 
 @pytest.mark.parametrize(

@@ -1276,6 +1276,13 @@ def train_recipe_data_parallel(
                 f"--data-parallel {workers}: {workers} actors must run at once, but the Ray "
                 f"cluster has {total} CPUs"
             )
-        return train_recipe(
-            r, out, resume=resume, force=force, progress=progress, stream=stream, fitters=fitters
-        )
+        try:
+            return train_recipe(
+                r, out, resume=resume, force=force, progress=progress, stream=stream,
+                fitters=fitters,
+            )  # fmt: skip
+        except WorkerError as e:
+            raise WorkerError(
+                f"{e}. For this run: resume it with --resume (resume=True) and the same "
+                f"--ray --data-parallel {workers}"
+            ) from None
