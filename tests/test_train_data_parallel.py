@@ -295,3 +295,20 @@ def test_cli_refuses_data_parallel_where_it_does_not_apply(tmp_path, capsys, ext
     assert err.count("\n") == 1 and err.startswith("torchfilt train: error: ")
     assert re.search(message, err), err
     assert not (tmp_path / "run").exists()
+
+
+def test_without_ray_data_parallel_says_how_to_install(tmp_path, capsys, monkeypatch):
+    import sys
+
+    from torchfilt.exceptions import MissingDependencyError
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
+    recipe = tmp_path / "r.toml"
+    recipe.write_text("name = 'x'\n")
+    with pytest.raises(MissingDependencyError, match=r"pip install 'torchfilt\[distributed\]'"):
+        train_recipe_data_parallel(recipe, tmp_path / "run", workers=2)
+    capsys.readouterr()
+    argv = ["train", str(recipe), "--out", str(tmp_path / "run"), "--ray", "--data-parallel", "2"]
+    assert cli_main(argv) == 2
+    assert "torchfilt[distributed]" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
