@@ -116,6 +116,8 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
+    if args.data_parallel is not None:
+        return _train_data_parallel(args)
     if args.ray is None:
         if len(args.recipe) > 1 or args.dataset:
             raise InputError(
@@ -144,6 +146,37 @@ def _train(args: argparse.Namespace) -> int:
     )
     for name, b in bundles.items():
         print(f"model bundle ({name}): {b}")
+    return 0
+
+
+def _train_data_parallel(args: argparse.Namespace) -> int:
+    """``torchfilt train RECIPE --ray [ADDRESS] --data-parallel N``: one recipe, its likelihood
+    stages on N Ray actors."""
+    n = args.data_parallel
+    if n < 1:
+        raise InputError(f"--data-parallel must be a positive integer (actors), got {n}")
+    if args.ray is None:
+        raise InputError(
+            "--data-parallel runs the likelihood stages on Ray actors: use it with --ray [ADDRESS]"
+        )
+    if len(args.recipe) > 1 or args.dataset:
+        raise InputError(
+            "--data-parallel trains one recipe on its own dataset: give one recipe and no "
+            "--dataset (several units train as parallel tasks with --ray alone)"
+        )
+    from torchfilt.pipeline.distributed import train_recipe_data_parallel
+
+    bundle = train_recipe_data_parallel(
+        args.recipe[0],
+        args.out,
+        workers=n,
+        address=args.ray,
+        cpus=args.workers,
+        resume=args.resume,
+        force=args.force,
+        progress=not args.quiet,
+    )
+    print(f"model bundle: {bundle}")
     return 0
 
 
@@ -218,6 +251,14 @@ def _parser() -> argparse.ArgumentParser:
     )
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_ray(s, "train the units")
+    s.add_argument(
+        "--data-parallel",
+        type=int,
+        default=None,
+        metavar="N",
+        help="with --ray and one recipe: run its calibration and measurement-only stages "
+        "data-parallel on N Ray actors (the recordings dealt among them)",
+    )
     s.set_defaults(fn=_train)
 
     s = sub.add_parser("filter", help="filter (and smooth) recordings with a model")

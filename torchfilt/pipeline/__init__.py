@@ -9,6 +9,7 @@ from torchfilt.pipeline.distributed import (
     calibrate_ray,
     filter_recordings_ray,
     fit_measurement_only_ray,
+    train_recipe_data_parallel,
     train_recipes_ray,
 )
 from torchfilt.pipeline.evaluate import evaluate_outputs
@@ -32,5 +33,6 @@ __all__ = [
     "output_names",
     "resolve_model",
     "shard_plan",
+    "train_recipe_data_parallel",
     "train_recipes_ray",
 ]

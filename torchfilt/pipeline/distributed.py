@@ -41,7 +41,15 @@ EM) deal the recordings to Ray actors in one ``torch.distributed`` ``gloo`` grou
 the fit needs at every step, so the result is that of one process on all recordings. A lost
 actor (killed, or past ``timeout`` at a collective) stops the group with a
 :class:`~torchfilt.exceptions.WorkerError` naming its rank; ``resume=True`` continues from the
-actors' checkpoints.
+actors' checkpoints. With ``callback_on="driver"`` the per-iteration callback runs in the calling
+process (rank 0's state, rank 0 waiting for it), so it need not pickle and may write local files.
+
+**One recipe, data-parallel.** :func:`train_recipe_data_parallel` (``torchfilt train RECIPE
+--ray --data-parallel N``) is :func:`~torchfilt.training.train_recipe` whose calibration stage and
+``states = "none"`` transition stage are these data-parallel fits on ``N`` actors (the other
+stages run in this process): the same run directory, dataset log and bundle as a local run (the
+calibrated and learned parameters equal up to the order of the sums), each stage's checkpoint a
+folder of per-actor files, ``resume`` as for a local run.
 """
 
 from __future__ import annotations
@@ -54,11 +62,13 @@ import re
 import shutil
 import socket
 import sys
+import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
+from functools import partial
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, Literal, TextIO
 
 import torch
 
@@ -86,6 +96,7 @@ from torchfilt.pipeline.offline import (
 )
 from torchfilt.settings import RAY_BATCH_SIZE
 from torchfilt.training.recipe import Recipe, load_recipe
+from torchfilt.training.run import StageFitters
 
 __all__ = [
     "DONE_DIR",
@@ -96,6 +107,7 @@ __all__ = [
     "fit_measurement_only_ray",
     "import_ray",
     "ray_session",
+    "train_recipe_data_parallel",
     "train_recipes_ray",
 ]
 
@@ -748,6 +760,7 @@ def calibrate_ray(
     resume: bool = False,
     checkpoint_every: int = 10,
     timeout: float = GROUP_TIMEOUT,
+    callback_on: Literal["actors", "driver"] = "actors",
 ) -> Any:
     """:func:`~torchfilt.training.calibrate` as a data-parallel job on Ray.
 
@@ -773,13 +786,18 @@ def calibrate_ray(
         address: Ray cluster (see :func:`ray_session`).
         callback: called in every actor's process after each iteration (its rank is
             ``torch.distributed.get_rank()``); one returning ``True`` stops all. Sent to the
-            actors, so it must pickle.
+            actors, so it must pickle. With ``callback_on="driver"``: see there.
         checkpoint: folder of the actors' checkpoints (``None``: no checkpoints, and a lost
             worker means starting again).
         resume: continue from the checkpoints in ``checkpoint``.
         timeout: seconds a collective waits for the other actors before it fails (the longest
             one actor may compute between two collectives, e.g. filter its shard, must stay
             below it).
+        callback_on: ``"actors"`` (above), or ``"driver"``: ``callback`` is called in this
+            process with rank 0's state after each iteration, in order, while rank 0 waits for
+            it (before that iteration's checkpoint); its ``True`` stops all, and an exception it
+            raises stops the actors (their checkpoints kept: ``resume=True`` continues) and is
+            raised here. It need not pickle.
 
     Returns:
         The :class:`~torchfilt.training.calibrate.CalibrationResult` of actor 0.
@@ -810,7 +828,7 @@ def calibrate_ray(
     }
     return _run_group(
         "calibrate_ray", "calibrate", model, recordings, options, workers, address, checkpoint,
-        timeout,
+        timeout, callback_on,
     )  # fmt: skip
 
 
@@ -824,6 +842,7 @@ def _run_group(
     address: str | None,
     checkpoint: str | Path | None,
     timeout: float,
+    callback_on: str = "actors",
 ) -> Any:
     """Run a data-parallel fit on ``workers`` Ray actors in one ``gloo`` group; actor 0's result.
 
@@ -832,10 +851,16 @@ def _run_group(
     ``timeout``), stops them all, and raises: an actor's own
     :class:`~torchfilt.exceptions.TorchfiltError` if one raised one (a bad argument, a
     checkpoint of another fit), else a :class:`~torchfilt.exceptions.WorkerError` naming the
-    rank that died, or the one still running when the others had given up waiting for it."""
+    rank that died, or the one still running when the others had given up waiting for it.
+
+    With ``callback_on="driver"`` the driver also serves rank 0's callback states (a
+    :class:`_Relay` actor passes them) by calling ``options["callback"]`` here."""
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise InputError(f"workers must be a positive integer, got {workers!r}")
+    if callback_on not in ("actors", "driver"):
+        raise InputError(f"callback_on must be 'actors' or 'driver', got {callback_on!r}")
     timeout = _check_timeout(timeout)
+    on_driver = options["callback"] if callback_on == "driver" else None
     count = len(recordings.y) if hasattr(recordings, "y") else len(list(recordings))
     if workers > count:
         raise InputError(f"workers: {workers} workers for {count} recordings; use at most {count}")
@@ -857,6 +882,11 @@ def _run_group(
             )
         actor = ray.remote(num_cpus=1, max_restarts=0, max_task_retries=0)(_Rank)
         ranks = [actor.remote() for _ in range(workers)]
+        relay = None
+        if on_driver is not None:
+            # no CPU of its own: it only passes states, and the actors may take every CPU
+            relay = ray.remote(num_cpus=0, max_concurrency=4, max_restarts=0)(_Relay).remote()
+            job["options"] = {**options, "callback": _DriverCallback(relay)}
         try:
             init = ray.get(ranks[0].address.remote())
             ref = ray.put(job)
@@ -865,8 +895,16 @@ def _run_group(
             outs: dict[int, Any] = {}
             errors: dict[int, BaseException] = {}
             pending = list(refs)
+            take = None if relay is None else relay.take.remote()
             while pending and not errors:
-                ready, pending = ray.wait(pending, num_returns=1)
+                ready, _ = ray.wait(pending if take is None else [*pending, take], num_returns=1)
+                if take is not None and ready[0] == take:
+                    seq, state = ray.get(take)
+                    stop = on_driver(state)  # type: ignore[misc]  # an exception stops all
+                    relay.answer.remote(seq, bool(stop))  # type: ignore[union-attr]
+                    take = relay.take.remote()  # type: ignore[union-attr]
+                    continue
+                pending = [p for p in pending if p != ready[0]]
                 _collect(ray, ready, rank_of, outs, errors)
             if errors and pending:
                 ready, pending = ray.wait(
@@ -874,7 +912,7 @@ def _run_group(
                 )
                 _collect(ray, ready, rank_of, outs, errors)
         finally:
-            for a in ranks:
+            for a in [*ranks, *([] if relay is None else [relay])]:
                 ray.kill(a)
     if errors:
         stuck = sorted(rank_of[r] for r in pending)
@@ -973,6 +1011,7 @@ def fit_measurement_only_ray(
     resume: bool = False,
     checkpoint_every: int = 1,
     timeout: float = GROUP_TIMEOUT,
+    callback_on: Literal["actors", "driver"] = "actors",
 ) -> Any:
     """:func:`~torchfilt.training.fit_measurement_only` as a data-parallel job on Ray: the same
     group of actors as :func:`calibrate_ray` (recordings dealt round-robin, one checkpoint per
@@ -988,7 +1027,8 @@ def fit_measurement_only_ray(
         checkpoint_every: as in :func:`~torchfilt.training.fit_measurement_only`.
         recordings: a :class:`~torchfilt.training.likelihood.Sequences` (``y``, ``u``; shared
             ``x0``/``P0``).
-        workers, address, callback, checkpoint, resume, timeout: as in :func:`calibrate_ray`.
+        workers, address, callback, checkpoint, resume, timeout, callback_on: as in
+            :func:`calibrate_ray`.
 
     Returns:
         Actor 0's :class:`~torchfilt.training.measurement_only.MeasurementOnlyFit`.
@@ -1020,7 +1060,7 @@ def fit_measurement_only_ray(
     }
     return _run_group(
         "fit_measurement_only_ray", "measurement_only", model, recordings, options, workers,
-        address, checkpoint, timeout,
+        address, checkpoint, timeout, callback_on,
     )  # fmt: skip
 
 
@@ -1032,3 +1072,217 @@ class _Rank:
 
     def run(self, rank: int, world: int, init: str, job: dict[str, Any]) -> dict[str, Any]:
         return _fit_rank(rank, world, init, job)
+
+
+class _Relay:
+    """A Ray actor (threaded) that passes rank 0's callback states to the driver and the
+    driver's answers back (``callback_on="driver"``): rank 0 calls :meth:`put`, which returns
+    the driver's answer; the driver calls :meth:`take`, then :meth:`answer`."""
+
+    def __init__(self) -> None:
+        self._cv = threading.Condition()
+        self._seq = 0
+        self._waiting: tuple[int, Any] | None = None
+        self._answers: dict[int, bool] = {}
+
+    def put(self, state: Any) -> bool:
+        with self._cv:
+            self._seq += 1
+            seq = self._seq
+            self._waiting = (seq, state)
+            self._cv.notify_all()
+            self._cv.wait_for(lambda: seq in self._answers)
+            return self._answers.pop(seq)
+
+    def take(self) -> tuple[int, Any]:
+        with self._cv:
+            self._cv.wait_for(lambda: self._waiting is not None)
+            item, self._waiting = self._waiting, None
+            assert item is not None
+            return item
+
+    def answer(self, seq: int, stop: bool) -> None:
+        with self._cv:
+            self._answers[seq] = stop
+            self._cv.notify_all()
+
+
+class _DriverCallback:
+    """The callback the actors get with ``callback_on="driver"``: rank 0 sends its state to the
+    driver (through the :class:`_Relay`) and returns the driver's answer; the others do
+    nothing (rank 0's ``True`` stops them all)."""
+
+    def __init__(self, relay: Any) -> None:
+        self.relay = relay
+
+    def __call__(self, state: Any) -> bool | None:
+        import torch.distributed as dist
+
+        if dist.get_rank() != 0:
+            return None
+        return bool(import_ray().get(self.relay.put.remote(state)))
+
+
+# ------------------------------------------------------------------ one recipe, data-parallel
+
+
+def _measurement_only_stage_ray(
+    model: Any,
+    y: Any,
+    u: Any = None,
+    *,
+    workers: int,
+    timeout: float,
+    x0: torch.Tensor,
+    P0: torch.Tensor,
+    known_channels: Sequence[int] | None,
+    method: Literal["em", "likelihood"] = "em",
+    iterations: int = 100,
+    window: int | None = None,
+    burn_in: int = 0,
+    optimizer: str = "lbfgs",
+    lr: float | None = None,
+    learn_measurement_noise: bool = True,
+    m_step_iterations: int = 20,
+    callback: Callable[[Any], bool | None] | None = None,
+    progress: bool = False,
+    dtype: torch.dtype = torch.float64,
+    checkpoint: str | Path | None = None,
+    checkpoint_every: int = 1,
+    resume: bool = False,
+) -> Any:
+    """:func:`fit_measurement_only_ray` called as :func:`~torchfilt.training.fit_measurement_only`
+    (``y`` and ``u`` lists of ``(T_i, m)`` / ``(T_i, nu)``), the callback on the driver:
+    the ``measurement_only`` fitter of :func:`train_recipe_data_parallel`. ``progress`` is
+    ignored (the stage draws its own from the callback)."""
+    from torchfilt.training.likelihood import Sequences
+
+    return fit_measurement_only_ray(
+        model,
+        Sequences(y, u),
+        x0=x0,
+        P0=P0,
+        known_channels=known_channels,
+        method=method,
+        workers=workers,
+        iterations=iterations,
+        window=window,
+        burn_in=burn_in,
+        optimizer=optimizer,
+        lr=lr,
+        learn_measurement_noise=learn_measurement_noise,
+        m_step_iterations=m_step_iterations,
+        dtype=dtype,
+        callback=callback,
+        checkpoint=checkpoint,
+        resume=resume,
+        checkpoint_every=checkpoint_every,
+        timeout=timeout,
+        callback_on="driver",
+    )
+
+
+def data_parallel_fitters(workers: int, *, timeout: float = GROUP_TIMEOUT) -> StageFitters:
+    """The :class:`~torchfilt.training.run.StageFitters` of :func:`train_recipe_data_parallel`:
+    :func:`calibrate_ray` and :func:`fit_measurement_only_ray` on ``workers`` actors of the Ray
+    session open when a stage runs, the stage's callback on the driver, the stage's checkpoint
+    path the folder of the actors' checkpoints.
+
+    Raises:
+        InputError: ``workers`` is not a positive integer, or a bad ``timeout``.
+    """
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise InputError(f"--data-parallel must be a positive integer, got {workers!r}")
+    timeout = _check_timeout(timeout)
+    return StageFitters(
+        calibrate=partial(calibrate_ray, workers=workers, timeout=timeout, callback_on="driver"),
+        measurement_only=partial(_measurement_only_stage_ray, workers=workers, timeout=timeout),
+        name=f"data-parallel on {workers} Ray actors (--data-parallel {workers})",
+        shards=workers,
+    )
+
+
+def train_recipe_data_parallel(
+    recipe: str | Path | Recipe,
+    out: str | Path,
+    *,
+    workers: int,
+    address: str | None = None,
+    cpus: int | None = None,
+    resume: bool = False,
+    force: bool = False,
+    timeout: float = GROUP_TIMEOUT,
+    progress: bool = True,
+    stream: TextIO | None = None,
+) -> Path:
+    """:func:`~torchfilt.training.train_recipe` with its likelihood stages data-parallel on Ray.
+
+    The calibration stage runs :func:`calibrate_ray` and a ``states = "none"`` recipe's
+    transition stage :func:`fit_measurement_only_ray`, each on ``workers`` actors (one CPU each)
+    with the training recordings dealt round-robin (recording ``i`` to actor ``i % workers``);
+    the GP stages, the validation and the bundle run in this process, as in a local run. The run
+    directory, dataset log and bundle are those of a local run: the calibrated scales and floors
+    and the learned transition equal the local ones up to the order of the sums (float64: to
+    ~1e-9, tested), and ``metrics.jsonl``, ``train.log`` and the progress bar are written here
+    from rank 0's per-iteration states. Each stage checkpoints into a folder in the run
+    directory (``calibrate.ckpt/rank{r}.ckpt``, ``transition.ckpt/rank{r}.ckpt``), removed when
+    the stage is done.
+
+    ``config.json`` records the fitters (``"stage_fitters"``), and the run resumes only as it
+    started: ``resume=True`` with the same ``workers`` continues it from its checkpoints to the
+    bundle of an uninterrupted run (a lost actor is a
+    :class:`~torchfilt.exceptions.WorkerError`, and resuming continues from the checkpoints all
+    actors saved); :func:`~torchfilt.training.train_recipe` (local) or other ``workers`` refuse
+    it with a :class:`~torchfilt.exceptions.RunError`.
+
+    Args:
+        recipe: a recipe file or a :class:`~torchfilt.training.Recipe`.
+        out: run directory (visible under the same path to every actor: one machine or a shared
+            filesystem).
+        workers: Ray actors per data-parallel stage (``--data-parallel N``); at most the training
+            recordings and the cluster's CPUs.
+        address: Ray cluster (see :func:`ray_session`; ``None``: a new local instance, unless one
+            is open in this process).
+        cpus: CPUs of a new local instance (default: all; ``--workers``).
+        resume: continue the run in ``out``.
+        force: discard a run already in ``out``.
+        timeout: seconds a collective waits for the other actors (see :func:`calibrate_ray`).
+        progress: show progress bars (on a terminal; plain lines otherwise).
+        stream: where progress goes (default ``sys.stderr``).
+
+    Returns:
+        Path of the model bundle ``out/model.pt``.
+
+    Raises:
+        MissingDependencyError: Ray is not installed.
+        InputError: ``workers`` not a positive integer or more than the training recordings or
+            the cluster's CPUs, ``resume`` with ``force``, an unreachable cluster.
+        RecipeError, DataError: as :func:`~torchfilt.training.train_recipe` (before Ray starts).
+        RunError: as :func:`~torchfilt.training.train_recipe`, and a run started with other
+            fitters.
+        WorkerError: an actor was lost; ``resume=True`` continues.
+    """
+    from torchfilt.training import train_recipe
+
+    import_ray()
+    fitters = data_parallel_fitters(workers, timeout=timeout)
+    if resume and force:
+        raise InputError("--resume continues the run in --out and --force discards it: pick one")
+    r = recipe if isinstance(recipe, Recipe) else load_recipe(recipe)  # errors before Ray starts
+    with ray_session(address, workers=cpus) as ray:
+        total = int(ray.cluster_resources().get("CPU", 0))
+        if total < workers:
+            raise InputError(
+                f"--data-parallel {workers}: {workers} actors must run at once, but the Ray "
+                f"cluster has {total} CPUs"
+            )
+        try:
+            return train_recipe(
+                r, out, resume=resume, force=force, progress=progress, stream=stream,
+                fitters=fitters,
+            )  # fmt: skip
+        except WorkerError as e:
+            raise WorkerError(
+                f"{e}. For this run: resume it with --resume (resume=True) and the same "
+                f"--ray --data-parallel {workers}"
+            ) from None

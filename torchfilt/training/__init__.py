@@ -33,12 +33,13 @@ from torchfilt.training.measurement_only import (
     smoothed_pairs,
 )
 from torchfilt.training.recipe import Recipe, RecipeError, load_recipe
-from torchfilt.training.run import RunError, train_recipe
+from torchfilt.training.run import LOCAL_FITTERS, RunError, StageFitters, train_recipe
 from torchfilt.training.uncertainty import parameter_posterior
 from torchfilt.training.validation import one_step_metrics
 
 __all__ = [
     "BUNDLE_SCHEMA",
+    "LOCAL_FITTERS",
     "BundleError",
     "CalibrationResult",
     "EMFit",
@@ -52,6 +53,7 @@ __all__ = [
     "RunError",
     "Sequences",
     "SmoothedPairs",
+    "StageFitters",
     "calibrate",
     "check_gauge",
     "consistency",

@@ -277,7 +277,7 @@ class LikelihoodFit:
         stopped: why the loop ended: ``"iterations"``, ``"converged"``, ``"early stopping"``,
             ``"callback"`` or ``"non-finite"``.
         measurements: counted measurement components.
-        windows: windows per iteration.
+        windows: windows per iteration (data-parallel: of all processes).
         history: one record per iteration (``iteration``, ``loss``, ``validation``, ``elapsed``).
         elapsed: seconds of the whole fit.
     """
@@ -443,8 +443,10 @@ def fit_likelihood(
             all_reduce(flat)
         return flat
 
-    if all_reduce is not None:
-        counted = int(summed(torch.tensor([float(counted)]))[0])
+    windows = int(win.y.shape[0])
+    if all_reduce is not None:  # the counts of the whole fit, as one process on all recordings
+        total = summed(torch.tensor([float(counted), float(windows)]))
+        counted, windows = int(total[0]), int(total[1])
     val = None
     if validation is not None:
         vx0 = recs.x0[0] if validation.x0 is None else validation.x0
@@ -711,7 +713,7 @@ def fit_likelihood(
         best_iteration=best_it,
         stopped=stopped,
         measurements=counted,
-        windows=int(win.y.shape[0]),
+        windows=windows,
         history=history,
         elapsed=time.perf_counter() - t_start,
     )

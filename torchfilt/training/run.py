@@ -29,6 +29,15 @@ The state columns of the training recordings are never read.
 
 A run killed at any moment resumes from its last checkpoint with ``resume=True`` (``torchfilt train
 ... --resume``) and reaches the same model as an uninterrupted run with the same seed.
+
+**Who fits the likelihood stages.** The calibration stage and the ``states = "none"`` transition
+stage call :func:`~torchfilt.training.calibrate` and
+:func:`~torchfilt.training.fit_measurement_only` in this process, unless ``train_recipe`` is given
+other :class:`StageFitters` (callables with the same arguments): the data-parallel ones of
+:func:`torchfilt.pipeline.distributed.train_recipe_data_parallel` (``torchfilt train --ray
+--data-parallel N``) run the same fits on Ray actors, each stage's checkpoint then a folder of one
+file per actor. ``config.json`` records fitters other than the local ones (``"stage_fitters"``),
+and a run resumes only with the fitters it started with (else a :class:`RunError`).
 """
 
 from __future__ import annotations
@@ -37,7 +46,10 @@ import datetime as _dt
 import io
 import json
 import platform
+import shutil
 import sys
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -60,13 +72,13 @@ from torchfilt.training.bundle import (
     nominal_model,
     save_bundle,
 )
-from torchfilt.training.calibrate import calibrate, consistency
-from torchfilt.training.measurement_only import fit_measurement_only
+from torchfilt.training.calibrate import CalibrationResult, calibrate, consistency
+from torchfilt.training.measurement_only import MeasurementOnlyFit, fit_measurement_only
 from torchfilt.training.progress import ProgressBar
 from torchfilt.training.recipe import Recipe, check_states, load_recipe
 from torchfilt.training.validation import one_step_metrics
 
-__all__ = ["RunError", "train_recipe"]
+__all__ = ["LOCAL_FITTERS", "RunError", "StageFitters", "train_recipe"]
 
 STAGES = ("transition", "measurement")
 #: The calibration stage's checkpoint in a run directory.
@@ -99,6 +111,52 @@ _RUN_MARKERS = (
     MEASUREMENT_ONLY_CHECKPOINT,
     "model.pt",
 )
+
+
+@dataclass(frozen=True)
+class StageFitters:
+    """The fits behind a run's two likelihood stages (see the module docstring).
+
+    Each stage calls its fitter exactly as it calls the local function, and a replacement must
+    accept those arguments and keep their meaning:
+
+    - ``calibrate(model, train, *, x0, P0, validation, sides, window, burn_in, iterations, lr,
+      optimizer, patience, inflate_only, gp, callback, checkpoint, resume, checkpoint_every,
+      dtype)`` -> :class:`~torchfilt.training.calibrate.CalibrationResult`, as
+      :func:`~torchfilt.training.calibrate` (``train`` the training recordings, ``x0`` ``(n,)``,
+      ``P0`` ``(n, n)``, ``validation`` the validation recordings or ``None``);
+    - ``measurement_only(model, ys, us, *, x0, P0, known_channels, method, iterations, window,
+      burn_in, optimizer, lr, learn_measurement_noise, m_step_iterations, callback, progress,
+      dtype, checkpoint, checkpoint_every, resume)`` ->
+      :class:`~torchfilt.training.measurement_only.MeasurementOnlyFit`, as
+      :func:`~torchfilt.training.fit_measurement_only` (``ys`` a list of ``(T_i, m)``, ``us`` a
+      list of ``(T_i, nu)`` or ``None``).
+
+    ``callback`` must be called in the calling process, once per iteration in order and before
+    that iteration's checkpoint (the stage writes ``metrics.jsonl`` and the progress bar from
+    it). ``checkpoint`` is a path in the run directory that the fitter owns: one checkpoint file,
+    or a folder of files (one per process of a data-parallel fit), each a dictionary whose
+    ``"iteration"`` says how far it got (a folder resumes from the lowest); the stage removes it
+    when the stage is done.
+
+    Attributes:
+        calibrate: the calibration fit; ``None``: :func:`~torchfilt.training.calibrate`.
+        measurement_only: the ``states = "none"`` transition fit; ``None``:
+            :func:`~torchfilt.training.fit_measurement_only`.
+        name: how ``config.json`` records these fitters (``"stage_fitters"``, omitted for
+            ``"local"``); a run resumes only with fitters of the same name.
+        shards: processes the fitters deal the training recordings to: a dataset with fewer
+            training recordings is refused before anything is written.
+    """
+
+    calibrate: Callable[..., CalibrationResult] | None = None
+    measurement_only: Callable[..., MeasurementOnlyFit] | None = None
+    name: str = "local"
+    shards: int = 1
+
+
+#: The fitters of a plain run: the local functions, in this process.
+LOCAL_FITTERS = StageFitters()
 
 
 def _now() -> str:
@@ -202,6 +260,7 @@ def train_recipe(
     force: bool = False,
     progress: bool = True,
     stream: TextIO | None = None,
+    fitters: StageFitters = LOCAL_FITTERS,
 ) -> Path:
     """Train the models a recipe describes and write a run directory (see the module docstring).
 
@@ -212,13 +271,16 @@ def train_recipe(
         force: discard a run already in ``out`` (the files of :data:`RUN_FILES`) and start afresh.
         progress: show a progress bar (on a terminal; plain lines otherwise).
         stream: where progress goes (default ``sys.stderr``).
+        fitters: who fits the calibration and ``states = "none"`` transition stages (default:
+            the local functions; see :class:`StageFitters`).
 
     Returns:
         Path of the model bundle ``out/model.pt``.
 
     Raises:
         RunError: ``out`` already holds a run (without ``resume`` or ``force``), or has none to
-            resume, or the recipe or dataset changed since the run started.
+            resume, or the recipe or dataset changed since the run started, or the run started
+            with other ``fitters`` (``StageFitters.name``).
         RecipeError, DataError: invalid recipe or dataset (raised before anything is written).
         OutputError: ``out`` is a file, is read-only, or the disk is full.
     """
@@ -235,6 +297,12 @@ def train_recipe(
     else:
         ds = load_dataset(r.dataset)
     prior = _check_against_dataset(r, ds)
+    n_train = len(ds.split("train"))
+    if fitters.shards > n_train:
+        raise InputError(
+            f"{fitters.name}: the fits deal the training recordings to {fitters.shards} "
+            f"processes, but the dataset has {n_train}; use at most {n_train}"
+        )
     out = Path(out)
     stream = stream if stream is not None else sys.stderr
     cfg_path = out / "config.json"
@@ -253,11 +321,17 @@ def train_recipe(
                 f"{out}: the recipe changed since this run started; start a new run "
                 "(another --out, or --force to discard this one)"
             )
+        old_fitters = old.get("stage_fitters", LOCAL_FITTERS.name)
+        if old_fitters != fitters.name:
+            raise RunError(
+                f"{out}: this run fits its likelihood stages {_fitters_text(old_fitters)}; "
+                f"resume it the same way, not {_fitters_text(fitters.name)} (or --force to "
+                "start afresh)"
+            )
     else:
         if force:
             for f in RUN_FILES:
-                if (out / f).is_file():
-                    (out / f).unlink()
+                _remove(out / f)
         elif any((out / f).exists() for f in _RUN_MARKERS):
             raise RunError(
                 f"{out}: already holds a run; pass --resume to continue it, --force to discard "
@@ -267,9 +341,9 @@ def train_recipe(
     log: _Log | None = None
     try:
         if not resume:
-            atomic_write_text(cfg_path, json.dumps(_config(r), indent=2) + "\n")
+            atomic_write_text(cfg_path, json.dumps(_config(r, fitters), indent=2) + "\n")
         log = _Log(out / "train.log", None if progress else stream)
-        return _run(r, ds, prior, out, resume, progress, stream, log)
+        return _run(r, ds, prior, out, resume, progress, stream, log, fitters)
     except Exception:
         if not resume and not any((out / f).exists() for f in _RUN_MARKERS[1:]):
             # nothing trained yet (an invalid option, a full disk): remove what this attempt
@@ -287,8 +361,22 @@ def train_recipe(
             log.close()
 
 
-def _config(r: Recipe) -> dict[str, Any]:
-    """``config.json`` of a new run: the resolved recipe, its digest, library versions."""
+def _fitters_text(name: Any) -> str:
+    return "locally" if name == LOCAL_FITTERS.name else str(name)
+
+
+def _remove(path: Path) -> None:
+    """Remove a run file, or a stage checkpoint folder (of a data-parallel fit), if present."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    elif path.is_file():
+        path.unlink()
+
+
+def _config(r: Recipe, fitters: StageFitters = LOCAL_FITTERS) -> dict[str, Any]:
+    """``config.json`` of a new run: the resolved recipe, its digest, library versions (and the
+    stage fitters, when they are not the local ones)."""
+    extra = {} if fitters.name == LOCAL_FITTERS.name else {"stage_fitters": fitters.name}
     return {
         "recipe": r.resolved(),
         "digest": r.digest(),
@@ -299,6 +387,7 @@ def _config(r: Recipe) -> dict[str, Any]:
             "torch": str(torch.__version__),
             "python": platform.python_version(),
         },
+        **extra,
     }
 
 
@@ -405,13 +494,14 @@ def _run(
     progress: bool,
     stream: TextIO,
     log: _Log,
+    fitters: StageFitters,
 ) -> Path:
     """Run the recipe with its thread count, restoring the caller's afterwards."""
     threads = torch.get_num_threads()
     if r.threads is not None:
         torch.set_num_threads(r.threads)
     try:
-        return _run_recipe(r, ds, prior, out, resume, progress, stream, log)
+        return _run_recipe(r, ds, prior, out, resume, progress, stream, log, fitters)
     finally:
         torch.set_num_threads(threads)
 
@@ -425,6 +515,7 @@ def _run_recipe(
     progress: bool,
     stream: TextIO,
     log: _Log,
+    fitters: StageFitters,
 ) -> Path:
     dtype = torch.float64 if r.dtype == "float64" else torch.float32
     dlog = ds.log()
@@ -469,12 +560,10 @@ def _run_recipe(
                 "measurement",
             )
             entries[stage] = _fit_measurement_only_stage(
-                r, ds, h0, train, m0, P0, dtype, out, resume, progress, stream, log
+                r, ds, h0, train, m0, P0, dtype, out, resume, progress, stream, log, fitters
             )
             _save(done, entries[stage])
-            mo_ckpt = out / MEASUREMENT_ONLY_CHECKPOINT
-            if mo_ckpt.exists():
-                mo_ckpt.unlink()
+            _remove(out / MEASUREMENT_ONLY_CHECKPOINT)
             continue
         if "model" in opts:
             entries[stage] = {"kind": "system", "system": str(opts["model"]).split(":", 1)[1]}
@@ -505,6 +594,7 @@ def _run_recipe(
         progress,
         stream,
         log,
+        fitters,
     )
     uncal = StateSpaceModel(f, h)
     if calibration is not None and calibration.get("models"):
@@ -619,10 +709,10 @@ def _trim_metrics(path: Path, ckpt: dict[str, Any] | None, fresh: bool) -> None:
     keep = []
     cal_done = (path.parent / "calibration.pt").is_file()
     cal_ckpt = path.parent / CALIBRATE_CHECKPOINT
-    cal_it = _checkpoint_iteration(cal_ckpt) if cal_ckpt.is_file() else 0
+    cal_it = _checkpoint_iteration(cal_ckpt) if cal_ckpt.exists() else 0
     # a states = "none" transition fit keeps its own checkpoint (fit_measurement_only's)
     mo_ckpt = path.parent / MEASUREMENT_ONLY_CHECKPOINT
-    mo_open = mo_ckpt.is_file() and not (path.parent / "transition.pt").is_file()
+    mo_open = mo_ckpt.exists() and not (path.parent / "transition.pt").is_file()
     mo_it = _checkpoint_iteration(mo_ckpt) if mo_open else 0
     lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
     for i, line in enumerate(lines):
@@ -805,9 +895,11 @@ def _fit_measurement_only_stage(
     progress: bool,
     stream: TextIO,
     log: _Log,
+    fitters: StageFitters = LOCAL_FITTERS,
 ) -> dict[str, Any]:
-    """The ``states = "none"`` transition stage: :func:`fit_measurement_only` on the training
-    recordings' measurements and inputs; returns the ``"inducing"`` bundle entry."""
+    """The ``states = "none"`` transition stage: :func:`fit_measurement_only` (or
+    ``fitters.measurement_only``) on the training recordings' measurements and inputs; returns
+    the ``"inducing"`` bundle entry."""
     o = r.measurement_only
     n, nu = ds.state_dim, ds.input_dim
     known = _known_channels(r, ds)
@@ -817,7 +909,7 @@ def _fit_measurement_only_stage(
     counted = max(1, sum(int(torch.isfinite(y).sum()) for y in ys))
     iterations = int(o["iterations"])
     ckpt = out / MEASUREMENT_ONLY_CHECKPOINT
-    if resume and ckpt.is_file():
+    if resume and ckpt.exists():
         log(f"transition: resuming from iteration {_checkpoint_iteration(ckpt)}")
     log(
         f"transition: learning from measurements alone ({o['method']}, {model.transition.base.num_inducing} "  # type: ignore[union-attr]
@@ -853,8 +945,9 @@ def _fit_measurement_only_stage(
             )
 
     learn_R = any(p.requires_grad for p in model.measurement.parameters())
+    fitter = fitters.measurement_only or fit_measurement_only  # looked up now: patchable
     try:
-        fit = fit_measurement_only(
+        fit = fitter(
             model,
             ys,
             us,
@@ -902,6 +995,12 @@ def _fit_measurement_only_stage(
 
 
 def _checkpoint_iteration(path: Path) -> int:
+    """The iteration a stage checkpoint resumes from: that of its file, or the lowest of the files
+    in its folder (a data-parallel fit's processes agree on the latest iteration all of them
+    saved); 0 where unreadable."""
+    if path.is_dir():
+        its = [_checkpoint_iteration(p) for p in sorted(path.glob("*.ckpt"))]
+        return min(its, default=0)
     try:
         ck = torch.load(path, map_location="cpu", weights_only=True)
         return int(ck["iteration"])
@@ -923,8 +1022,10 @@ def _calibrate_stage(
     progress: bool,
     stream: TextIO,
     log: _Log,
+    fitters: StageFitters = LOCAL_FITTERS,
 ) -> dict[str, Any] | None:
-    """Fit variance scales and floors by the filter likelihood on the training recordings."""
+    """Fit variance scales and floors by the filter likelihood on the training recordings
+    (:func:`calibrate`, or ``fitters.calibrate``)."""
     c = r.calibrate
     if not c["enabled"]:
         log("calibrate: off ([calibrate] enabled = false)")
@@ -939,7 +1040,7 @@ def _calibrate_stage(
         log("calibrate: already done (resumed)")
         return dict(torch.load(done, weights_only=True))
     ckpt = out / CALIBRATE_CHECKPOINT
-    if resume and ckpt.is_file():
+    if resume and ckpt.exists():
         log(f"calibrate: resuming from iteration {_checkpoint_iteration(ckpt)}")
     iterations = int(c["iterations"])
     # short recordings: the burn-in may take at most half of the shortest one
@@ -967,7 +1068,8 @@ def _calibrate_stage(
             if state.iteration % every == 0:
                 log(f"calibrate: iteration {state.iteration}/{iterations} loss {state.loss:.6g}")
 
-        res = calibrate(
+        fitter = fitters.calibrate or calibrate  # looked up now: patchable
+        res = fitter(
             model,
             train,
             x0=m0,
@@ -1012,8 +1114,7 @@ def _calibrate_stage(
             for name, g in res.refit.items()
         }
     _save(done, entry)
-    if ckpt.exists():
-        ckpt.unlink()
+    _remove(ckpt)
     log(
         f"calibrate: {fit.stopped} after {fit.iterations} iterations; log-likelihood "
         f"{fit.initial_log_likelihood:.6g} -> {fit.log_likelihood:.6g}; "
