@@ -46,4 +46,11 @@ def test_reproduce_measurement_only_reduced(tmp_path):
     assert abs(out["grey_box_k1"]["likelihood"] / 0.16 - 1) < 0.1
     gamma = out["reentry"]["parameters"]["grey-box, ranges only (likelihood)"]["gamma"]
     assert abs(gamma / 5e-5 - 1) < 0.05
+    # two training runs: the sandwich needs more recordings than the 3 parameters
+    post = out["reentry"]["posteriors"]
+    assert "more recordings" in post["sandwich"]["skipped"]
+    if "skipped" not in post["hessian"]:
+        rows = out["reentry"]["rows"]
+        carried = rows["grey-box, ranges only (likelihood) + parameter uncertainty (hessian)"]
+        assert carried["coverage95"] >= rows["grey-box, ranges only (likelihood)"]["coverage95"]
     assert (tmp_path / "reaction_rmse.png").stat().st_size > 0

@@ -133,7 +133,7 @@ def test_posterior_equals_the_closed_form_kalman_hessian_and_sandwich() -> None:
     sand = torchfilt.parameter_posterior(
         make_model(), y, u, x0=x0, P0=P0, parameters=NAMES, covariance="sandwich"
     )
-    S = Hinv @ scores.T @ scores @ Hinv
+    S = 12 / (12 - 4) * Hinv @ scores.T @ scores @ Hinv  # HC1: R / (R - p)
     np.testing.assert_allclose(sand.cov.numpy(), S, rtol=1e-5, atol=1e-6 * abs(S).max())
     # the default picks the maps' parameters (the noises are buffers here)
     default = torchfilt.parameter_posterior(make_model(), y, u, x0=x0, P0=P0)

@@ -5,10 +5,14 @@ posterior at a maximum of the filter's innovation log-likelihood ``l(theta)`` (f
 
 - ``covariance="hessian"``: ``C = H^{-1}`` with ``H = -d^2 l / d theta^2``, the observed
   information. Right when the model (prior ``N(x0, P0)`` included) is the data's distribution.
-- ``covariance="sandwich"``: ``C = H^{-1} J H^{-1}`` with ``J = sum_r g_r g_r^T`` over the
-  recordings' scores ``g_r = d l_r / d theta`` (the robust, Huber-White form). It stays right
-  when the model is misspecified, e.g. when every recording starts from the same state rather
-  than from a draw of the prior; it needs more recordings than parameters, and many of them.
+- ``covariance="sandwich"``: ``C = R / (R - p) H^{-1} J H^{-1}`` with ``J = sum_r g_r g_r^T``
+  over the ``R`` recordings' scores ``g_r = d l_r / d theta`` (the robust Huber-White form, with
+  the HC1 small-sample factor for ``p`` parameter values). It stays right when the model is
+  misspecified, e.g. when every recording starts from the same state rather than from a draw of
+  the prior; it needs more recordings than parameters (``R > p``).
+
+``scripts/posterior_calibration.py`` checks both against the spread of the maximum-likelihood
+estimates over independent training sets (re-entry radar).
 
 :class:`~torchfilt.models.UncertainParameters` carries the result into a filter.
 """
@@ -175,6 +179,7 @@ def parameter_posterior(
         scores = torch.stack(
             [torch.autograd.grad(nll[r], theta, retain_graph=True)[0] for r in range(R)]
         )
-        cov = Hinv @ (scores.mT @ scores) @ Hinv
+        # HC1: the degrees-of-freedom correction R / (R - p) of the small-sample sandwich
+        cov = (R / (R - p)) * (Hinv @ (scores.mT @ scores) @ Hinv)
     cov = 0.5 * (cov + cov.mT)
     return ParameterPosterior(tuple(names), theta.detach().clone(), cov.detach())
