@@ -432,3 +432,31 @@ def test_sigkilled_run_resumes_to_the_uninterrupted_bundle(data, tmp_path):
         assert torch.equal(va, v) if isinstance(v, torch.Tensor) else va == v, k
     assert a["transition"]["fit"] == b["transition"]["fit"]
     assert a["calibration"] == b["calibration"]
+
+
+def test_a_recipe_built_in_code_with_a_partial_calibrate_table(tmp_path, data):
+    """``calibrate={"iterations": 2}`` gets the other keys' defaults (it used to hit a
+    KeyError deep in the stage); a wrong key is a RecipeError naming it."""
+    base = load_recipe(write(tmp_path / "r.toml", data))
+
+    def in_code(calibrate: dict) -> Recipe:
+        return Recipe(
+            path=None,
+            name="code",
+            seed=1,
+            dataset=data,
+            transition={},
+            measurement=dict(base.measurement),
+            filter=dict(base.filter),
+            states="none",
+            measurement_only={**base.measurement_only, "iterations": 2},
+            calibrate=calibrate,
+        )
+
+    bundle = load_bundle(train_recipe(in_code({"iterations": 2}), tmp_path / "ok", progress=False))
+    assert bundle["calibration"]["fit"]["iterations"] <= 2
+    config = json.loads((tmp_path / "ok" / "config.json").read_text())
+    assert config["recipe"]["calibrate"]["window"] == base.calibrate["window"]
+    with pytest.raises(RecipeError, match=r"unknown key\(s\) \['iters'\] in \[calibrate\]"):
+        train_recipe(in_code({"iters": 2}), tmp_path / "bad", progress=False)
+    assert not (tmp_path / "bad").exists()

@@ -47,6 +47,7 @@ __all__ = [
     "Key",
     "Recipe",
     "RecipeError",
+    "check_calibrate",
     "check_states",
     "load_recipe",
     "recipe_reference",
@@ -633,6 +634,19 @@ def load_recipe(path: str | Path) -> Recipe:
     return r
 
 
+def check_calibrate(r: Recipe) -> None:
+    """Validate a :class:`Recipe`'s ``calibrate`` table and fill in its defaults, in place (for
+    a recipe built in code; :func:`load_recipe` does it for a file): a partial table such as
+    ``{"iterations": 20}`` gets the other keys' defaults.
+
+    Raises:
+        RecipeError: naming the key (without the file; the callers add it).
+    """
+    out = _calibrate(r.calibrate, None)
+    r.calibrate.clear()
+    r.calibrate.update(out)
+
+
 def check_states(r: Recipe) -> None:
     """Check the ``states`` option against the rest of a recipe and, with ``states = "none"``,
     validate ``[measurement_only]`` and fill in its defaults (in place; idempotent). Runs when a
@@ -750,14 +764,14 @@ def _calibrate(table: Any, path: Path | None) -> dict[str, Any]:
     )
     if not ok_sides:
         raise RecipeError(
-            f'{path}: [calibrate] sides must be "learned" or a list of "transition" and/or '
+            f'{_file(path)}[calibrate] sides must be "learned" or a list of "transition" and/or '
             f'"measurement", got {sides!r}'
         )
     if not 0 <= out["burn_in"] < out["window"]:
         raise RecipeError(
-            f"{path}: [calibrate] burn_in must be an integer in [0, window), got {out['burn_in']!r}"
+            f"{_file(path)}[calibrate] burn_in must be an integer in [0, window), got {out['burn_in']!r}"
         )
     if float(out["lr"]) > 10:
-        raise RecipeError(f"{path}: [calibrate] lr must be a number in (0, 10], got {out['lr']!r}")
+        raise RecipeError(f"{_file(path)}[calibrate] lr must be a number in (0, 10], got {out['lr']!r}")
     out["lr"] = float(out["lr"])
     return out

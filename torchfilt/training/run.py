@@ -75,7 +75,7 @@ from torchfilt.training.bundle import (
 from torchfilt.training.calibrate import CalibrationResult, calibrate, consistency
 from torchfilt.training.measurement_only import MeasurementOnlyFit, fit_measurement_only
 from torchfilt.training.progress import ProgressBar
-from torchfilt.training.recipe import Recipe, check_states, load_recipe
+from torchfilt.training.recipe import Recipe, check_calibrate, check_states, load_recipe
 from torchfilt.training.validation import one_step_metrics
 
 __all__ = ["LOCAL_FITTERS", "RunError", "StageFitters", "train_recipe"]
@@ -289,6 +289,7 @@ def train_recipe(
     r = recipe if isinstance(recipe, Recipe) else load_recipe(recipe)
     try:
         check_states(r)  # again for a Recipe built in code
+        check_calibrate(r)
     except RecipeError as e:
         raise RecipeError(str(e) if r.path is None else f"{r.path}: {e}") from None
     # states = "none": the state columns are never read for training (absent or NaN is fine)
