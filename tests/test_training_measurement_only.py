@@ -216,6 +216,15 @@ def test_learned_transition_is_the_direct_fit_and_beats_the_initial_model(fresh,
     assert loglik(learned) == pytest.approx(fit.log_likelihood, rel=1e-9)
 
 
+def _assert_same_learned_model(a: dict, b: dict) -> None:
+    """Two bundles hold the same learned transition (bit for bit), fit record and calibration."""
+    for k, v in b["transition"]["state"].items():
+        va = a["transition"]["state"][k]
+        assert torch.equal(va, v) if isinstance(v, torch.Tensor) else va == v, k
+    assert a["transition"]["fit"] == b["transition"]["fit"]
+    assert a["calibration"] == b["calibration"]
+
+
 def test_killed_run_resumes_to_the_identical_bundle(fresh, data, tmp_path, monkeypatch):
     import torchfilt.training.run as run_mod
 
@@ -240,11 +249,7 @@ def test_killed_run_resumes_to_the_identical_bundle(fresh, data, tmp_path, monke
     monkeypatch.setattr(run_mod, "fit_measurement_only", real)
     train_recipe(recipe, run, resume=True, progress=False)
     a, b = load_bundle(run / "model.pt"), load_bundle(fresh)
-    for k, v in b["transition"]["state"].items():
-        va = a["transition"]["state"][k]
-        assert torch.equal(va, v) if isinstance(v, torch.Tensor) else va == v, k
-    assert a["transition"]["fit"] == b["transition"]["fit"]
-    assert a["calibration"] == b["calibration"]
+    _assert_same_learned_model(a, b)
     lines = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     its = [r["iteration"] for r in lines if r["stage"] == "transition"]
     assert its == list(range(1, b["transition"]["fit"]["iterations"] + 1))
@@ -426,12 +431,7 @@ def test_sigkilled_run_resumes_to_the_uninterrupted_bundle(data, tmp_path):
     torch.set_num_threads(1)
     train_recipe(recipe, run, resume=True, progress=False)
     ref = train_recipe(recipe, tmp_path / "fresh", progress=False)
-    a, b = load_bundle(run / "model.pt"), load_bundle(ref)
-    for k, v in b["transition"]["state"].items():
-        va = a["transition"]["state"][k]
-        assert torch.equal(va, v) if isinstance(v, torch.Tensor) else va == v, k
-    assert a["transition"]["fit"] == b["transition"]["fit"]
-    assert a["calibration"] == b["calibration"]
+    _assert_same_learned_model(load_bundle(run / "model.pt"), load_bundle(ref))
 
 
 def test_a_recipe_built_in_code_with_a_partial_calibrate_table(tmp_path, data):
