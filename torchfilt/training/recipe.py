@@ -772,6 +772,8 @@ def _calibrate(table: Any, path: Path | None) -> dict[str, Any]:
             f"{_file(path)}[calibrate] burn_in must be an integer in [0, window), got {out['burn_in']!r}"
         )
     if float(out["lr"]) > 10:
-        raise RecipeError(f"{_file(path)}[calibrate] lr must be a number in (0, 10], got {out['lr']!r}")
+        raise RecipeError(
+            f"{_file(path)}[calibrate] lr must be a number in (0, 10], got {out['lr']!r}"
+        )
     out["lr"] = float(out["lr"])
     return out
