@@ -22,7 +22,7 @@ The maps are evaluated with one parameter value per cubature point by ``torch.fu
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 import torch
@@ -33,7 +33,12 @@ from torchfilt.models.base import ConditionalModel, Prediction
 from torchfilt.models.functional import StateSpaceModel
 from torchfilt.models.params import CovarianceParameter
 
-__all__ = ["ParameterPosterior", "UncertainParameters", "noise_parameter_names"]
+__all__ = [
+    "ParameterPosterior",
+    "UncertainParameters",
+    "map_parameters",
+    "noise_parameter_names",
+]
 
 
 class ParameterPosterior(NamedTuple):
@@ -62,6 +67,43 @@ def noise_parameter_names(model: torch.nn.Module) -> set[str]:
             for name, _ in mod.named_parameters():
                 out.add(f"{prefix}.{name}" if prefix else name)
     return out
+
+
+def map_parameters(
+    model: StateSpaceModel, names: Sequence[str], arg: str
+) -> dict[str, torch.nn.Parameter]:
+    """The named parameters of a model's maps, in the order given: the check that
+    :func:`~torchfilt.training.parameter_posterior` and :class:`UncertainParameters` share.
+
+    Args:
+        model: the state-space model.
+        names: names as in ``model.named_parameters()``.
+        arg: the argument's name in error messages.
+
+    Raises:
+        InputError: no name, a repeated name, a name that is not a parameter of the model, or
+            one of a learnable noise covariance.
+    """
+    names = list(names)
+    if not names:
+        raise InputError(f"{arg}: no parameter named")
+    if len(set(names)) != len(names):
+        raise InputError(f"{arg}: repeated names in {names}")
+    named = dict(model.named_parameters())
+    noise = noise_parameter_names(model)
+    for k in names:
+        if k not in named:
+            raise InputError(
+                f"{arg}: {k!r} is not a parameter of the model (it has {sorted(named)[:8]})"
+            )
+        if k in noise:
+            raise InputError(
+                f"{arg}: {k!r} is a noise covariance's parameter; only the maps' parameters "
+                "can be carried as states"
+            )
+        if k.partition(".")[0] not in ("transition", "measurement"):
+            raise InputError(f"{arg}: {k!r} is not in the transition or measurement")
+    return {k: named[k] for k in names}
 
 
 class _Slot(NamedTuple):
@@ -175,30 +217,11 @@ class UncertainParameters(StateSpaceModel):
             raise InputError(
                 f"posterior must be a ParameterPosterior, got {type(posterior).__name__}"
             )
-        named = dict(model.named_parameters())
-        noise = noise_parameter_names(model)
-        if not posterior.names:
-            raise InputError("posterior.names: no parameter given")
-        if len(set(posterior.names)) != len(posterior.names):
-            raise InputError(f"posterior.names: repeated names in {list(posterior.names)}")
+        named = map_parameters(model, posterior.names, "posterior.names")
         slots: dict[str, list[_Slot]] = {"transition": [], "measurement": []}
         start = 0
         for name in posterior.names:
-            if name not in named:
-                raise InputError(
-                    f"posterior.names: {name!r} is not a parameter of the model "
-                    f"(it has {sorted(named)[:8]})"
-                )
-            if name in noise:
-                raise InputError(
-                    f"posterior.names: {name!r} is a noise covariance's parameter; only the "
-                    "maps' parameters can be carried as states"
-                )
             side, _, rel = name.partition(".")
-            if side not in slots:
-                raise InputError(
-                    f"posterior.names: {name!r} is not in the transition or measurement"
-                )
             shape = named[name].shape
             slots[side].append(_Slot(rel, start, shape))
             start += shape.numel()

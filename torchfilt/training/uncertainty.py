@@ -28,7 +28,11 @@ from torch import Tensor
 from torchfilt.exceptions import InputError, ModelError
 from torchfilt.filters import CKF
 from torchfilt.models import StateSpaceModel
-from torchfilt.models.uncertain import ParameterPosterior, noise_parameter_names
+from torchfilt.models.uncertain import (
+    ParameterPosterior,
+    map_parameters,
+    noise_parameter_names,
+)
 from torchfilt.training.likelihood import _recordings
 
 __all__ = ["parameter_posterior"]
@@ -92,12 +96,11 @@ def parameter_posterior(
     if dtype not in (torch.float32, torch.float64):
         raise InputError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
     model.to(dtype)
-    named = dict(model.named_parameters())
-    noise = noise_parameter_names(model)
     if parameters is None:
+        noise = noise_parameter_names(model)
         names = [
             k
-            for k, v in named.items()
+            for k, v in model.named_parameters()
             if v.requires_grad
             and k not in noise
             and k.split(".")[0] in ("transition", "measurement")
@@ -106,20 +109,7 @@ def parameter_posterior(
             raise InputError("parameters: the model's maps have no parameter with requires_grad")
     else:
         names = [str(k) for k in parameters]
-        if not names:
-            raise InputError("parameters: no parameter named")
-        for k in names:
-            if k not in named:
-                raise InputError(
-                    f"parameters: {k!r} is not a parameter of the model (it has {sorted(named)[:8]})"
-                )
-            if k in noise:
-                raise InputError(
-                    f"parameters: {k!r} belongs to a noise covariance; only the maps' parameters "
-                    "can be carried by UncertainParameters"
-                )
-        if len(set(names)) != len(names):
-            raise InputError(f"parameters: repeated names in {names}")
+    named = map_parameters(model, names, "parameters")
     recs = _recordings(model, y, u, x0, P0, dtype)
     R = int(recs.y.shape[0])
     shapes = [named[k].shape for k in names]
