@@ -15,7 +15,8 @@ per sequence as dynamax's vmap does (like for like).
     python scripts/bench_linear.py --out out/bench_linear --jax-python /work/wt/jaxenv/bin/python
 
 Rows: batch 1 with n = 2, 8, 32 (m = n / 2); batch 256 with n = 8, one covariance per sequence;
-the RTS smoother at n = 32, batch 1.
+the RTS smoother at n = 32, batch 1. The torchfilt filter rows ask for what the dynamax peer
+returns (means and log-likelihood; the "all fields" column returns every field of the result).
 """
 
 from __future__ import annotations
@@ -60,9 +61,12 @@ def torch_runner(
     parallel: bool,
     path: str = "kalman",
     per_sequence: bool = False,
+    all_fields: bool = False,
 ):
     """torchfilt's run; ``per_sequence`` gives ``P0`` per sequence, so that the filter keeps one
-    covariance per sequence (as dynamax's vmap does) instead of sharing one for the batch."""
+    covariance per sequence (as dynamax's vmap does) instead of sharing one for the batch. The
+    filter returns what the dynamax peer returns, means and log-likelihood
+    (``outputs=("mean", "log_likelihood")``), unless ``all_fields``."""
     t = lambda a: torch.tensor(a, dtype=torch.float64)  # noqa: E731
     model = torchfilt.LinearGaussianModel(t(p["A"]), t(p["H"]), t(p["Q"]), t(p["R"]))
     y, x0, P0 = t(p["y"]), t(p["m0"]), t(p["P0"])
@@ -81,7 +85,8 @@ def torch_runner(
     def run_exact() -> torch.Tensor:
         if smoother:
             return kalman_smoother(model, y, x0=x0, P0=P0, parallel=parallel).mean
-        return kalman_filter(model, y, x0=x0, P0=P0, parallel=parallel).mean
+        outputs = None if all_fields else ("mean", "log_likelihood")
+        return kalman_filter(model, y, x0=x0, P0=P0, parallel=parallel, outputs=outputs).mean
 
     return run_exact
 
@@ -172,6 +177,11 @@ def main() -> None:
             per = T * batch
             row: dict[str, Any] = {"case": kind, "batch": batch, "n": n, "m": m, "T": T}
             row["torchfilt_us"] = timeit(ref_fn, args.repeats) / per * 1e6
+            if not smoother:
+                full = torch_runner(p, smoother=False, parallel=False, all_fields=True)
+                row["all_fields_us"] = timeit(full, args.repeats) / per * 1e6
+            else:
+                row["all_fields_us"] = None
             par_fn = torch_runner(p, smoother=smoother, parallel=True)
             row["parallel_us"] = timeit(par_fn, args.repeats) / per * 1e6
             row["parallel_max_diff"] = _diff(par_fn(), ref)
@@ -200,7 +210,8 @@ def main() -> None:
                 row[f"vs_{peer}"] = None if v is None else v / row["torchfilt_us"]
             rows.append(row)
             print(f"done {kind} batch {batch} n {n}", file=sys.stderr)
-    headers = ["case", "batch", "n", "torchfilt", "own covs", "parallel", "CKF", "filterpy"]
+    headers = ["case", "batch", "n", "torchfilt", "all fields", "own covs", "parallel", "CKF"]
+    headers += ["filterpy"]
     headers += ["dynamax", "filterpy/tf", "dynamax/tf", "dynamax/own", "max diff"]
     body = [
         [
@@ -208,6 +219,7 @@ def main() -> None:
             r["batch"],
             r["n"],
             r["torchfilt_us"],
+            r["all_fields_us"],
             r["per_sequence_us"],
             r["parallel_us"],
             r["ckf_us"],

@@ -339,3 +339,84 @@ def test_shared_covariance_path(varying):
     assert_same(sm.mean, sm_want.mean, "smoothed mean")
     assert_same(sm.cov, sm_want.cov, "smoothed cov")
     assert_same(sm.gain, sm_want.gain, "smoother gain")
+
+
+def _per_sequence_problem(batch=5, T=150, n=3, m=2, seed=21):
+    """A time-invariant model with controls, all observed, and a different ``P0`` per sequence."""
+    p = make_problem(seed, n=n, m=m, T=max(T, 5), missing=0.0)
+    p["y"], p["u"] = p["y"][:T], p["u"][:T]
+    p["y"][3:4] = p["y"][2:3]
+    rng = np.random.default_rng(seed + 1)
+    D = rng.standard_normal((m, 1))
+    model = model_of(p, D=t64(D))
+    gen = torch.Generator().manual_seed(seed)
+    y = t64(p["y"]) + torch.randn(batch, T, m, generator=gen, dtype=torch.float64)
+    x0 = torch.randn(batch, n, generator=gen, dtype=torch.float64)
+    scale = torch.rand(batch, 1, 1, generator=gen, dtype=torch.float64) * 4.0 + 0.25
+    P0 = scale * t64(p["P0"])  # one covariance sequence per element of the batch
+    return model, (y, t64(p["u"])), dict(x0=x0, P0=P0)
+
+
+@pytest.mark.parametrize(
+    "tail", ["doubling", "sequential", "per_sequence_gains"], ids=lambda s: s
+)
+def test_per_sequence_covariances_converge(monkeypatch, tail):
+    """P0 per sequence and a time-invariant model: the per-sequence Riccati recursions run until
+    all have converged, then the gains repeat (shared once they agree). Every field equals the
+    CKF's and the per-step recursion's, whichever way the converged tail of the means runs."""
+    import torchfilt.filters.kalman as kalman
+
+    model, args, kw = _per_sequence_problem()
+    want = CKF(model).filter(*args, **kw, path="cubature")
+    if tail == "doubling":
+        monkeypatch.setattr(kalman, "_DOUBLING_WORK", float("inf"))
+    else:
+        monkeypatch.setattr(kalman, "_DOUBLING_WORK", 0)
+    if tail == "per_sequence_gains":
+        monkeypatch.setattr(kalman, "_AGREE_ULPS", -1.0)
+    calls = []
+    real = kalman._run_riccati
+
+    def spy(*a, **k):
+        out = real(*a, **k)
+        calls.append(k["Bc"])
+        return out
+
+    monkeypatch.setattr(kalman, "_run_riccati", spy)
+    got = CKF(model).filter(*args, **kw)
+    assert calls == [args[0].shape[0]]  # the per-sequence Riccati runner ran
+    assert got.cov.stride(0) != 0  # one covariance sequence per element
+    assert_results_equal(got, want)
+    part = CKF(model).filter(*args, **kw, outputs=("mean", "log_likelihood"))
+    assert_same(part.mean, want.mean, "outputs= mean")
+    assert_same(part.log_likelihood, want.log_likelihood, "outputs= log-likelihood")
+    monkeypatch.setattr(kalman, "_covariance_batch", lambda data, steps: None)
+    step_by_step = CKF(model).filter(*args, **kw)  # the per-step recursion (_run_fast)
+    assert_results_equal(got, step_by_step)
+
+
+@pytest.mark.parametrize("T", [1, 2, 3, 4, 5, 9])
+@pytest.mark.parametrize("shared", [True, False], ids=["shared", "per_sequence"])
+def test_riccati_runner_short_recordings(T, shared):
+    """Recordings shorter than the convergence check, or ending right after it."""
+    model, (y, u), kw = _per_sequence_problem(batch=3, T=T)
+    if shared:
+        kw["P0"] = kw["P0"][0]
+    want = CKF(model).filter(y, u, **kw, path="cubature")
+    assert_results_equal(CKF(model).filter(y, u, **kw), want)
+
+
+def test_converged_tail_equals_numpy_reference():
+    """A long recording of a scalar measurement (``m = 1``, the divided gain) against the NumPy
+    Kalman filter of ``reference``: means, covariances and log-likelihood."""
+    p = make_problem(31, n=2, m=1, T=400, missing=0.0)
+    model = model_of(p)
+    got = exact_filter(model, t64(p["y"]), t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]))
+    ms, Ps, mps, _, ll = kalman_filter(
+        p["A"], p["H"], p["Q"], p["R"], p["y"], p["m0"], p["P0"], B=p["B"], u=p["u"]
+    )
+    assert got.path == "kalman"
+    np.testing.assert_allclose(got.mean.numpy(), ms, rtol=REF_RTOL, atol=REF_ATOL)
+    np.testing.assert_allclose(got.cov.numpy(), Ps, rtol=REF_RTOL, atol=REF_ATOL)
+    np.testing.assert_allclose(got.predicted_mean.numpy(), mps, rtol=REF_RTOL, atol=REF_ATOL)
+    np.testing.assert_allclose(float(got.log_likelihood), ll, rtol=REF_RTOL)

@@ -310,7 +310,8 @@ def _check(
         desc = ", ".join(f"{k} {tuple(v)}" for k, v in shapes.items())
         raise ShapeError(f"batch shapes do not broadcast: {desc}") from None
     complete = bool(obs.all())
-    y = torch.where(obs, y, torch.zeros((), dtype=dtype, device=device))
+    if not complete or obs.shape != y.shape:  # else nothing to zero: skip the copy
+        y = torch.where(obs, y, torch.zeros((), dtype=dtype, device=device))
     steps = LinearSteps(
         A=A.unsqueeze(-3).expand(*A.shape[:-2], T, n, n),
         c=c,
@@ -609,128 +610,231 @@ def _run_fast(
 #: the covariance recursion counts as converged when one step changes no entry by more than
 #: this many ulps of the largest entry (from then on it only moves by rounding)
 _STEADY_ULPS = 4.0
+#: converged per-sequence covariances within this many ulps of each other count as one
+_AGREE_ULPS = 64.0
+#: the converged tail of the mean recursion runs as a doubling scan (about log2(T) batched
+#: products instead of T small ones) while ``B n^2 log2(T)`` is at most this; above it the
+#: scan's extra arithmetic costs more than the per-step overhead it saves
+_DOUBLING_WORK = 4096
 
 
-def _shared_covariance(data: Data, steps: LinearSteps) -> bool:
-    """Whether every sequence of the batch has the same covariances: all data observed, and
-    ``P0``, ``A``, ``Q``, ``H``, ``R`` without batch dimensions (``x0``, ``y``, ``u`` may differ)."""
-    if not data.complete:
-        return False
-    if any(s != 0 for s in data.P0.stride()[:-2]):
-        return False
-    return all(x.dim() == 3 for x in (steps.A, steps.Q, steps.H, steps.R))
+def _covariance_batch(data: Data, steps: LinearSteps) -> int | None:
+    """How many covariance sequences the Riccati runner keeps: ``1`` when every sequence of the
+    batch has the same covariances (all data observed, and ``P0``, ``A``, ``Q``, ``H``, ``R``
+    without batch dimensions; ``x0``, ``y``, ``u`` may differ); the batch size when only ``P0``
+    differs and the model is time-invariant (each sequence then converges to the same steady
+    state, after which nothing changes); ``None`` when neither holds."""
+    if not data.complete or not all(x.dim() == 3 for x in (steps.A, steps.Q, steps.H, steps.R)):
+        return None
+    if all(s == 0 for s in data.P0.stride()[:-2]):
+        return 1
+    if all(x.stride(-3) == 0 for x in (steps.A, steps.Q, steps.H, steps.R)):
+        return data.batch.numel()
+    return None
 
 
-def _run_shared(
-    data: Data, steps: LinearSteps, *, keep: frozenset[str]
+def _rows(x: Tensor, M: Tensor) -> Tensor:
+    """Row vectors ``x (L, B, d)`` times ``M (L, Bc, d, e)`` with ``Bc`` 1 (shared) or ``B``."""
+    if M.shape[1] == 1:
+        return x @ M[:, 0]
+    return (x.unsqueeze(-2) @ M).squeeze(-2)
+
+
+def _rows_const(x: Tensor, M: Tensor) -> Tensor:
+    """Row vectors ``x (L, B, d)`` times one ``M (Bc, d, e)`` for every step."""
+    if M.shape[0] == 1:
+        return x @ M[0]
+    return (x.transpose(0, 1) @ M).transpose(0, 1)
+
+
+def _affine_tail(x: Tensor, F: Tensor) -> None:
+    """Solve ``x_t <- x_t + x_{t-1} F`` in place along dim 0 of ``x (L, B, n)`` for one
+    ``F (Bc, n, n)``, by doubling: after the pass with offset ``s`` every ``x_t`` holds the sum
+    over its last ``2 s`` terms, ``x_t + x_{t-s} F^s`` (Hillis-Steele; ``F^s`` by squaring)."""
+    L = x.shape[0]
+    power, s = F, 1
+    while s < L:
+        x[s:] += _rows_const(x[:-s], power)  # the right side is evaluated before the write
+        s *= 2
+        if s < L:
+            power = power @ power
+
+
+def _run_riccati(
+    data: Data, steps: LinearSteps, *, keep: frozenset[str], Bc: int
 ) -> dict[str, Tensor] | None:
-    """The plain filter when the covariances do not depend on the sequence (see
-    :func:`_shared_covariance`): the Riccati recursion runs once for the whole batch, and for a
-    time-invariant model only until it has converged to rounding (``_STEADY_ULPS``), after
-    which gains and covariances repeat; the means then follow from the affine recursion
-    ``m_t = m_{t-1} F_t + g_t`` (row vectors), one fused multiply-add per step. Covariance
-    fields come back as views expanded over the batch. ``None`` if a factorisation failed."""
+    """The plain filter when the covariances do not depend on the measurements (see
+    :func:`_covariance_batch`): the Riccati recursion runs on ``Bc`` covariance sequences (one
+    for the whole batch, or one per sequence), and for a time-invariant model only until it has
+    converged to rounding (``_STEADY_ULPS``), after which gains and covariances repeat.
+
+    The means follow the affine recursion ``m_t = m_{t-1} F_t + g_t`` (row vectors,
+    ``F_t = A_t^T (I - H_t^T K_t^T)``, ``g_t = (y_t - d_t) K_t^T + c_t (I - H_t^T K_t^T)``): while
+    the gains change, one fused multiply-add per step (a shared sequence) or the predict and
+    update inside the covariance loop (one covariance per sequence); for the converged tail a
+    doubling scan when the batch is small (:func:`_affine_tail`), else one multiply-add per step.
+    Shared covariance fields come back as ``(T, ., .)`` for ``assemble`` to expand over the batch.
+    ``None`` if a factorisation failed."""
     T, n, m = data.y.shape[-2], data.x0.shape[-1], data.y.shape[-1]
     batch = data.batch
     B = batch.numel()
     invariant = all(x.stride(-3) == 0 for x in (steps.A, steps.Q, steps.H, steps.R))
-    invariant = invariant and all(
-        x is None or x.stride(x.dim() - 2) == 0 for x in (steps.c, steps.d)
-    )
-    A, Q, H, R = (x.unbind(0) for x in (steps.A, steps.Q, steps.H, steps.R))
-    P = data.P0.reshape(-1, n, n)[0]
+    one = Bc == 1  # one shared sequence: 2-D matrices, fused multiply-adds
+    P = data.P0.reshape(-1, n, n)[0] if one else data.P0.expand(*batch, n, n).reshape(B, n, n)
     tol = _STEADY_ULPS * torch.finfo(P.dtype).eps
-    rec: dict[str, list[Tensor]] = {k: [] for k in ("cov", "pcov", "cross", "KT", "L", "S")}
-    infos: list[Tensor] = []
-    for t in range(T):
-        AT, HT = A[t].mT, H[t].mT
-        cross = P @ AT
-        Pp = A[t] @ cross + Q[t]
-        PHt = Pp @ HT
-        S = H[t] @ PHt + R[t]
-        L, info = torch.linalg.cholesky_ex(S)
-        KT = torch.cholesky_solve(PHt.mT, L)
-        P_new = Pp - PHt @ KT
-        for name, v in zip(rec, (P_new, Pp, cross, KT, L, S), strict=True):
-            rec[name].append(v)
-        infos.append(info)
-        step = P_new - P
-        P = P_new
-        if invariant and t >= 2 and bool(step.abs().max() <= tol * P.abs().max()):
-            break
-    if bool(torch.stack(infos).any()):
-        return None
-    k = len(infos)
-    full = {}
-    for name, vals in rec.items():
-        head = torch.stack(vals, 0)
-        if k < T:  # the converged values repeat
-            whole = head.new_empty(T, *head.shape[1:])
-            whole[:k] = head
-            whole[k:] = head[-1]
-            head = whole
-        full[name] = head  # (T, ., .)
-    KT_all, L_all = full["KT"], full["L"]
-    A_all, H_all = steps.A, steps.H
-    # time-major (T, B, .) so that every product is one batched matmul over T with the
-    # per-step (T, ., .) matrices: m_t = m_{t-1} A^T (I - H^T K^T) + c_t (I - H^T K^T) + (y_t - d_t) K^T
-    eye = torch.eye(n, dtype=P.dtype, device=P.device)
-    if k < T:  # gains repeat from step k - 1 on: form I - H^T K^T and F once for those
-        IKH = eye - H_all[:k].mT @ KT_all[:k]
-        F = A_all[:k].mT @ IKH
-        IKH = torch.cat([IKH, IKH[-1:].expand(T - k, n, n)], 0)
-        F = torch.cat([F, F[-1:].expand(T - k, n, n)], 0)
-    else:
-        IKH = eye - H_all.mT @ KT_all  # (T, n, n)
-        F = A_all.mT @ IKH
 
-    def tmajor(x: Tensor, k: int) -> Tensor:  # (..., T, k) -> (T, B, k)
-        return x.expand(*batch, T, k).reshape(B, T, k).transpose(0, 1)
+    def tmajor(x: Tensor, d: int) -> Tensor:  # (..., T, d) -> (T, B, d)
+        return x.expand(*batch, T, d).reshape(B, T, d).transpose(0, 1)
 
     y_t = tmajor(data.y, m)
-    g = (y_t if steps.d is None else y_t - tmajor(steps.d, m)) @ KT_all  # (T, B, n)
+    innov_in = y_t if steps.d is None else y_t - tmajor(steps.d, m)  # y_t - d_t
     c_t = None if steps.c is None else tmajor(steps.c, n)
-    if c_t is not None:
-        g += c_t @ IKH
-    # the recursion runs in place in g's buffer: m_t = g_t + m_{t-1} F_t
-    m_all = g
-    m_all[0].addmm_(data.x0.reshape(B, n), F[0])
-    for t in range(1, T):
-        m_all[t].addmm_(m_all[t - 1], F[t])
-    mp = torch.empty_like(m_all)
-    torch.matmul(data.x0.reshape(B, n), A_all[0].mT, out=mp[0])
-    if T > 1:
-        torch.matmul(m_all[:-1], A_all[1:].mT, out=mp[1:])
-    if c_t is not None:
-        mp += c_t
-    ym = mp @ H_all.mT
-    if steps.d is not None:
-        ym += tmajor(steps.d, m)
-    e = y_t - ym  # (T, B, m)
-    z = torch.linalg.solve_triangular(L_all, e.mT, upper=False)  # (T, m, B): B right-hand sides
-    logdet = 2.0 * L_all.diagonal(dim1=-2, dim2=-1).log().sum()
-    ll = -0.5 * (z.square_().sum((0, 1)) + logdet + T * m * _LOG_2PI)
-    del z
-    m_all, mp, ym, e = (x.transpose(0, 1) for x in (m_all, mp, ym, e))
-    out = {
-        "mean": m_all,
-        "predicted_mean": mp,
-        "measurement_mean": ym,
-        "innovation": e,
-        "cov": full["cov"],
-        "predicted_cov": full["pcov"],
-        "innovation_cov": full["S"],
-        "cross_cov": full["cross"],
-    }
-    res = {}
-    for name, v in out.items():
-        if name not in keep and name != "mean":
-            continue
-        if v.dim() == 3 and name.endswith("cov"):
-            res[name] = v  # shared: assemble expands it over the batch
+    x0 = data.x0.reshape(B, n)
+    m_all = x0.new_empty(T, B, n)
+    names = ["KT", "L"]
+    names += [k for k, f in (("cov", "cov"), ("pcov", "predicted_cov"), ("cross", "cross_cov"))
+              if f in keep]  # fmt: skip
+    names += ["S"] if "innovation_cov" in keep else []
+    rec: dict[str, list[Tensor]] = {k: [] for k in names}
+    infos: list[Tensor] = []
+    A, Q, H, R = (x.select(-3, 0) for x in (steps.A, steps.Q, steps.H, steps.R))
+    AT, HT = A.mT, H.mT
+    for t in range(T):
+        if not invariant:
+            A, Q, H, R = (x[t] for x in (steps.A, steps.Q, steps.H, steps.R))
+            AT, HT = A.mT, H.mT
+        cross = P @ AT
+        Pp = torch.addmm(Q, A, cross) if one else A @ cross + Q
+        PHt = Pp @ HT
+        S = torch.addmm(R, H, PHt) if one else H @ PHt + R
+        L, info = torch.linalg.cholesky_ex(S)
+        KT = PHt.mT / S if m == 1 else torch.cholesky_solve(PHt.mT, L)
+        P_new = torch.addmm(Pp, PHt, KT, alpha=-1) if one else torch.baddbmm(Pp, PHt, KT, alpha=-1)
+        if not one:  # the means' predict and update with this step's per-sequence gains
+            prev = x0 if t == 0 else m_all[t - 1]
+            mp_t = prev @ AT if c_t is None else torch.addmm(c_t[t], prev, AT)
+            r = torch.addmm(innov_in[t], mp_t, HT, alpha=-1)
+            torch.baddbmm(mp_t.unsqueeze(1), r.unsqueeze(1), KT, out=m_all[t].unsqueeze(1))
+        now = {"KT": KT, "L": L, "cov": P_new, "pcov": Pp, "cross": cross, "S": S}
+        for name in names:
+            rec[name].append(now[name])
+        infos.append(info)
+        # converged: checked every 4th step (steps past convergence only repeat by rounding)
+        done = invariant and t >= 2 and t % 4 == 3
+        if done and bool((P_new - P).abs().amax() <= tol * P_new.abs().amax()):
+            P = P_new
+            break
+        P = P_new
+    if bool(torch.stack(infos).any()):
+        return None
+    k = len(infos)  # steps k .. T-1 repeat step k-1
+    head = {name: torch.stack(vals, 0) for name, vals in rec.items()}  # (k, Bc, ., .)
+    if one:
+        head = {name: v.unsqueeze(1) for name, v in head.items()}
+    eye = torch.eye(n, dtype=P.dtype, device=P.device)
+    if one:  # the head: m_t = m_{t-1} F_t + g_t with the shared F_t
+        A_h, H_h, KT_h = steps.A[:k], steps.H[:k], head["KT"][:, 0]
+        IKH = eye - H_h.mT @ KT_h
+        m_all[:k] = innov_in[:k] @ KT_h
+        if c_t is not None:
+            m_all[:k] += c_t[:k] @ IKH
+        F_h = A_h.mT @ IKH
+        for t in range(k):
+            m_all[t].addmm_(x0 if t == 0 else m_all[t - 1], F_h[t])
+    if k < T:
+        # per-sequence covariances that have all reached the same steady state (as they do for
+        # a time-invariant model) share one gain in the tail: one product per step for the batch
+        spread = (P - P[:1]).abs().amax() if not one else None
+        agree = spread is not None and bool(
+            spread <= _AGREE_ULPS / _STEADY_ULPS * tol * P.abs().amax()
+        )
+        KT_c = head["KT"][-1][:1] if one or agree else head["KT"][-1]  # (Bc', m, n)
+        IKH_c = eye - HT @ KT_c
+        F_c = AT @ IKH_c
+        if KT_c.shape[0] == 1:
+            torch.matmul(innov_in[k:], KT_c[0], out=m_all[k:])
         else:
-            res[name] = v.reshape(*batch, *v.shape[1:])
-    res["log_likelihood"] = ll.reshape(batch)
+            m_all[k:] = _rows_const(innov_in[k:], KT_c)
+        if c_t is not None:
+            m_all[k:] += _rows_const(c_t[k:], IKH_c)
+        m_all[k] += _rows_const(m_all[k - 1 : k], F_c)[0]
+        if B * n * n * math.log2(T - k + 1) <= _DOUBLING_WORK:
+            _affine_tail(m_all[k:], F_c)
+        elif F_c.shape[0] == 1:
+            for t in range(k + 1, T):
+                m_all[t].addmm_(m_all[t - 1], F_c[0])
+        else:
+            for t in range(k + 1, T):
+                m_all[t].unsqueeze(1).baddbmm_(m_all[t - 1].unsqueeze(1), F_c)
+        L_c = head["L"][-1][: KT_c.shape[0]]
+    HT0 = steps.H.select(-3, 0).mT
+    mp = ym = None
+    if "predicted_mean" in keep or "measurement_mean" in keep:
+        mp = torch.empty_like(m_all)  # m^-_t = m_{t-1} A_t^T + c_t
+        if invariant:
+            AT0 = steps.A.select(-3, 0).mT
+            torch.matmul(x0, AT0, out=mp[0])
+            torch.matmul(m_all[:-1].reshape(-1, n), AT0, out=mp[1:].view(-1, n))
+        else:
+            torch.matmul(x0, steps.A[0].mT, out=mp[0])
+            torch.matmul(m_all[:-1], steps.A[1:].mT, out=mp[1:])
+        if c_t is not None:
+            mp += c_t
+        ym = mp @ HT0 if invariant else mp @ steps.H.mT
+        e = innov_in - ym  # (T, B, m)
+        if steps.d is not None:
+            ym += tmajor(steps.d, m)
+    else:  # straight to the innovations: e_t = (y_t - d_t) - m_{t-1} (H A)^T - c_t H^T
+        e = innov_in.new_empty(T, B, m)
+        AHT = steps.A.select(-3, 0).mT @ HT0 if invariant else steps.A.mT @ steps.H.mT
+        if invariant:
+            torch.matmul(x0, AHT, out=e[0])
+            torch.matmul(m_all[:-1].reshape(-1, n), AHT, out=e[1:].view(-1, m))
+        else:
+            torch.matmul(x0, AHT[0], out=e[0])
+            torch.matmul(m_all[:-1], AHT[1:], out=e[1:])
+        if c_t is not None:
+            e += c_t @ HT0 if invariant else c_t @ steps.H.mT
+        torch.sub(innov_in, e, out=e)
+    # log-likelihood: whitened innovations, per step while the gains change, then one factor
+    L_h = head["L"]  # (k, Bc, m, m)
+    if one:
+        z_h = torch.linalg.solve_triangular(L_h[:, 0], e[:k].mT, upper=False)  # (k, m, B)
+        sq = z_h.square_().sum((0, 1))
+    else:
+        z_h = torch.linalg.solve_triangular(L_h, e[:k].unsqueeze(-1), upper=False)
+        sq = z_h.square_().sum((0, 2, 3))
+    logdet = 2.0 * L_h.diagonal(dim1=-2, dim2=-1).log().sum((0, -1))  # (Bc,)
+    if k < T:
+        if L_c.shape[0] == 1:
+            z_c = torch.linalg.solve_triangular(L_c[0], e[k:].reshape(-1, m).mT, upper=False)
+            sq = sq + z_c.square_().reshape(m, T - k, B).sum((0, 1))
+        else:
+            z_c = torch.linalg.solve_triangular(L_c, e[k:].permute(1, 2, 0), upper=False)
+            sq = sq + z_c.square_().sum((1, 2))
+        logdet = logdet + (T - k) * 2.0 * L_c.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+    ll = -0.5 * (sq + logdet + T * m * _LOG_2PI)
+    res = {"log_likelihood": ll.reshape(batch)}
+    means = {"mean": m_all, "predicted_mean": mp, "measurement_mean": ym, "innovation": e}
+    for name, v in means.items():
+        if v is not None and (name == "mean" or name in keep):
+            res[name] = v.transpose(0, 1).reshape(*batch, T, v.shape[-1])
+    covs = {"cov": "cov", "predicted_cov": "pcov", "cross_cov": "cross", "innovation_cov": "S"}
+    for field, name in covs.items():
+        if field not in keep:
+            continue
+        h = head[name]  # (k, Bc, d, d)
+        d = h.shape[-1]
+        if one:
+            whole = h.new_empty(T, d, d)
+            whole[:k] = h[:, 0]
+            whole[k:] = h[-1, 0]
+            res[field] = whole  # shared: assemble expands it over the batch
+        else:
+            whole = h.new_empty(B, T, d, d)
+            whole[:, :k] = h.transpose(0, 1)
+            whole[:, k:] = h[-1].unsqueeze(1)
+            res[field] = whole.reshape(*batch, T, d, d)
     return res
 
 
@@ -951,8 +1055,9 @@ def filter_steps(
     # into preallocated outputs (no second copy) unless autograd records
     inplace = not grad and _result_bytes(data, keep) > _VECTOR_LL_BYTES
     fast = None
-    if not sqrt and not grad and _shared_covariance(data, steps):
-        fast = _run_shared(data, steps, keep=keep)
+    Bc = None if sqrt or grad else _covariance_batch(data, steps)
+    if Bc is not None:
+        fast = _run_riccati(data, steps, keep=keep, Bc=Bc)
     if fast is None and not sqrt:
         fast = _run_fast(data, steps, keep=keep, inplace=inplace)
     out = fast if fast is not None else _run(data, steps, sqrt=sqrt, keep=keep, inplace=not grad)
