@@ -357,9 +357,7 @@ def _per_sequence_problem(batch=5, T=150, n=3, m=2, seed=21):
     return model, (y, t64(p["u"])), dict(x0=x0, P0=P0)
 
 
-@pytest.mark.parametrize(
-    "tail", ["doubling", "sequential", "per_sequence_gains"], ids=lambda s: s
-)
+@pytest.mark.parametrize("tail", ["doubling", "sequential", "per_sequence_gains"], ids=lambda s: s)
 def test_per_sequence_covariances_converge(monkeypatch, tail):
     """P0 per sequence and a time-invariant model: the per-sequence Riccati recursions run until
     all have converged, then the gains repeat (shared once they agree). Every field equals the
