@@ -308,10 +308,15 @@ def test_log_likelihood_inside_the_loop(monkeypatch, grad):
         assert_same(g1, g2, "gradient")
 
 
+@pytest.mark.parametrize("doubling", [True, False], ids=["doubling", "sequential"])
 @pytest.mark.parametrize("varying", [False, True], ids=["invariant", "time_varying"])
-def test_shared_covariance_path(varying):
+def test_shared_covariance_path(monkeypatch, varying, doubling):
     """All observed and one P0 for the batch: the covariance recursion runs once (and, for a
-    time-invariant model, stops once converged); every field still equals the CKF's."""
+    time-invariant model, stops once converged); every field still equals the CKF's, whether
+    the means' recursion runs step by step or as doubling scans."""
+    import torchfilt.filters.kalman as kalman
+
+    monkeypatch.setattr(kalman, "_DOUBLING_WORK", float("inf") if doubling else 0)
     p = make_problem(13, T=120, missing=0.0)
     p["y"][3] = p["y"][2]
     rng = np.random.default_rng(2)

@@ -660,6 +660,18 @@ def _affine_tail(x: Tensor, F: Tensor) -> None:
             power = power @ power
 
 
+def _affine_head(x: Tensor, F: Tensor) -> None:
+    """As :func:`_affine_tail` with one ``F_t (L, n, n)`` per step (shared by the batch): pass
+    ``s`` adds ``x_{t-s} F_{t-s+1} ... F_t`` to ``x_t`` and doubles the products' span."""
+    L = x.shape[0]
+    span, s = F, 1
+    while s < L:
+        x[s:] += x[:-s] @ span[s:]
+        if 2 * s < L:
+            span = torch.cat([span[:s], span[:-s] @ span[s:]], 0)
+        s *= 2
+
+
 def _run_riccati(
     data: Data, steps: LinearSteps, *, keep: frozenset[str], Bc: int
 ) -> dict[str, Tensor] | None:
@@ -697,6 +709,9 @@ def _run_riccati(
     names += ["S"] if "innovation_cov" in keep else []
     rec: dict[str, list[Tensor]] = {k: [] for k in names}
     infos: list[Tensor] = []
+    scalar = m == 1
+    late = not one and not scalar
+    k = 0  # steps run
     A, Q, H, R = (x.select(-3, 0) for x in (steps.A, steps.Q, steps.H, steps.R))
     AT, HT = A.mT, H.mT
     for t in range(T):
@@ -706,29 +721,54 @@ def _run_riccati(
         cross = P @ AT
         Pp = torch.addmm(Q, A, cross) if one else A @ cross + Q
         PHt = Pp @ HT
-        S = torch.addmm(R, H, PHt) if one else H @ PHt + R
-        L, info = torch.linalg.cholesky_ex(S)
-        KT = PHt.mT / S if m == 1 else torch.cholesky_solve(PHt.mT, L)
-        P_new = torch.addmm(Pp, PHt, KT, alpha=-1) if one else torch.baddbmm(Pp, PHt, KT, alpha=-1)
+        if one:
+            S = torch.addmm(R, H, PHt)
+        else:  # S^T = PHt^T H^T as one product over the stacked rows (S is symmetric)
+            S = (PHt.mT.reshape(-1, n) @ HT).view(-1, m, m) + R
+        if scalar:  # m = 1: the gain is a division; the factor is taken after the loop
+            KT = PHt.mT / S
+        elif late:  # many small systems: one LU solve; the factors are taken after the loop
+            KT, info = torch.linalg.solve_ex(S, PHt.mT)
+            infos.append(info)
+        else:
+            L, info = torch.linalg.cholesky_ex(S)
+            KT = torch.cholesky_solve(PHt.mT, L)
+            infos.append(info)
+        P_new = torch.addmm(Pp, PHt, KT, alpha=-1) if one else Pp - PHt @ KT
         if not one:  # the means' predict and update with this step's per-sequence gains
             prev = x0 if t == 0 else m_all[t - 1]
             mp_t = prev @ AT if c_t is None else torch.addmm(c_t[t], prev, AT)
             r = torch.addmm(innov_in[t], mp_t, HT, alpha=-1)
             torch.baddbmm(mp_t.unsqueeze(1), r.unsqueeze(1), KT, out=m_all[t].unsqueeze(1))
-        now = {"KT": KT, "L": L, "cov": P_new, "pcov": Pp, "cross": cross, "S": S}
+        now = {
+            "KT": KT,
+            "L": S if scalar or late else L,
+            "cov": P_new,
+            "pcov": Pp,
+            "cross": cross,
+            "S": S,
+        }
         for name in names:
             rec[name].append(now[name])
-        infos.append(info)
+        k += 1
         # converged: checked every 4th step (steps past convergence only repeat by rounding)
         done = invariant and t >= 2 and t % 4 == 3
         if done and bool((P_new - P).abs().amax() <= tol * P_new.abs().amax()):
             P = P_new
             break
         P = P_new
-    if bool(torch.stack(infos).any()):
-        return None
-    k = len(infos)  # steps k .. T-1 repeat step k-1
+    # steps k .. T-1 repeat step k-1
     head = {name: torch.stack(vals, 0) for name, vals in rec.items()}  # (k, Bc, ., .)
+    if scalar:
+        if not bool((head["L"] > 0).all()):
+            return None
+        head["L"] = head["L"].sqrt()
+    elif bool(torch.stack(infos).any()):
+        return None
+    elif late:
+        head["L"], info = torch.linalg.cholesky_ex(head["L"])
+        if bool(info.any()):
+            return None
     if one:
         head = {name: v.unsqueeze(1) for name, v in head.items()}
     eye = torch.eye(n, dtype=P.dtype, device=P.device)
@@ -739,8 +779,12 @@ def _run_riccati(
         if c_t is not None:
             m_all[:k] += c_t[:k] @ IKH
         F_h = A_h.mT @ IKH
-        for t in range(k):
-            m_all[t].addmm_(x0 if t == 0 else m_all[t - 1], F_h[t])
+        m_all[0].addmm_(x0, F_h[0])
+        if B * n * n * math.log2(k + 1) <= _DOUBLING_WORK:
+            _affine_head(m_all[:k], F_h)
+        else:
+            for t in range(1, k):
+                m_all[t].addmm_(m_all[t - 1], F_h[t])
     if k < T:
         # per-sequence covariances that have all reached the same steady state (as they do for
         # a time-invariant model) share one gain in the tail: one product per step for the batch
