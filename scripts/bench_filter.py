@@ -3,9 +3,10 @@
 Re-entry, analytic model, RK4 with 10 sub-steps per 1 s step, T = 60, float64 on the CPU (one
 thread by default). filterpy gets its fastest form: dynamics written with plain Python floats.
 dynamax (if installed) runs its UKF with alpha = 1, beta = 0, kappa = 0, which is the CKF, under
-``jax.jit`` (``+ vmap`` for batches), in float64. torchfilt runs eager, ``compile="step"`` (one
-compiled call per step) and ``compile="loop"`` (the whole time loop compiled as one scan over the
-step); ``compile=True`` takes the loop up to 64 sequences and the step above.
+``jax.jit`` (``+ vmap`` for batches), in float64, returning the log-likelihood and the filtered
+means and covariances; torchfilt returns the same (``outputs=("mean", "cov", "log_likelihood")``).
+torchfilt runs eager, ``compile="step"`` (one compiled call per step, what ``compile=True`` takes)
+and ``compile="loop"`` (the whole time loop compiled as one ``torch.while_loop`` over the step).
 The re-entry model is timed twice: as ``torchfilt.systems.reentry`` writes it (hand-tuned) and as a
 user would (``torch.stack`` of the derivative components inside a generic RK4). A linear model
 with n = 8 at batch 256 completes the acceptance table of issue 13. Each figure is the median of
@@ -41,6 +42,8 @@ import torchfilt
 from torchfilt.systems import reentry
 
 T = reentry.STEPS
+#: what the dynamax rows return (log-likelihood, filtered means and covariances)
+LIKE_DYNAMAX = ("mean", "cov", "log_likelihood")
 
 
 # --------------------------------------------------------------------------- filterpy
@@ -141,8 +144,10 @@ def torchfilt_runner(
     model: torchfilt.StateSpaceModel | None = None,
     x0: torch.Tensor | None = None,
     P0: torch.Tensor | None = None,
+    path: str = "auto",
 ) -> tuple[Callable[[], None], float]:
-    """A closure filtering ``y`` with torchfilt, and the time its first call took."""
+    """A closure filtering ``y`` with torchfilt, and the time its first call took; ``path``
+    as in ``GaussianFilter.filter`` (``"cubature"`` keeps a linear model on the CKF)."""
     dtype, device = y.dtype, y.device
     if x0 is None or P0 is None:
         x0 = torch.tensor(reentry.PRIOR_MEAN, dtype=dtype, device=device)
@@ -154,13 +159,22 @@ def torchfilt_runner(
     def run() -> None:
         with torch.inference_mode(), warnings.catch_warnings():
             warnings.simplefilter("ignore", torchfilt.NumericsWarning)
-            filt.filter(y, x0=x0, P0=P0)
+            filt.filter(y, x0=x0, P0=P0, outputs=LIKE_DYNAMAX, path=path)
             if device.type == "cuda":
                 torch.cuda.synchronize()
 
     t0 = time.perf_counter()
     run()
-    return run, time.perf_counter() - t0
+    first = time.perf_counter() - t0
+    with torch.inference_mode(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", torchfilt.NumericsWarning)
+        res = filt.filter(y, x0=x0, P0=P0, outputs=LIKE_DYNAMAX, path=path)
+        EXECUTIONS[id(run)] = res.numerics.execution if res.numerics is not None else res.path
+    return run, first
+
+
+#: the execution (numerics path) each torchfilt runner took, by id(run), for the JSON rows
+EXECUTIONS: dict[int, str] = {}
 
 
 # --------------------------------------------------------------------------- GPU
@@ -403,7 +417,7 @@ def main(argv: list[str] | None = None) -> int:
     variants = [(False, "eager")] + ([] if args.no_compile else [(True, "torch.compile")])
     cpu_variants: list[tuple[bool | str, str]] = [(False, "eager")]
     if not args.no_compile:
-        # compile=True is "auto": "loop" up to 64 sequences, "step" above
+        # compile=True is "auto", which takes "step"
         cpu_variants += [("step", 'compile="step"'), ("loop", 'compile="loop"')]
     have_dynamax = not args.no_dynamax and importlib.util.find_spec("dynamax") is not None
     if not args.gpu_only:
@@ -415,6 +429,7 @@ def main(argv: list[str] | None = None) -> int:
             for compile_, tag in cpu_variants:
                 run, first = torchfilt_runner(yb, compile=compile_)
                 record(f"torchfilt CKF, {tag}", "cpu", batch, timeit(run, reps), first)
+                rows[-1]["execution"] = EXECUTIONS.get(id(run))
             if have_dynamax:
                 ynp = yb.numpy()
                 run, first = dynamax_runner(ynp[0] if batch == 1 else ynp, x64=True)
@@ -431,12 +446,13 @@ def main(argv: list[str] | None = None) -> int:
                 timeit(run, args.repeats),
                 first,
             )
+            rows[-1]["execution"] = EXECUTIONS.get(id(run))
         # linear, n = 8, batch 256
         lin = linear_problem(8, 4, args.linear_batch)
         x0l, P0l = torch.zeros(8, dtype=torch.float64), torch.eye(8, dtype=torch.float64)
         for compile_, tag in cpu_variants:
             run, first = torchfilt_runner(
-                lin["y"], compile=compile_, model=lin["model"], x0=x0l, P0=P0l
+                lin["y"], compile=compile_, model=lin["model"], x0=x0l, P0=P0l, path="cubature"
             )
             record(
                 f"torchfilt CKF, linear n=8, {tag}",
@@ -445,6 +461,16 @@ def main(argv: list[str] | None = None) -> int:
                 timeit(run, max(3, args.repeats // 2)),
                 first,
             )
+            rows[-1]["execution"] = EXECUTIONS.get(id(run))
+        run, first = torchfilt_runner(lin["y"], compile=False, model=lin["model"], x0=x0l, P0=P0l)
+        record(
+            "torchfilt exact Kalman path, linear n=8",
+            "cpu",
+            args.linear_batch,
+            timeit(run, max(3, args.repeats // 2)),
+            first,
+        )
+        rows[-1]["execution"] = EXECUTIONS.get(id(run))
         if have_dynamax:
             run, first = dynamax_runner(lin["y"].numpy(), x64=True, linear=lin)
             record(

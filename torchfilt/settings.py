@@ -63,9 +63,9 @@ class NumericsPath(NamedTuple):
 
     Attributes:
         execution: ``"eager"``, ``"compiled-step"`` (one compiled call per step),
-            ``"compiled-loop"`` (the whole time loop compiled as one scan),
-            ``"compiled-chunks"`` (the loop compiled in chunks of unrolled steps, for models the
-            scan cannot capture) or ``"graphed"`` (CUDA graph replay).
+            ``"compiled-loop"`` (the whole time loop compiled as one ``torch.while_loop``),
+            ``"compiled-chunks"`` (the loop compiled in chunks of unrolled steps, under autograd
+            or for models the while-loop cannot capture) or ``"graphed"`` (CUDA graph replay).
         small_kernels: ``"unrolled"`` or ``"library"``: the small-matrix kernels used.
         on_failure: ``"jitter"`` (a failing Cholesky factor is retried with jitter, then NaN) or
             ``"nan"`` (sync-free: NaN at once).

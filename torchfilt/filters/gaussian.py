@@ -120,16 +120,19 @@ class GaussianFilter(nn.Module):
         point_variance: how per-point model variances (GP) enter Q and R: ``"total"`` averages them
             over the cubature points (law of total variance), ``"mean"`` evaluates them at the mean
             only.
-        compile: ``"loop"`` compiles the time loop with ``torch.compile`` in chunks of ``chunk``
-            steps unrolled into one graph each (fast per step on one or a few sequences, but a
-            long first compile); ``"step"`` compiles the per-step function only (one compiled call
-            per step); ``True`` (``"auto"``) takes ``"step"``. (torch 2.13's scan operator, which
-            would trace the step once, is private API: torchfilt does not import it.) Under
-            compilation a covariance that fails
-            its Cholesky factorisation turns the sequence to NaN instead of being jittered. The
-            eager path (the default) is the one to debug with: every op runs as written, and a
-            failed factorisation is retried with jitter and reported.
-        chunk: steps per compiled chunk of the time loop, where the scan cannot be used. A
+        compile: ``"loop"`` compiles the whole time loop as one ``torch.while_loop`` over the
+            step (the step is traced once; on the CPU the loop runs in the generated C++, so one
+            or a few sequences pay no Python per step; one compile per recording shape and set of
+            ``outputs``). Where the while-loop cannot run (autograd records, or the step does not
+            trace into one graph: :attr:`loop_fallback` says why) it compiles chunks of ``chunk``
+            steps unrolled into one graph each instead (long first compile), and the result's
+            ``numerics.execution`` says ``"compiled-chunks"``. ``"step"`` compiles the per-step
+            function only (one compiled call per step); ``True`` (``"auto"``) takes ``"step"``,
+            whose compile is the shortest and which serves gradients. Under compilation a
+            covariance that fails its Cholesky factorisation turns the sequence to NaN instead of
+            being jittered. The eager path (the default) is the one to debug with: every op runs
+            as written, and a failed factorisation is retried with jitter and reported.
+        chunk: steps per compiled chunk of the time loop, where the while-loop cannot be used. A
             recording whose length is not a multiple compiles its last, shorter chunk too.
     """
 
@@ -179,6 +182,10 @@ class GaussianFilter(nn.Module):
         self._compiled = self.compile_mode is not None
         self._compiled_steps: dict[str, StepFunction] = {}
         self._compiled_chunks: dict[str, Callable[..., Any]] = {}
+        self._compiled_loops: dict[str, Callable[..., Any]] = {}
+        self._loop_shapes: dict[tuple[Any, ...], list[tuple[tuple[int, ...], torch.dtype]]] = {}
+        #: why the while-loop could not be compiled for this filter (then chunks run), or None
+        self.loop_fallback: str | None = None
 
     # ------------------------------------------------------------------ the step
     def step(
@@ -283,18 +290,33 @@ class GaussianFilter(nn.Module):
             return mode
         return "unrolled" if math.prod(batch) >= SMALL_BATCH else "library"
 
-    def execution(self, batch: torch.Size) -> str:
-        """The execution a run of batch shape ``batch`` takes: ``"eager"``, ``"compiled-step"`` or
-        ``"compiled-loop"``."""
+    def execution(self, batch: torch.Size, inputs: FilterInputs | None = None) -> str:
+        """The execution a run of batch shape ``batch`` takes: ``"eager"``, ``"compiled-step"``,
+        ``"compiled-loop"`` (one ``torch.while_loop``), or ``"compiled-chunks"`` where
+        ``compile="loop"`` cannot use the while-loop: autograd records (``inputs`` or the model's
+        parameters need gradients), or the step could not be traced into one
+        (:attr:`loop_fallback` says why)."""
         mode = self.compile_mode
         if mode == "auto":
             mode = "step"
+        if mode == "loop" and (
+            self.loop_fallback is not None or (inputs is not None and self._records_grad(inputs))
+        ):
+            return "compiled-chunks"
         return {None: "eager", "step": "compiled-step", "loop": "compiled-loop"}[mode]
+
+    def _records_grad(self, inputs: FilterInputs) -> bool:
+        """Whether autograd records a run of ``inputs`` (the while-loop has no backward here)."""
+        if not torch.is_grad_enabled():
+            return False
+        tensors = [inputs.y, inputs.x0, inputs.P0] + ([] if inputs.u is None else [inputs.u])
+        tensors += list(self.model.parameters())
+        return any(t.requires_grad for t in tensors)
 
     def numerics_path(self, inputs: FilterInputs, execution: str | None = None) -> NumericsPath:
         """The :class:`~torchfilt.settings.NumericsPath` a :meth:`scan` of ``inputs`` takes now."""
         if execution is None:
-            execution = self.execution(inputs.batch)
+            execution = self.execution(inputs.batch, inputs)
         nan = self._compiled or no_host_sync()
         return NumericsPath(execution, self.small_kernels(inputs.batch), "nan" if nan else "jitter")
 
@@ -316,9 +338,17 @@ class GaussianFilter(nn.Module):
             One :class:`~torchfilt.filters.StepRecord` and one tuple of extra outputs per step.
         """
         if step_fn is None:
-            if self.execution(inputs.batch) == "compiled-loop":
+            execution = self.execution(inputs.batch, inputs)
+            if execution in ("compiled-loop", "compiled-chunks"):
                 if sink is not None:
                     raise InputError("sink: a compiled loop returns chunk records; pass no sink")
+                if execution == "compiled-loop" and not self._records_grad(inputs):
+                    try:
+                        return self._while(inputs)
+                    except RuntimeError as exc:  # Dynamo's "unsupported" errors are RuntimeErrors
+                        # the step cannot be traced into one while_loop: compile chunks instead
+                        # (a genuine error of the model raises again there)
+                        self.loop_fallback = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
                 return self._chunked(inputs)
             step_fn = self.step_function(inputs.y.device)
         kernels = self.small_kernels(inputs.batch)
@@ -338,8 +368,8 @@ class GaussianFilter(nn.Module):
         # fresh copies: under inference_mode they are inference tensors like every later step's
         # belief, so a compiled first step does not compile a variant of its own
         mean, cov = inp.x0.clone(), inp.P0.clone()
-        S0 = safe_cholesky(cov, name="P0")
-        belief = Belief(mean, cov, S0 if self.sqrt else None)  # the plain form re-factors cov
+        # the plain form factors cov itself in the step
+        belief = Belief(mean, cov, safe_cholesky(cov, name="P0") if self.sqrt else None)
         f, h = self.model.transition, self.model.measurement
         const_Q = None if f.time_varying_noise else self._noise_of(f, 0, mean)
         const_R = None if h.time_varying_noise else self._noise_of(h, 0, mean)
@@ -424,8 +454,7 @@ class GaussianFilter(nn.Module):
         # fresh copies: under inference_mode they are inference tensors like every later chunk's
         # belief, so the first chunk does not compile a variant of its own
         mean, cov = inp.x0.clone(), inp.P0.clone()
-        S0 = safe_cholesky(cov, name="P0")
-        belief = Belief(mean, cov, S0 if self.sqrt else None)
+        belief = Belief(mean, cov, safe_cholesky(cov, name="P0") if self.sqrt else None)
         f, h = self.model.transition, self.model.measurement
         const_Q = None if f.time_varying_noise else self._noise_of(f, 0, mean)
         const_R = None if h.time_varying_noise else self._noise_of(h, 0, mean)
@@ -450,6 +479,159 @@ class GaussianFilter(nn.Module):
             records.append(rec)
             extras.append(extra)
         return records, extras
+
+    def run_loop(
+        self,
+        points: UnitPoints,
+        belief: Belief,
+        y: Tensor,
+        obs: Tensor,
+        u: Tensor | None,
+        Q: Noise,
+        R: Noise,
+        outputs: tuple[Tensor, ...],
+        varying: tuple[bool, bool],
+        select: tuple[int, ...],
+    ) -> tuple[Tensor, ...]:
+        """All ``T`` steps of :meth:`step` as one ``torch.while_loop``: the unit
+        ``compile="loop"`` compiles (the step is traced once, the loop runs inside the compiled
+        code).
+
+        Args:
+            points, belief: as in :meth:`step` (``belief.sqrt`` is carried in the square-root
+                form only).
+            y: measurements ``(..., T, m)``, missing set to 0. obs: bool ``(..., T, m)``.
+            u: inputs ``(..., T, nu)`` or ``None``.
+            Q, R: the noises; where ``varying`` says so, their tensors carry a leading time
+                dimension ``T``.
+            outputs: time-major buffers ``(T, *shape)``, one per entry of ``select``.
+            varying: whether ``Q`` and ``R`` change over time.
+            select: which of the step's outputs (the :class:`~torchfilt.filters.StepRecord`
+                fields, then the extra outputs) the buffers take.
+
+        Returns:
+            The buffers filled, in the same order.
+        """
+        T = y.shape[-2]
+        sq = self.sqrt
+        nb = len(outputs)
+        noise = (Q.cov, Q.sqrt, R.cov, R.sqrt)
+        present = tuple(v is not None for v in noise)
+        carried = tuple(v for v in noise if v is not None)
+        nn_ = len(carried)
+        # every tensor the body reads is carried (and cloned back), not captured: Dynamo would
+        # lift each view of a captured tensor as its own input, and aliased inputs are refused
+        start = 4 if sq else 3
+
+        def cond(t: Tensor, *rest: Tensor) -> Tensor:
+            return t < T
+
+        def body(t: Tensor, *rest: Tensor) -> tuple[Tensor, ...]:
+            mean, cov = rest[0], rest[1]
+            chol = rest[2] if sq else None
+            bufs = rest[start - 1 : start - 1 + nb]
+            nz = rest[start - 1 + nb : start - 1 + nb + nn_]
+            pf = rest[start - 1 + nb + nn_ :]
+            idx = t.reshape(1)
+
+            def pick(x: Tensor, dim: int) -> Tensor:
+                return x.index_select(dim, idx).squeeze(dim)
+
+            it = iter(nz)
+            Qc, Qs, Rc, Rs = (next(it) if p else None for p in present)
+            Qt = Noise(*(None if v is None or not varying[0] else pick(v, 0) for v in (Qc, Qs)))
+            if not varying[0]:
+                Qt = Noise(Qc, Qs)
+            Rt = Noise(*(None if v is None or not varying[1] else pick(v, 0) for v in (Rc, Rs)))
+            if not varying[1]:
+                Rt = Noise(Rc, Rs)
+            ut = None if u is None else pick(u, -2)
+            post, rec, extra = self.step(
+                UnitPoints(*pf), Belief(mean, cov, chol), pick(y, -2), pick(obs, -2), ut, Qt, Rt
+            )
+            vals = (*rec, *extra)
+            picked = (vals[i] for i in select)
+            new = tuple(
+                b.index_copy(0, idx, v.unsqueeze(0)) for b, v in zip(bufs, picked, strict=True)
+            )
+            # carried values keep the metadata (strides included) they entered with
+            head: tuple[Tensor, ...] = (t + 1, post.mean.contiguous(), post.cov.contiguous())
+            if sq:
+                assert post.sqrt is not None
+                head += (post.sqrt.contiguous(),)
+            return head + new + tuple(v.clone() for v in nz) + tuple(p.clone() for p in pf)
+
+        init: tuple[Tensor, ...] = (torch.zeros((), dtype=torch.int64, device=y.device),)
+        init += (belief.mean.contiguous(), belief.cov.contiguous())
+        if sq:
+            assert belief.sqrt is not None
+            init += (belief.sqrt.contiguous(),)
+        init += tuple(outputs) + carried + tuple(points)
+        out = torch.while_loop(cond, body, init)
+        return tuple(out[start : start + nb])
+
+    def _loop_function(self, device: torch.device) -> Callable[..., Any]:
+        fn = self._compiled_loops.get(device.type)
+        if fn is None:
+            # the C++ wrapper runs the loop itself in C++: no Python between the steps
+            options: dict[str, Any] | None = {"cpp_wrapper": True} if device.type == "cpu" else None
+            fn = torch.compile(self.run_loop, dynamic=False, fullgraph=True, options=options)
+            self._compiled_loops[device.type] = fn
+        return fn
+
+    def _while(
+        self, inp: FilterInputs, keep: Collection[str] | None = None
+    ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]:
+        """The whole time loop as one compiled ``torch.while_loop`` (:meth:`run_loop`); returns
+        one record with a time dimension (as a chunk of :meth:`_chunked`). Only the record
+        fields in ``keep`` (default all) are stored; the others are empty tensors."""
+        T = inp.y.shape[-2]
+        mean, cov = inp.x0.clone(), inp.P0.clone()
+        belief = Belief(mean, cov, safe_cholesky(cov, name="P0") if self.sqrt else None)
+        f, h = self.model.transition, self.model.measurement
+        pts = steps.unit_points(self.rule, mean.shape[-1], mean)
+
+        def noise(side: nn.Module) -> tuple[Noise, bool]:
+            if not side.time_varying_noise:
+                return self._noise_of(side, 0, mean), False
+            per = [self._noise_of(side, t, mean) for t in range(T)]
+            stacked = (
+                None if per[0][i] is None else torch.stack([p[i] for p in per]) for i in (0, 1)
+            )
+            return Noise(*stacked), True
+
+        (Q, q_var), (R, r_var) = noise(f), noise(h)
+        key = (tuple(inp.y.shape), None if inp.u is None else tuple(inp.u.shape), mean.dtype,
+               mean.device, q_var, r_var)  # fmt: skip
+        shapes = self._loop_shapes.get(key)
+        if shapes is None:  # one eager step tells the outputs' shapes and dtypes
+            pick = (lambda v: v) if not q_var else (lambda v: None if v is None else v[0])
+            pick_r = (lambda v: v) if not r_var else (lambda v: None if v is None else v[0])
+            with torch.no_grad():
+                _, rec, extra = self.step(
+                    pts, belief, inp.y[..., 0, :], inp.obs[..., 0, :],
+                    None if inp.u is None else inp.u[..., 0, :],
+                    Noise(pick(Q.cov), pick(Q.sqrt)), Noise(pick_r(R.cov), pick_r(R.sqrt)),
+                )  # fmt: skip
+            shapes = [(tuple(v.shape), v.dtype) for v in (*rec, *extra)]
+            self._loop_shapes[key] = shapes
+        nrec = len(StepRecord._fields)
+        select = tuple(
+            i
+            for i in range(len(shapes))
+            if i >= nrec or keep is None or StepRecord._fields[i] in keep
+        )
+        bufs = tuple(mean.new_zeros((T, *shapes[i][0]), dtype=shapes[i][1]) for i in select)
+        fn = self._loop_function(inp.y.device)
+        filled = fn(pts, belief, inp.y, inp.obs, inp.u, Q, R, bufs, (q_var, r_var), select)
+        out = dict(zip(select, filled, strict=True))
+        empty = mean.new_empty(0)
+        fields = {
+            name: out[i].movedim(0, _TIME_DIMS[name]) if i in out else empty
+            for i, name in enumerate(StepRecord._fields)
+        }
+        extra = tuple(out[i].movedim(0, -1) for i in range(nrec, len(shapes)))
+        return [StepRecord(**fields)], [extra]
 
     def _noise_of(self, side: nn.Module, step: int, like: Tensor) -> Noise:
         cov = model_noise(side, step, like)
@@ -517,7 +699,22 @@ class GaussianFilter(nn.Module):
         """
         path = self.numerics_path(inputs)
         if path.execution == "compiled-loop":
+            try:
+                (rec,), _ = self._while(inputs, keep)
+            except RuntimeError as exc:  # see scan: fall back to compiled chunks
+                self.loop_fallback = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
+            else:
+                fields = {k: v for k, v in rec._asdict().items() if k != "log_likelihood"}
+                ll = rec.log_likelihood
+                return FilterResult(
+                    **fields,
+                    observed=self._observed(inputs),
+                    log_likelihood=ll.sum(-1) if ll.numel() else ll,
+                    numerics=path,
+                )
+        if path.execution in ("compiled-loop", "compiled-chunks"):
             records, _ = self.scan(inputs)
+            path = self.numerics_path(inputs)  # a while-loop that could not be traced fell back
             return concat_records(records, self._observed(inputs), path)
         sink = RecordSink(inputs.y.shape[-2], keep)
         self.scan(inputs, sink=sink)

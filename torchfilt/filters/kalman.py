@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from torchfilt.exceptions import InputError, InputTypeError, ModelError, ShapeError
-from torchfilt.filters.inputs import check_prior, observed
+from torchfilt.filters.inputs import broadcast_batch, check_prior, observed
 from torchfilt.filters.linear_data import Data, LinearSteps, SmootherElements
 from torchfilt.filters.results import (
     FilterResult,
@@ -304,11 +304,7 @@ def _check(
     else:  # placeholders: the caller linearises the model itself
         A, H = y.new_zeros(n, n), y.new_zeros(m, n)
     shapes.update(shapes_params)
-    try:
-        batch = torch.broadcast_shapes(*shapes.values())
-    except RuntimeError:
-        desc = ", ".join(f"{k} {tuple(v)}" for k, v in shapes.items())
-        raise ShapeError(f"batch shapes do not broadcast: {desc}") from None
+    batch = broadcast_batch(shapes)
     complete = bool(obs.all())
     if not complete or obs.shape != y.shape:  # else nothing to zero: skip the copy
         y = torch.where(obs, y, torch.zeros((), dtype=dtype, device=device))
