@@ -595,10 +595,12 @@ class GaussianFilter(nn.Module):
             if not side.time_varying_noise:
                 return self._noise_of(side, 0, mean), False
             per = [self._noise_of(side, t, mean) for t in range(T)]
-            stacked = (
-                None if per[0][i] is None else torch.stack([p[i] for p in per]) for i in (0, 1)
-            )
-            return Noise(*stacked), True
+
+            def stack(i: int) -> Tensor | None:
+                vals = [v for p in per if (v := p[i]) is not None]
+                return torch.stack(vals) if len(vals) == T else None
+
+            return Noise(stack(0), stack(1)), True
 
         (Q, q_var), (R, r_var) = noise(f), noise(h)
         key = (tuple(inp.y.shape), None if inp.u is None else tuple(inp.u.shape), mean.dtype,
