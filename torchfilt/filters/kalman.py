@@ -699,11 +699,18 @@ def _run_riccati(
     c_t = None if steps.c is None else tmajor(steps.c, n)
     x0 = data.x0.reshape(B, n)
     m_all = x0.new_empty(T, B, n)
-    names = ["KT", "L"]
-    names += [k for k, f in (("cov", "cov"), ("pcov", "predicted_cov"), ("cross", "cross_cov"))
-              if f in keep]  # fmt: skip
-    names += ["S"] if "innovation_cov" in keep else []
+    covs = {"cov": "cov", "predicted_cov": "pcov", "cross_cov": "cross", "innovation_cov": "S"}
+    # a shared sequence records its per-step values and stacks them after the loop; one
+    # covariance per sequence writes the kept ones straight into their outputs (B, T, ., .)
+    names = ["KT", "L"] if one else ["L"]
+    names += [name for field, name in covs.items() if field in keep] if one else []
     rec: dict[str, list[Tensor]] = {k: [] for k in names}
+    direct = {
+        field: P.new_empty(B, T, *((m, m) if field == "innovation_cov" else (n, n)))
+        for field in covs
+        if field in keep and not one
+    }
+    KT_last = P.new_empty(0)
     infos: list[Tensor] = []
     scalar = m == 1
     late = not one and not scalar
@@ -746,6 +753,9 @@ def _run_riccati(
         }
         for name in names:
             rec[name].append(now[name])
+        for field, buf in direct.items():
+            buf[:, t] = now[covs[field]]
+        KT_last = KT
         k += 1
         # converged: checked every 4th step (steps past convergence only repeat by rounding)
         done = invariant and t >= 2 and t % 4 == 3
@@ -788,7 +798,7 @@ def _run_riccati(
         agree = spread is not None and bool(
             spread <= _AGREE_ULPS / _STEADY_ULPS * tol * P.abs().amax()
         )
-        KT_c = head["KT"][-1][:1] if one or agree else head["KT"][-1]  # (Bc', m, n)
+        KT_c = KT_last.unsqueeze(0) if one else KT_last[:1] if agree else KT_last  # (Bc', m, n)
         IKH_c = eye - HT @ KT_c
         F_c = AT @ IKH_c
         if KT_c.shape[0] == 1:
@@ -859,22 +869,20 @@ def _run_riccati(
     for name, v in means.items():
         if v is not None and (name == "mean" or name in keep):
             res[name] = v.transpose(0, 1).reshape(*batch, T, v.shape[-1])
-    covs = {"cov": "cov", "predicted_cov": "pcov", "cross_cov": "cross", "innovation_cov": "S"}
     for field, name in covs.items():
         if field not in keep:
             continue
-        h = head[name]  # (k, Bc, d, d)
-        d = h.shape[-1]
         if one:
+            h = head[name]  # (k, 1, d, d)
+            d = h.shape[-1]
             whole = h.new_empty(T, d, d)
             whole[:k] = h[:, 0]
             whole[k:] = h[-1, 0]
             res[field] = whole  # shared: assemble expands it over the batch
         else:
-            whole = h.new_empty(B, T, d, d)
-            whole[:, :k] = h.transpose(0, 1)
-            whole[:, k:] = h[-1].unsqueeze(1)
-            res[field] = whole.reshape(*batch, T, d, d)
+            whole = direct[field]
+            whole[:, k:] = whole[:, k - 1 : k]
+            res[field] = whole.reshape(*batch, T, *whole.shape[-2:])
     return res
 
 
