@@ -150,6 +150,60 @@ test_fuzz_ckf_linear, test_fuzz_ckf_linear_long = property_tests(
 )
 
 
+# ------------------------------------------------------- the exact path's converging recursions
+def check_exact_converging(data: st.DataObject) -> None:
+    """Long, fully observed recordings of a time-invariant model, one ``P0`` per sequence or one
+    for all: the Riccati recursions stop once converged and the means' tail runs as a doubling
+    scan or step by step. Every sequence equals the closed-form filter started from its own
+    prior."""
+    n = data.draw(st.integers(1, 3), label="n")
+    m = data.draw(st.integers(1, 2), label="m")
+    T = data.draw(st.sampled_from([5, 40, 150]), label="T")
+    B = data.draw(st.integers(1, 3), label="batch")
+    per_sequence = data.draw(st.booleans(), label="P0 per sequence")
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1), label="seed"))
+    scale = 10.0 ** data.draw(st.integers(-2, 2), label="log10 scale")
+    A = rng.uniform(-1.0, 1.0, (n, n))
+    radius = data.draw(st.sampled_from([0.5, 0.95, 1.0]), label="spectral radius")
+    A *= radius / max(abs(np.linalg.eigvals(A)).max(), 1e-12)
+    H = rng.uniform(-2.0, 2.0, (m, n))
+    Q, R = _spd(rng, n, 1e-2, 1.0) * scale**2, _spd(rng, m, 1e-2, 1.0) * scale**2
+    P0s = [_spd(rng, n, 1e-1, 10.0) * scale**2 for _ in range(B if per_sequence else 1)]
+    x0 = rng.standard_normal((B, n)) * scale
+    nu = data.draw(st.sampled_from([0, 1]), label="nu")
+    Bm = rng.uniform(-1.0, 1.0, (n, nu)) if nu else None
+    u = rng.standard_normal((T, nu)) * scale if nu else None
+    y = rng.standard_normal((B, T, m)) * scale * 3.0
+    t = lambda a: torch.tensor(a, dtype=D)  # noqa: E731
+    model = LinearGaussianModel(t(A), t(H), t(Q), t(R), B=None if Bm is None else t(Bm))
+    P0 = t(np.stack(P0s)) if per_sequence else t(P0s[0])
+    res, _warned = attempt(
+        "CKF.filter (linear, converging)",
+        CKF(model).filter,
+        t(y),
+        None if u is None else t(u),
+        x0=t(x0),
+        P0=P0,
+    )
+    assert not isinstance(res, Refused), f"a valid problem was refused: {res}"
+    assert res.path == "kalman"
+    for b in range(B):
+        ms, Ps, mps, _, ll = kalman_filter(
+            A, H, Q, R, y[b], x0[b], P0s[b if per_sequence else 0], B=Bm, u=u
+        )
+        _close(res.mean[b], ms, scale, "filtered mean")
+        _close(res.cov[b], Ps, scale**2, "filtered cov")
+        _close(res.predicted_mean[b], mps, scale, "predicted mean")
+        np.testing.assert_allclose(
+            float(res.log_likelihood[b]), ll, rtol=REF_RTOL, atol=1e-6, err_msg="log-likelihood"
+        )
+
+
+test_fuzz_exact_converging, test_fuzz_exact_converging_long = property_tests(
+    check_exact_converging, short=8, long=400
+)
+
+
 # ------------------------------------------------------------------- CKF on callables
 _VARIANTS = ["correct", "first component", "first point", "first batch element", "sum", "int64"]
 
