@@ -695,7 +695,8 @@ def _run_riccati(
         return x.expand(*batch, T, d).reshape(B, T, d).transpose(0, 1)
 
     y_t = tmajor(data.y, m)
-    innov_in = y_t if steps.d is None else y_t - tmajor(steps.d, m)  # y_t - d_t
+    d_t = None if steps.d is None else tmajor(steps.d, m)
+    innov_in = y_t if d_t is None else y_t - d_t  # y_t - d_t
     c_t = None if steps.c is None else tmajor(steps.c, n)
     x0 = data.x0.reshape(B, n)
     m_all = x0.new_empty(T, B, n)
@@ -764,7 +765,7 @@ def _run_riccati(
             break
         P = P_new
     # steps k .. T-1 repeat step k-1
-    head = {name: torch.stack(vals, 0) for name, vals in rec.items()}  # (k, Bc, ., .)
+    head = {name: torch.stack(vals, 0) for name, vals in rec.items()}  # (k, [B,] ., .)
     if scalar:
         if not bool((head["L"] > 0).all()):
             return None
@@ -775,11 +776,9 @@ def _run_riccati(
         head["L"], info = torch.linalg.cholesky_ex(head["L"])
         if bool(info.any()):
             return None
-    if one:
-        head = {name: v.unsqueeze(1) for name, v in head.items()}
     eye = torch.eye(n, dtype=P.dtype, device=P.device)
     if one:  # the head: m_t = m_{t-1} F_t + g_t with the shared F_t
-        A_h, H_h, KT_h = steps.A[:k], steps.H[:k], head["KT"][:, 0]
+        A_h, H_h, KT_h = steps.A[:k], steps.H[:k], head["KT"]
         IKH = eye - H_h.mT @ KT_h
         m_all[:k] = innov_in[:k] @ KT_h
         if c_t is not None:
@@ -794,11 +793,10 @@ def _run_riccati(
     if k < T:
         # per-sequence covariances that have all reached the same steady state (as they do for
         # a time-invariant model) share one gain in the tail: one product per step for the batch
-        spread = (P - P[:1]).abs().amax() if not one else None
-        agree = spread is not None and bool(
-            spread <= _AGREE_ULPS / _STEADY_ULPS * tol * P.abs().amax()
-        )
-        KT_c = KT_last.unsqueeze(0) if one else KT_last[:1] if agree else KT_last  # (Bc', m, n)
+        KT_c = KT_last.unsqueeze(0) if one else KT_last  # (Bc', m, n)
+        tol_agree = _AGREE_ULPS / _STEADY_ULPS * tol * P.abs().amax()
+        if not one and bool((P - P[:1]).abs().amax() <= tol_agree):
+            KT_c = KT_c[:1]
         IKH_c = eye - HT @ KT_c
         F_c = AT @ IKH_c
         if KT_c.shape[0] == 1:
@@ -816,45 +814,43 @@ def _run_riccati(
         else:
             for t in range(k + 1, T):
                 m_all[t].unsqueeze(1).baddbmm_(m_all[t - 1].unsqueeze(1), F_c)
-        L_c = head["L"][-1][: KT_c.shape[0]]
-    HT0 = steps.H.select(-3, 0).mT
+        L_c = head["L"][-1:] if one else head["L"][-1][: KT_c.shape[0]]  # (Bc', m, m)
+    # (T, ., .) per-step matrices, or one (., .) for a time-invariant model (then the loop's)
+    A_all, H_all = (AT.mT, HT.mT) if invariant else (steps.A, steps.H)
+
+    def after_prev(M: Tensor) -> Tensor:
+        """``x_{t-1} M_t`` for every step, ``x_{-1} = x0``: ``(T, B, M.shape[-1])``."""
+        out = x0.new_empty(T, B, M.shape[-1])
+        torch.matmul(x0, M if M.dim() == 2 else M[0], out=out[0])
+        if M.dim() == 2:  # one product over the stacked rows
+            torch.matmul(m_all[:-1].reshape(-1, n), M, out=out[1:].view(-1, M.shape[-1]))
+        else:
+            torch.matmul(m_all[:-1], M[1:], out=out[1:])
+        return out
+
     mp = ym = None
     if "predicted_mean" in keep or "measurement_mean" in keep:
-        mp = torch.empty_like(m_all)  # m^-_t = m_{t-1} A_t^T + c_t
-        if invariant:
-            AT0 = steps.A.select(-3, 0).mT
-            torch.matmul(x0, AT0, out=mp[0])
-            torch.matmul(m_all[:-1].reshape(-1, n), AT0, out=mp[1:].view(-1, n))
-        else:
-            torch.matmul(x0, steps.A[0].mT, out=mp[0])
-            torch.matmul(m_all[:-1], steps.A[1:].mT, out=mp[1:])
+        mp = after_prev(A_all.mT)  # m^-_t = m_{t-1} A_t^T + c_t
         if c_t is not None:
             mp += c_t
-        ym = mp @ HT0 if invariant else mp @ steps.H.mT
+        ym = mp @ H_all.mT
         e = innov_in - ym  # (T, B, m)
-        if steps.d is not None:
-            ym += tmajor(steps.d, m)
+        if d_t is not None:
+            ym += d_t
     else:  # straight to the innovations: e_t = (y_t - d_t) - m_{t-1} (H A)^T - c_t H^T
-        e = innov_in.new_empty(T, B, m)
-        AHT = steps.A.select(-3, 0).mT @ HT0 if invariant else steps.A.mT @ steps.H.mT
-        if invariant:
-            torch.matmul(x0, AHT, out=e[0])
-            torch.matmul(m_all[:-1].reshape(-1, n), AHT, out=e[1:].view(-1, m))
-        else:
-            torch.matmul(x0, AHT[0], out=e[0])
-            torch.matmul(m_all[:-1], AHT[1:], out=e[1:])
+        e = after_prev(A_all.mT @ H_all.mT)
         if c_t is not None:
-            e += c_t @ HT0 if invariant else c_t @ steps.H.mT
+            e += c_t @ H_all.mT
         torch.sub(innov_in, e, out=e)
     # log-likelihood: whitened innovations, per step while the gains change, then one factor
-    L_h = head["L"]  # (k, Bc, m, m)
+    L_h = head["L"]  # (k, [B,] m, m)
     if one:
-        z_h = torch.linalg.solve_triangular(L_h[:, 0], e[:k].mT, upper=False)  # (k, m, B)
+        z_h = torch.linalg.solve_triangular(L_h, e[:k].mT, upper=False)  # (k, m, B)
         sq = z_h.square_().sum((0, 1))
     else:
         z_h = torch.linalg.solve_triangular(L_h, e[:k].unsqueeze(-1), upper=False)
         sq = z_h.square_().sum((0, 2, 3))
-    logdet = 2.0 * L_h.diagonal(dim1=-2, dim2=-1).log().sum((0, -1))  # (Bc,)
+    logdet = 2.0 * L_h.diagonal(dim1=-2, dim2=-1).log().sum((0, -1))  # () or (B,)
     if k < T:
         if L_c.shape[0] == 1:
             z_c = torch.linalg.solve_triangular(L_c[0], e[k:].reshape(-1, m).mT, upper=False)
@@ -873,11 +869,10 @@ def _run_riccati(
         if field not in keep:
             continue
         if one:
-            h = head[name]  # (k, 1, d, d)
-            d = h.shape[-1]
-            whole = h.new_empty(T, d, d)
-            whole[:k] = h[:, 0]
-            whole[k:] = h[-1, 0]
+            h = head[name]  # (k, d, d)
+            whole = h.new_empty(T, *h.shape[1:])
+            whole[:k] = h
+            whole[k:] = h[-1]
             res[field] = whole  # shared: assemble expands it over the batch
         else:
             whole = direct[field]
