@@ -77,6 +77,14 @@ StepFunction = Callable[
 ]
 
 
+def _noise_at(noise: Noise, index: Callable[[Tensor], Tensor] | None) -> Noise:
+    """``noise`` at one step: each present tensor through ``index`` (its time dimension taken
+    at that step), or ``noise`` itself for a constant noise (``index`` None)."""
+    if index is None:
+        return noise
+    return Noise(*(None if v is None else index(v) for v in noise))
+
+
 class FilterState(NamedTuple):
     """The belief of an online filter (:meth:`GaussianFilter.init`) and its time index.
 
@@ -342,13 +350,10 @@ class GaussianFilter(nn.Module):
             if execution in ("compiled-loop", "compiled-chunks"):
                 if sink is not None:
                     raise InputError("sink: a compiled loop returns chunk records; pass no sink")
-                if execution == "compiled-loop" and not self._records_grad(inputs):
-                    try:
-                        return self._while(inputs)
-                    except RuntimeError as exc:  # Dynamo's "unsupported" errors are RuntimeErrors
-                        # the step cannot be traced into one while_loop: compile chunks instead
-                        # (a genuine error of the model raises again there)
-                        self.loop_fallback = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
+                if execution == "compiled-loop":
+                    done = self._try_while(inputs)
+                    if done is not None:
+                        return done
                 return self._chunked(inputs)
             step_fn = self.step_function(inputs.y.device)
         kernels = self.small_kernels(inputs.batch)
@@ -365,11 +370,8 @@ class GaussianFilter(nn.Module):
         sink: RecordSink | None = None,
     ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]:
         T = inp.y.shape[-2]
-        # fresh copies: under inference_mode they are inference tensors like every later step's
-        # belief, so a compiled first step does not compile a variant of its own
-        mean, cov = inp.x0.clone(), inp.P0.clone()
-        # the plain form factors cov itself in the step
-        belief = Belief(mean, cov, safe_cholesky(cov, name="P0") if self.sqrt else None)
+        belief = self._prior_belief(inp)
+        mean = belief.mean
         f, h = self.model.transition, self.model.measurement
         const_Q = None if f.time_varying_noise else self._noise_of(f, 0, mean)
         const_R = None if h.time_varying_noise else self._noise_of(h, 0, mean)
@@ -451,10 +453,8 @@ class GaussianFilter(nn.Module):
         """The time loop in compiled chunks of ``self.chunk`` steps; returns one record per chunk
         (fields with a time dimension) for :func:`~torchfilt.filters.results.concat_records`."""
         T = inp.y.shape[-2]
-        # fresh copies: under inference_mode they are inference tensors like every later chunk's
-        # belief, so the first chunk does not compile a variant of its own
-        mean, cov = inp.x0.clone(), inp.P0.clone()
-        belief = Belief(mean, cov, safe_cholesky(cov, name="P0") if self.sqrt else None)
+        belief = self._prior_belief(inp)
+        mean = belief.mean
         f, h = self.model.transition, self.model.measurement
         const_Q = None if f.time_varying_noise else self._noise_of(f, 0, mean)
         const_R = None if h.time_varying_noise else self._noise_of(h, 0, mean)
@@ -539,12 +539,9 @@ class GaussianFilter(nn.Module):
 
             it = iter(nz)
             Qc, Qs, Rc, Rs = (next(it) if p else None for p in present)
-            Qt = Noise(*(None if v is None or not varying[0] else pick(v, 0) for v in (Qc, Qs)))
-            if not varying[0]:
-                Qt = Noise(Qc, Qs)
-            Rt = Noise(*(None if v is None or not varying[1] else pick(v, 0) for v in (Rc, Rs)))
-            if not varying[1]:
-                Rt = Noise(Rc, Rs)
+            at = lambda v: pick(v, 0)  # noqa: E731
+            Qt = _noise_at(Noise(Qc, Qs), at if varying[0] else None)
+            Rt = _noise_at(Noise(Rc, Rs), at if varying[1] else None)
             ut = None if u is None else pick(u, -2)
             post, rec, extra = self.step(
                 UnitPoints(*pf), Belief(mean, cov, chol), pick(y, -2), pick(obs, -2), ut, Qt, Rt
@@ -579,6 +576,18 @@ class GaussianFilter(nn.Module):
             self._compiled_loops[device.type] = fn
         return fn
 
+    def _try_while(
+        self, inp: FilterInputs, keep: Collection[str] | None = None
+    ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]] | None:
+        """:meth:`_while`, or ``None`` after recording in :attr:`loop_fallback` why the step
+        could not be traced into one while-loop (the caller then compiles chunks, where a
+        genuine error of the model raises again)."""
+        try:
+            return self._while(inp, keep)
+        except RuntimeError as exc:  # Dynamo's "unsupported" errors are RuntimeErrors
+            self.loop_fallback = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
+            return None
+
     def _while(
         self, inp: FilterInputs, keep: Collection[str] | None = None
     ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]:
@@ -586,8 +595,8 @@ class GaussianFilter(nn.Module):
         one record with a time dimension (as a chunk of :meth:`_chunked`). Only the record
         fields in ``keep`` (default all) are stored; the others are empty tensors."""
         T = inp.y.shape[-2]
-        mean, cov = inp.x0.clone(), inp.P0.clone()
-        belief = Belief(mean, cov, safe_cholesky(cov, name="P0") if self.sqrt else None)
+        belief = self._prior_belief(inp)
+        mean = belief.mean
         f, h = self.model.transition, self.model.measurement
         pts = steps.unit_points(self.rule, mean.shape[-1], mean)
 
@@ -607,13 +616,12 @@ class GaussianFilter(nn.Module):
                mean.device, q_var, r_var)  # fmt: skip
         shapes = self._loop_shapes.get(key)
         if shapes is None:  # one eager step tells the outputs' shapes and dtypes
-            pick = (lambda v: v) if not q_var else (lambda v: None if v is None else v[0])
-            pick_r = (lambda v: v) if not r_var else (lambda v: None if v is None else v[0])
+            first = lambda v: v[0]  # noqa: E731
             with torch.no_grad():
                 _, rec, extra = self.step(
                     pts, belief, inp.y[..., 0, :], inp.obs[..., 0, :],
                     None if inp.u is None else inp.u[..., 0, :],
-                    Noise(pick(Q.cov), pick(Q.sqrt)), Noise(pick_r(R.cov), pick_r(R.sqrt)),
+                    _noise_at(Q, first if q_var else None), _noise_at(R, first if r_var else None),
                 )  # fmt: skip
             shapes = [(tuple(v.shape), v.dtype) for v in (*rec, *extra)]
             self._loop_shapes[key] = shapes
@@ -634,6 +642,14 @@ class GaussianFilter(nn.Module):
         }
         extra = tuple(out[i].movedim(0, -1) for i in range(nrec, len(shapes)))
         return [StepRecord(**fields)], [extra]
+
+    def _prior_belief(self, inp: FilterInputs) -> Belief:
+        """The belief a run starts from: fresh copies of ``x0`` and ``P0`` (under
+        inference_mode they are inference tensors like every later belief, so a compiled first
+        step or chunk does not compile a variant of its own), factored in the square-root form
+        only (the plain form factors the covariance in the step)."""
+        mean, cov = inp.x0.clone(), inp.P0.clone()
+        return Belief(mean, cov, safe_cholesky(cov, name="P0") if self.sqrt else None)
 
     def _noise_of(self, side: nn.Module, step: int, like: Tensor) -> Noise:
         cov = model_noise(side, step, like)
@@ -700,20 +716,17 @@ class GaussianFilter(nn.Module):
             keep: the result fields to store (default all; see :class:`RecordSink`).
         """
         path = self.numerics_path(inputs)
-        if path.execution == "compiled-loop":
-            try:
-                (rec,), _ = self._while(inputs, keep)
-            except RuntimeError as exc:  # see scan: fall back to compiled chunks
-                self.loop_fallback = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
-            else:
-                fields = {k: v for k, v in rec._asdict().items() if k != "log_likelihood"}
-                ll = rec.log_likelihood
-                return FilterResult(
-                    **fields,
-                    observed=self._observed(inputs),
-                    log_likelihood=ll.sum(-1) if ll.numel() else ll,
-                    numerics=path,
-                )
+        done = self._try_while(inputs, keep) if path.execution == "compiled-loop" else None
+        if done is not None:
+            (rec,), _ = done
+            fields = {k: v for k, v in rec._asdict().items() if k != "log_likelihood"}
+            ll = rec.log_likelihood
+            return FilterResult(
+                **fields,
+                observed=self._observed(inputs),
+                log_likelihood=ll.sum(-1) if ll.numel() else ll,
+                numerics=path,
+            )
         if path.execution in ("compiled-loop", "compiled-chunks"):
             records, _ = self.scan(inputs)
             path = self.numerics_path(inputs)  # a while-loop that could not be traced fell back
