@@ -158,7 +158,7 @@ def torchfilt_runner(
 
     def run() -> None:
         with torch.inference_mode(), warnings.catch_warnings():
-            warnings.simplefilter("ignore", torchfilt.NumericsWarning)
+            warnings.simplefilter("ignore", torchfilt.exceptions.NumericsWarning)
             filt.filter(y, x0=x0, P0=P0, outputs=LIKE_DYNAMAX, path=path)
             if device.type == "cuda":
                 torch.cuda.synchronize()
@@ -167,7 +167,7 @@ def torchfilt_runner(
     run()
     first = time.perf_counter() - t0
     with torch.inference_mode(), warnings.catch_warnings():
-        warnings.simplefilter("ignore", torchfilt.NumericsWarning)
+        warnings.simplefilter("ignore", torchfilt.exceptions.NumericsWarning)
         res = filt.filter(y, x0=x0, P0=P0, outputs=LIKE_DYNAMAX, path=path)
         EXECUTIONS[id(run)] = res.numerics.execution if res.numerics is not None else res.path
     return run, first
@@ -186,14 +186,14 @@ def graphed_runner(y: torch.Tensor, *, compile: bool) -> tuple[Callable[[], None
     filt = torchfilt.CKF(reentry.model(dtype=dtype).to(device), compile=compile)
     t0 = time.perf_counter()
     with torch.inference_mode(), warnings.catch_warnings():
-        warnings.simplefilter("ignore", torchfilt.NumericsWarning)
+        warnings.simplefilter("ignore", torchfilt.exceptions.NumericsWarning)
         graphed = filt.graphed(y, x0=x0, P0=P0)
     torch.cuda.synchronize()
     capture = time.perf_counter() - t0
 
     def run() -> None:
         with torch.inference_mode(), warnings.catch_warnings():
-            warnings.simplefilter("ignore", torchfilt.NumericsWarning)
+            warnings.simplefilter("ignore", torchfilt.exceptions.NumericsWarning)
             graphed.filter(y, clone=False)
         torch.cuda.synchronize()
 

@@ -43,7 +43,8 @@ from torch import Tensor
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import environment, table, timeit
 
-from torchfilt import CKF, ConditionalModel, Prediction, StateSpaceModel
+from torchfilt import CKF, StateSpaceModel
+from torchfilt.models import ConditionalModel, Prediction
 from torchfilt.models.gp import GPMeasurement, GPModel, GPTransition
 from torchfilt.systems import reentry
 

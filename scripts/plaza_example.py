@@ -585,7 +585,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         progress=args.progress,
     )
     cal = torchfilt.calibrate(
-        model_gp, torchfilt.Sequences(train.measurements[1:], train.inputs[:-1]), **cal_kw
+        model_gp, torchfilt.training.Sequences(train.measurements[1:], train.inputs[:-1]), **cal_kw
     )
     models["learned CKF, calibrated"] = cal.model
     timings["calibrate learned filter"] = time.perf_counter() - t0
@@ -597,12 +597,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         t0 = time.perf_counter()
         k = (3 * len(train)) // 4
         x0_val, P0_val = prior(train.rows(k))
-        held_out = torchfilt.Sequences(
+        held_out = torchfilt.training.Sequences(
             train.measurements[k + 1 :], train.inputs[k:-1], x0_val, P0_val
         )
         cal_gp = torchfilt.calibrate(
             model_gp,
-            torchfilt.Sequences(train.measurements[1 : k + 1], train.inputs[:k]),
+            torchfilt.training.Sequences(train.measurements[1 : k + 1], train.inputs[:k]),
             validation=held_out,
             gp=args.cal_gp,
             **cal_kw,

@@ -47,10 +47,12 @@ def main(argv: list[str] | None = None) -> int:
         f"2/3 filtering and smoothing {len(recs)} held-out recordings with the learned models ..."
     )
     # est/ is this script's own output of an earlier run: replace it
-    summary = torchfilt.filter_recordings(bundle, recs, est, smooth=True, plot=True, force=True)
+    summary = torchfilt.pipeline.filter_recordings(
+        bundle, recs, est, smooth=True, plot=True, force=True
+    )
     print("3/3 comparing with the logged truth ...")
     for which in ("filtered", "smoothed"):
-        ev = torchfilt.evaluate_outputs(est, which=which, force=True)
+        ev = torchfilt.pipeline.evaluate_outputs(est, which=which, force=True)
         p = ev["pooled"]
         rm = ", ".join(f"{s} {v:.4g}" for s, v in zip(ev["states"], p["rmse"], strict=True))
         print(

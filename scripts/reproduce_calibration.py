@@ -198,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     cal = torchfilt.calibrate(
         learned,
-        torchfilt.Sequences(train["y"], train["u"]),
+        torchfilt.training.Sequences(train["y"], train["u"]),
         x0=train["x"][:, 0],
         P0=(P0_SD**2) * torch.eye(N, dtype=DT),
         window=CAL_WINDOW,
@@ -213,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
     dx0, dP0 = drifting.prior(train["x"][:, 0], (P0_SD**2) * torch.eye(N, dtype=DT))
     cal_d = torchfilt.calibrate(
         drifting,
-        torchfilt.Sequences(train["y"], train["u"]),
+        torchfilt.training.Sequences(train["y"], train["u"]),
         x0=dx0,
         P0=dP0,
         window=CAL_WINDOW,

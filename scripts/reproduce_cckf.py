@@ -95,7 +95,7 @@ def reaction_filters(start: str) -> dict[str, FilterFn]:
 def nees_mean(truth: torch.Tensor, res: FilterResult, ok: torch.Tensor) -> tuple[float, int]:
     """Mean NEES over the finite runs, and how many covariances needed jitter to be factored."""
     with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", torchfilt.CholeskyJitterWarning)
+        warnings.simplefilter("always", torchfilt.exceptions.CholeskyJitterWarning)
         e = torchfilt.nees(truth[ok], res.mean[ok], res.cov[ok])
     return float(e.mean()), len(caught)
 
@@ -144,7 +144,7 @@ def reaction_case(
     for name, fn in reaction_filters(start).items():
         t0 = time.perf_counter()
         with torch.no_grad(), warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", torchfilt.NumericsWarning)
+            warnings.simplefilter("always", torchfilt.exceptions.NumericsWarning)
             res, info = fn(sim.measurements)
         seconds = time.perf_counter() - t0
         metrics[name] = evaluate(sim.states, res, info)
@@ -215,10 +215,10 @@ def reentry_case(
     for name, fn in filters.items():
         t0 = time.perf_counter()
         with torch.no_grad(), warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", torchfilt.NumericsWarning)
+            warnings.simplefilter("always", torchfilt.exceptions.NumericsWarning)
             res, info = fn()
         with warnings.catch_warnings(record=True) as jitter:  # NEES of near-singular covariances
-            warnings.simplefilter("always", torchfilt.CholeskyJitterWarning)
+            warnings.simplefilter("always", torchfilt.exceptions.CholeskyJitterWarning)
             s = summarize_reentry(truth, res)
         s["nees_jittered_covariances"] = len(jitter)
         finite = torch.isfinite(res.mean).all(-1).all(-1)
@@ -229,7 +229,7 @@ def reentry_case(
         err = res.mean[keep] - truth[keep]
         s["rmse_tracking"] = err.pow(2).mean(0).sqrt().mean(0).tolist()
         with warnings.catch_warnings():  # near-singular covariances (Q = 0) need jitter here
-            warnings.simplefilter("ignore", torchfilt.CholeskyJitterWarning)
+            warnings.simplefilter("ignore", torchfilt.exceptions.CholeskyJitterWarning)
             s["nees_median"] = float(
                 torchfilt.nees(truth[finite], res.mean[finite], res.cov[finite]).median()
             )

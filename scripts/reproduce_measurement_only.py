@@ -457,7 +457,9 @@ def main(argv: list[str] | None = None) -> int:
 
     # measurement only: the inducing inputs start on the nominal model's smoothed states
     with torch.no_grad():
-        sm = torchfilt.rts_smooth(torchfilt.CKF(nominal).filter(train.measurements, x0=x0, P0=P0))
+        sm = torchfilt.filters.rts_smooth(
+            torchfilt.CKF(nominal).filter(train.measurements, x0=x0, P0=P0)
+        )
     cloud = sm.mean.reshape(-1, 2)
     fits: dict[str, Any] = {}
 

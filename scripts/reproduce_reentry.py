@@ -111,7 +111,7 @@ def calibrated_variant(
     t0 = time.perf_counter()
     cal = torchfilt.calibrate(
         model,
-        torchfilt.Sequences(cal_y),
+        torchfilt.training.Sequences(cal_y),
         x0=torch.tensor(reentry.PRIOR_MEAN, dtype=torch.float64),
         P0=reentry.prior_cov(),
         window=None,
@@ -517,12 +517,12 @@ def main(argv: list[str] | None = None) -> int:
         n = n_con if is_constrained else args.runs
         t0 = time.perf_counter()
         with torch.no_grad(), warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", torchfilt.NumericsWarning)
-            warnings.simplefilter("always", torchfilt.ConvergenceWarning)
+            warnings.simplefilter("always", torchfilt.exceptions.NumericsWarning)
+            warnings.simplefilter("always", torchfilt.exceptions.ConvergenceWarning)
             res = fn(y[:n])
         seconds = time.perf_counter() - t0
         with warnings.catch_warnings():  # NEES of near-singular covariances (Q = 0) needs jitter
-            warnings.simplefilter("ignore", torchfilt.CholeskyJitterWarning)
+            warnings.simplefilter("ignore", torchfilt.exceptions.CholeskyJitterWarning)
             results[name] = summarize(truth[:n], res)
         if ckf1_failed_first is None:  # CKF1: failures among the first k runs, for every k
             ckf1_failed_first = (~torch.isfinite(res.mean).all(-1).all(-1)).long().cumsum(0)

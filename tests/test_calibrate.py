@@ -229,7 +229,7 @@ def test_fit_likelihood_input_errors():
         fit_likelihood(model, y, x0=x0, P0=P0, optimizer="sgd")  # type: ignore[arg-type]
     with pytest.raises(InputError, match="lr"):
         fit_likelihood(model, y, x0=x0, P0=P0, lr=math.nan)
-    with pytest.raises(torchfilt.ShapeError, match="x0"):
+    with pytest.raises(torchfilt.exceptions.ShapeError, match="x0"):
         fit_likelihood(model, y, x0=torch.zeros(2, dtype=DT), P0=P0)
     with pytest.raises(InputError, match="nothing to fit"):
         fit_likelihood(model, y, x0=x0, P0=P0, params=[])

@@ -181,6 +181,6 @@ def test_hung_actor_fails_after_the_timeout_and_a_foreign_checkpoint_is_refused(
             ddp_support.em_linear(), Sequences(y), callback=_sleep_on_rank_1, timeout=3.0, **kw
         )
     assert time.perf_counter() - t0 < 60
-    with pytest.raises(torchfilt.RunError, match="another fit") as info:
+    with pytest.raises(torchfilt.exceptions.RunError, match="another fit") as info:
         fit_measurement_only_ray(ddp_support.em_linear(), Sequences(y[:3]), resume=True, **kw)
     assert not isinstance(info.value, WorkerError)

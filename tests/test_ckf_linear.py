@@ -6,8 +6,9 @@ import torch
 from conftest import BATCH_SHAPES, REF_ATOL, REF_RTOL, TIGHT, random_spd
 from reference import kalman_filter, rts_smoother
 
-from torchfilt import CKF, LinearGaussianModel, TimeVarying
+from torchfilt import CKF, LinearGaussianModel
 from torchfilt.cubature import GaussHermiteRule, SphericalRadialRule, UnscentedRule
+from torchfilt.models import TimeVarying
 
 RULES = {
     "cubature3": SphericalRadialRule(3),

@@ -5,7 +5,8 @@ import pytest
 import torch
 from test_ckf_linear import make_problem, t64
 
-from torchfilt import CKF, LinearGaussianModel, TimeVarying
+from torchfilt import CKF, LinearGaussianModel
+from torchfilt.models import TimeVarying
 
 pytestmark = pytest.mark.slow
 

@@ -53,14 +53,14 @@ def test_graphed_filter_matches_eager(sqrt, compile_):
     P0 = reentry.prior_cov().cuda()
     model = reentry.model().cuda()
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", torchfilt.NumericsWarning)
+        warnings.simplefilter("ignore", torchfilt.exceptions.NumericsWarning)
         graphed = torchfilt.CKF(model, sqrt=sqrt, compile=compile_).graphed(y, x0=x0, P0=P0)
     y2 = reentry.simulate_truth(256, seed=3).measurements.cuda()
     mask = torch.rand(y2.shape, generator=torch.Generator().manual_seed(0)).cuda() > 0.2
     for data, m in ((y, None), (y2, mask)):
         with warnings.catch_warnings():  # the odd diverging sequence is excluded below
             warnings.simplefilter("ignore", torchfilt.DivergenceWarning)
-            warnings.simplefilter("ignore", torchfilt.NumericsWarning)
+            warnings.simplefilter("ignore", torchfilt.exceptions.NumericsWarning)
             ref = torchfilt.CKF(model, sqrt=sqrt).filter(data, x0=x0, P0=P0, mask=m)
             got = graphed.filter(data, mask=m)
         ok = torch.isfinite(ref.mean).all(-1).all(-1) & torch.isfinite(got.mean).all(-1).all(-1)
@@ -68,7 +68,7 @@ def test_graphed_filter_matches_eager(sqrt, compile_):
         torch.testing.assert_close(got.mean[ok], ref.mean[ok], rtol=1e-7, atol=1e-6)
         torch.testing.assert_close(got.cov[ok], ref.cov[ok], rtol=1e-6, atol=1e-6)
         torch.testing.assert_close(got.log_likelihood[ok], ref.log_likelihood[ok])
-    with pytest.raises(torchfilt.ShapeError, match="captured for shape"):
+    with pytest.raises(torchfilt.exceptions.ShapeError, match="captured for shape"):
         graphed.filter(y[:10])
 
 

@@ -6,7 +6,8 @@ import pytest
 import torch
 
 import torchfilt
-from torchfilt import CKF, LinearGaussianModel, ShapeError, StateSpaceModel
+from torchfilt import CKF, LinearGaussianModel, StateSpaceModel
+from torchfilt.exceptions import ShapeError
 from torchfilt.systems import reentry
 
 D = torch.float64
@@ -128,7 +129,9 @@ def test_model_returning_wrong_shape(kw):
         Q=torch.eye(2, dtype=D),
         R=torch.eye(1, dtype=D),
     )
-    with pytest.raises(torchfilt.ModelError, match=r"transition returned shape \(4, 4\)"):
+    with pytest.raises(
+        torchfilt.exceptions.ModelError, match=r"transition returned shape \(4, 4\)"
+    ):
         CKF(m).filter(torch.zeros(3, 1, dtype=D), **kw)
 
 
@@ -136,7 +139,7 @@ def test_model_returning_non_tensor(kw):
     m = StateSpaceModel(
         lambda x: x.numpy(), lambda x: x[..., :1], Q=torch.eye(2, dtype=D), R=torch.eye(1, dtype=D)
     )
-    with pytest.raises(torchfilt.ModelError, match="transition returned ndarray"):
+    with pytest.raises(torchfilt.exceptions.ModelError, match="transition returned ndarray"):
         CKF(m).filter(torch.zeros(3, 1, dtype=D), **kw)
 
 
@@ -172,7 +175,7 @@ def test_diverging_sequence_is_isolated(kw):
     y[1] = 100.0
     x0 = torch.tensor([[0.0, 0.0], [100.0, 0.0]], dtype=D)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", torchfilt.CholeskyJitterWarning)
+        warnings.simplefilter("ignore", torchfilt.exceptions.CholeskyJitterWarning)
         with pytest.warns(torchfilt.DivergenceWarning, match="1 of 2 sequences"):
             res = CKF(m).filter(y, x0=x0, P0=torch.eye(2, dtype=D))
     assert torch.isfinite(res.mean[0]).all()
@@ -185,7 +188,7 @@ def test_non_psd_noise_is_rejected():
         StateSpaceModel(lambda x: x, lambda x: x[..., :1], Q=Q, R=torch.eye(1, dtype=D))
     with pytest.raises(ValueError, match="R is not positive semi-definite"):
         LinearGaussianModel(torch.eye(2), torch.ones(1, 2), torch.eye(2), -torch.eye(1))
-    bad = torchfilt.TimeVarying(torch.stack([torch.eye(2, dtype=D), Q]))
+    bad = torchfilt.models.TimeVarying(torch.stack([torch.eye(2, dtype=D), Q]))
     with pytest.raises(ValueError, match="Q is not positive semi-definite"):
         LinearGaussianModel(
             torch.eye(2, dtype=D), torch.ones(1, 2, dtype=D), bad, torch.eye(1, dtype=D)

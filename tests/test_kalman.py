@@ -8,11 +8,11 @@ from reference import kalman_filter, rts_smoother
 from test_ckf_linear import make_problem, t64
 
 import torchfilt
-from torchfilt import CKF, LinearGaussianModel, StateSpaceModel, TimeVarying
+from torchfilt import CKF, LinearGaussianModel, StateSpaceModel
 from torchfilt.exceptions import InputError, ModelError
 from torchfilt.filters.kalman import FIELDS
 from torchfilt.filters.kalman import kalman_filter as exact_filter
-from torchfilt.models import LinearModel, LinearSystem
+from torchfilt.models import LinearModel, LinearSystem, TimeVarying
 
 #: the exact path and the CKF compute the same closed form in a different order of operations
 EXACT_TOL = 1e-10

@@ -321,7 +321,7 @@ def test_em_gp_resume_equals_uninterrupted(data, tmp_path):
     assert [h["log_likelihood"] for h in resumed.history] == [
         h["log_likelihood"] for h in full.history
     ]
-    with pytest.raises(torchfilt.RunError, match="another fit"):
+    with pytest.raises(torchfilt.exceptions.RunError, match="another fit"):
         fit_em(model(), y[:60], iterations=4, checkpoint=ck, resume=True, **kw)
 
 
@@ -358,7 +358,7 @@ def test_gp_transition_starts_from_an_identified_linear_model(em_fit, data):
     lin = em_fit.model
     assert isinstance(lin, LinearGaussianModel)
     with torch.no_grad():
-        sm = torchfilt.rts_smooth(torchfilt.CKF(lin).filter(data, x0=X0, P0=P0))
+        sm = torchfilt.filters.rts_smooth(torchfilt.CKF(lin).filter(data, x0=X0, P0=P0))
     f = InducingTransition.from_linear(lin.A, inducing=5, states=sm.mean, outputscale=1e-3)
     assert torch.equal(f.linear.detach(), lin.A)
     x = sm.mean[:10].unsqueeze(0)

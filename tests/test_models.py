@@ -1,15 +1,9 @@
 import pytest
 import torch
 
-from torchfilt import (
-    ConditionalModel,
-    LinearGaussianModel,
-    Prediction,
-    StateSpaceModel,
-    TimeVarying,
-)
+from torchfilt import LinearGaussianModel, StateSpaceModel
 from torchfilt.exceptions import InputError
-from torchfilt.models import FunctionModel
+from torchfilt.models import ConditionalModel, FunctionModel, Prediction, TimeVarying
 
 
 def test_linear_model_moves_with_to():

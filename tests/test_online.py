@@ -7,8 +7,9 @@ import pytest
 import torch
 from test_ckf_linear import make_problem, t64
 
-from torchfilt import CKF, ConstrainedCKF, LinearGaussianModel, TimeVarying
+from torchfilt import CKF, ConstrainedCKF, LinearGaussianModel
 from torchfilt.exceptions import InputError, ShapeError
+from torchfilt.models import TimeVarying
 from torchfilt.systems import reaction, reentry
 
 #: online and whole-recording runs do the same arithmetic; float64 agreement (issue 13)

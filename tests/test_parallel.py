@@ -6,7 +6,8 @@ import torch
 from test_ckf_linear import make_problem, t64
 from test_kalman import assert_results_equal, assert_same
 
-from torchfilt import CKF, LinearGaussianModel, TimeVarying
+from torchfilt import CKF, LinearGaussianModel
+from torchfilt.models import TimeVarying
 
 #: the scan reassociates the recursion; in float64 the two agree to this
 PARALLEL_TOL = 1e-9

@@ -147,7 +147,7 @@ def test_uncertain_parameters_equal_the_augmented_linear_kalman_filter() -> None
     G = rng.standard_normal((3, 3))
     C = np.diag([0.04, 0.09, 0.01]) + 0.01 * G @ G.T  # over (c1, c2, b), correlated
     mean = np.array([0.05, -0.1, 0.25])
-    post = torchfilt.ParameterPosterior(
+    post = torchfilt.models.ParameterPosterior(
         ("transition._fn.c", "measurement._fn.b"), torch.tensor(mean), torch.tensor(C)
     )
     aug = torchfilt.UncertainParameters(model, post)
@@ -195,13 +195,13 @@ def test_refusals() -> None:
         torchfilt.parameter_posterior(
             noisy, y, u, x0=x0, P0=P0, parameters=["transition.noise_param.raw"]
         )
-    post = torchfilt.ParameterPosterior(
+    post = torchfilt.models.ParameterPosterior(
         ("measurement._fn.b",), torch.zeros(1, dtype=D), torch.eye(1, dtype=D)
     )
     with pytest.raises(InputError, match="noise covariance's parameter"):
         torchfilt.UncertainParameters(
             noisy,
-            torchfilt.ParameterPosterior(
+            torchfilt.models.ParameterPosterior(
                 ("transition.noise_param.raw",), torch.zeros(2, dtype=D), torch.eye(2, dtype=D)
             ),
         )
@@ -241,7 +241,7 @@ def test_a_flat_direction_and_a_map_vmap_cannot_run_are_named() -> None:
         FunctionModel(Drift(), torch.tensor(Q)),
         FunctionModel(ItemMap(), torch.tensor([[RV]], dtype=D)),
     )
-    post = torchfilt.ParameterPosterior(
+    post = torchfilt.models.ParameterPosterior(
         ("measurement._fn.k",), torch.ones(1, dtype=D), torch.eye(1, dtype=D)
     )
     aug = torchfilt.UncertainParameters(bad, post)
@@ -279,7 +279,7 @@ def _fuzz_case(draw: st.DataObject) -> None:
     elif kind == "indefinite" and p:
         C[0, 0] = -1.0
     mean = rng.standard_normal(p) * 0.1
-    post = torchfilt.ParameterPosterior(tuple(names), torch.tensor(mean), torch.tensor(C))
+    post = torchfilt.models.ParameterPosterior(tuple(names), torch.tensor(mean), torch.tensor(C))
     T = draw.draw(st.integers(1, 5), label="T")
     y, u, x0, P0 = data(2, T=T, seed=seed % 1000)
     x0 = x0[: draw.draw(st.sampled_from([2, 2, 2, 1]), label="x0 size")]

@@ -23,7 +23,7 @@ def stiff_problem(dtype):
 def test_plain_float32_loses_definiteness_sqrt_does_not():
     model, y, x0, P0 = stiff_problem(torch.float32)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", torchfilt.NumericsWarning)
+        warnings.simplefilter("ignore", torchfilt.exceptions.NumericsWarning)
         plain = CKF(model).filter(y, x0=x0, P0=P0, path="cubature")
     sq = CKF(model, sqrt=True).filter(y, x0=x0, P0=P0, path="cubature")
     plain_cov = plain.cov.double()
@@ -43,7 +43,7 @@ def test_plain_float32_loses_definiteness_sqrt_does_not():
 def test_sqrt_rejects_negative_weights():
     model, *_ = stiff_problem(torch.float64)
     try:
-        CKF(model, rule=torchfilt.UnscentedRule(kappa=-2.0), sqrt=True)
+        CKF(model, rule=torchfilt.cubature.UnscentedRule(kappa=-2.0), sqrt=True)
     except ValueError as e:
         assert "non-negative" in str(e)
     else:

@@ -27,7 +27,7 @@ def test_steps_equal_kalman_reference(sqrt):
     """predict then update, called by hand, equal the textbook Kalman filter step by step."""
     p = make_problem(3)
     model = linear(p)
-    rule = torchfilt.SphericalRadialRule(3)
+    rule = torchfilt.cubature.SphericalRadialRule(3)
     ms, Ps, mps, Pps, _ = kalman_filter(
         p["A"], p["H"], p["Q"], p["R"], p["y"], p["m0"], p["P0"], B=p["B"], u=p["u"]
     )

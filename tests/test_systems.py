@@ -1,7 +1,8 @@
 import pytest
 import torch
 
-from torchfilt import CKF, LinearGaussianModel, ShapeError, simulate
+from torchfilt import CKF, LinearGaussianModel, simulate
+from torchfilt.exceptions import ShapeError
 from torchfilt.systems import reentry
 
 

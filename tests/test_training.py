@@ -83,8 +83,8 @@ def test_end_to_end_train_filter_evaluate(tmp_path, tiny_data, capsys):
     assert bundle["dataset"] == dlog["fingerprint"] and bundle["schema"] == BUNDLE_SCHEMA
     # the learned model filters the held-out recording about as well as the true model
     test = sorted(str(p) for p in tiny_data.glob("rec_005.csv"))
-    learned = torchfilt.filter_recordings(run / "model.pt", test, tmp_path / "est_gp")
-    true = torchfilt.filter_recordings("system:reaction", test, tmp_path / "est_true")
+    learned = torchfilt.pipeline.filter_recordings(run / "model.pt", test, tmp_path / "est_gp")
+    true = torchfilt.pipeline.filter_recordings("system:reaction", test, tmp_path / "est_true")
     r_gp = learned["recordings"][0]["filtered_metrics"]["rmse"]
     r_true = true["recordings"][0]["filtered_metrics"]["rmse"]
     assert all(a < 3.0 * b + 0.05 for a, b in zip(r_gp, r_true, strict=True)), (r_gp, r_true)

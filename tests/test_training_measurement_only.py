@@ -403,7 +403,9 @@ def test_likelihood_method_with_inputs(tmp_path, data):
     assert val["one_step"].startswith("skipped") and "transition" not in val
     assert "nis_mean" in val["filter"]["uncalibrated"]
     assert "nees_mean" not in val["filter"]["uncalibrated"]
-    summary = torchfilt.filter_recordings(bundle, [with_u / "rec_003.csv"], tmp_path / "est")
+    summary = torchfilt.pipeline.filter_recordings(
+        bundle, [with_u / "rec_003.csv"], tmp_path / "est"
+    )
     assert summary["recordings"][0]["finite"]
 
 

@@ -4,46 +4,31 @@ Layers (each imports only from those before it):
 ``numerics`` -> ``cubature`` -> ``models`` -> ``filters`` -> ``systems``/``dmc`` -> ``io`` ->
 ``training``/``plots`` -> ``pipeline`` -> ``cli``.
 
-The light core (numerics, cubature, models, filters, systems, dmc, io) is imported with the
-package. The GP models (gpytorch), training, the pipeline and the plots (matplotlib) are imported on
-first use of one of their names, so that ``import torchfilt`` stays fast.
+The top level holds what a newcomer needs (``__all__``): the filters, the main models, the fits,
+the metrics, the io entry points and the base errors. Everything else lives in its sub-package
+(``torchfilt.models``, ``torchfilt.cubature``, ``torchfilt.numerics``, ``torchfilt.exceptions``,
+...), and dynamic matrix control in ``torchfilt.dmc``.
+
+The light core (numerics, cubature, models, filters, systems, io) is imported with the package.
+The GP models (gpytorch), training, the pipeline, the plots (matplotlib) and ``dmc`` are imported
+on first use of one of their names, so that ``import torchfilt`` stays fast.
 """
 
 from typing import TYPE_CHECKING, Any
 
-from torchfilt import cubature, dmc, exceptions, filters, models, numerics, settings, systems
+from torchfilt import cubature as cubature
+from torchfilt import exceptions as exceptions
+from torchfilt import filters as filters
+from torchfilt import io as io
+from torchfilt import models as models
+from torchfilt import numerics as numerics
+from torchfilt import settings as settings
+from torchfilt import systems as systems
 from torchfilt._version import __version__
-from torchfilt.cubature import GaussHermiteRule, SphericalRadialRule, UnscentedRule
-from torchfilt.dmc import (
-    FOPDT,
-    IPDT,
-    DMCController,
-    LMGPredictor,
-    OpenLoopPredictor,
-    StepResponseModel,
-)
-from torchfilt.exceptions import (
-    BundleError,
-    CholeskyJitterWarning,
-    ConvergenceWarning,
-    DataError,
-    DivergenceWarning,
-    GaugeError,
-    InfeasibleError,
-    InputError,
-    ModelError,
-    NotDetectableError,
-    NumericsWarning,
-    RecipeError,
-    RunError,
-    ShapeError,
-    TorchfiltError,
-    WorkerError,
-)
+from torchfilt.exceptions import DivergenceWarning, InputError, TorchfiltError
 from torchfilt.filters import (
     CKF,
     ConstrainedCKF,
-    ConstrainedInfo,
     FilterResult,
     GaussianFilter,
     SmootherResult,
@@ -51,42 +36,26 @@ from torchfilt.filters import (
     nees,
     nis,
     rmse,
-    rts_smooth,
 )
 from torchfilt.io import Recording, load_dataset, read_recording, write_recording
 from torchfilt.io.synth import simulate_dataset
 from torchfilt.models import (
     AffineSensor,
-    Bounded,
     CalibratedModel,
-    CholeskyCovariance,
-    ConditionalModel,
-    DiagonalCovariance,
     InducingTransition,
     LinearGaussianModel,
-    ParameterPosterior,
-    Positive,
-    Prediction,
-    ScalarCovariance,
     StateSpaceModel,
-    TimeVarying,
     UncertainParameters,
-)
-from torchfilt.numerics import (
-    Box,
-    LeastSquaresResult,
-    SolverStatus,
-    bounded_least_squares,
-    solve_dare,
-    steady_state_kalman,
 )
 from torchfilt.systems import simulate
 
 if TYPE_CHECKING:
-    from torchfilt.models.gp import FitState, GPMeasurement, GPModel, GPTransition
-    from torchfilt.pipeline import evaluate_outputs, filter_recordings
+    from torchfilt import dmc as dmc
+    from torchfilt import pipeline as pipeline
+    from torchfilt import plots as plots
+    from torchfilt import training as training
+    from torchfilt.models.gp import GPMeasurement, GPModel, GPTransition
     from torchfilt.training import (
-        Sequences,
         calibrate,
         fit_em,
         fit_likelihood,
@@ -99,13 +68,9 @@ if TYPE_CHECKING:
 
 #: Names whose modules need gpytorch or matplotlib: imported on first access (PEP 562).
 _LAZY = {
-    "FitState": "torchfilt.models.gp",
     "GPMeasurement": "torchfilt.models.gp",
     "GPModel": "torchfilt.models.gp",
     "GPTransition": "torchfilt.models.gp",
-    "evaluate_outputs": "torchfilt.pipeline",
-    "filter_recordings": "torchfilt.pipeline",
-    "Sequences": "torchfilt.training",
     "calibrate": "torchfilt.training",
     "fit_em": "torchfilt.training",
     "fit_likelihood": "torchfilt.training",
@@ -115,7 +80,66 @@ _LAZY = {
     "parameter_posterior": "torchfilt.training",
     "train_recipe": "torchfilt.training",
 }
-_LAZY_MODULES = ("pipeline", "plots", "training")
+#: Sub-packages imported on first access (heavy dependencies, or outside the estimation core).
+_LAZY_MODULES = ("dmc", "pipeline", "plots", "training")
+#: Sub-packages reachable as attributes (listed by ``dir``, not in ``__all__``).
+_SUBPACKAGES: tuple[str, ...] = (
+    *("cubature", "exceptions", "filters", "io", "models", "numerics", "settings", "systems"),
+    *_LAZY_MODULES,
+)
+
+#: Names removed from the top level, by their home: they still resolve from the top level, with
+#: a DeprecationWarning, for one release.
+_MOVED_TO = {
+    "torchfilt.dmc": (
+        "DMCController",
+        "FOPDT",
+        "IPDT",
+        "LMGPredictor",
+        "OpenLoopPredictor",
+        "StepResponseModel",
+    ),
+    "torchfilt.exceptions": (
+        "BundleError",
+        "CholeskyJitterWarning",
+        "ConvergenceWarning",
+        "DataError",
+        "GaugeError",
+        "InfeasibleError",
+        "ModelError",
+        "NotDetectableError",
+        "NumericsWarning",
+        "RecipeError",
+        "RunError",
+        "ShapeError",
+        "WorkerError",
+    ),
+    "torchfilt.filters": ("ConstrainedInfo", "rts_smooth"),
+    "torchfilt.models": (
+        "Bounded",
+        "CholeskyCovariance",
+        "ConditionalModel",
+        "DiagonalCovariance",
+        "ParameterPosterior",
+        "Positive",
+        "Prediction",
+        "ScalarCovariance",
+        "TimeVarying",
+    ),
+    "torchfilt.models.gp": ("FitState",),
+    "torchfilt.cubature": ("GaussHermiteRule", "SphericalRadialRule", "UnscentedRule"),
+    "torchfilt.numerics": (
+        "Box",
+        "LeastSquaresResult",
+        "SolverStatus",
+        "bounded_least_squares",
+        "solve_dare",
+        "steady_state_kalman",
+    ),
+    "torchfilt.pipeline": ("evaluate_outputs", "filter_recordings"),
+    "torchfilt.training": ("Sequences",),
+}
+_MOVED = {name: home for home, names in _MOVED_TO.items() for name in names}
 
 
 def __getattr__(name: str) -> Any:
@@ -127,99 +151,63 @@ def __getattr__(name: str) -> Any:
         value = getattr(importlib.import_module(_LAZY[name]), name)
         globals()[name] = value
         return value
+    if name in _MOVED:
+        import sys
+        import warnings
+
+        home = _MOVED[name]
+        # ``from torchfilt import X`` asks twice (the import system's ``hasattr``, then the
+        # statement's own look-up): warn once, on the second.
+        if sys._getframe(1).f_code.co_name != "_handle_fromlist":
+            warnings.warn(
+                f"torchfilt.{name} is deprecated and will be removed in the next release; "
+                f"use {home}.{name}",
+                DeprecationWarning,
+                stacklevel=2,
+            )
+        return getattr(importlib.import_module(home), name)
     raise AttributeError(f"module 'torchfilt' has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY) | set(_LAZY_MODULES))
+    return sorted(set(__all__) | set(_SUBPACKAGES))
 
 
 __all__ = [
     "CKF",
-    "FOPDT",
-    "IPDT",
     "AffineSensor",
-    "Bounded",
-    "Box",
-    "BundleError",
     "CalibratedModel",
-    "CholeskyCovariance",
-    "CholeskyJitterWarning",
-    "ConditionalModel",
     "ConstrainedCKF",
-    "ConstrainedInfo",
-    "ConvergenceWarning",
-    "DMCController",
-    "DataError",
-    "DiagonalCovariance",
     "DivergenceWarning",
     "FilterResult",
-    "FitState",
     "GPMeasurement",
     "GPModel",
     "GPTransition",
-    "GaugeError",
-    "GaussHermiteRule",
     "GaussianFilter",
     "InducingTransition",
-    "InfeasibleError",
     "InputError",
-    "LMGPredictor",
-    "LeastSquaresResult",
     "LinearGaussianModel",
-    "ModelError",
-    "NotDetectableError",
-    "NumericsWarning",
-    "OpenLoopPredictor",
-    "ParameterPosterior",
-    "Positive",
-    "Prediction",
-    "RecipeError",
     "Recording",
-    "RunError",
-    "ScalarCovariance",
-    "Sequences",
-    "ShapeError",
     "SmootherResult",
-    "SolverStatus",
-    "SphericalRadialRule",
     "StateSpaceModel",
-    "StepResponseModel",
-    "TimeVarying",
     "TorchfiltError",
     "UncertainParameters",
-    "UnscentedRule",
-    "WorkerError",
     "__version__",
-    "bounded_least_squares",
     "calibrate",
     "coverage",
-    "cubature",
-    "dmc",
-    "evaluate_outputs",
-    "exceptions",
-    "filter_recordings",
-    "filters",
     "fit_em",
     "fit_likelihood",
     "fit_measurement_only",
     "load_bundle",
     "load_dataset",
     "load_model",
-    "models",
     "nees",
     "nis",
-    "numerics",
     "parameter_posterior",
     "read_recording",
     "rmse",
-    "rts_smooth",
-    "settings",
     "simulate",
     "simulate_dataset",
-    "solve_dare",
-    "steady_state_kalman",
-    "systems",
     "train_recipe",
     "write_recording",
 ]
