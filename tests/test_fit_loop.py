@@ -264,3 +264,29 @@ def test_options_are_checked_and_defaults_differ_where_documented():
     assert DEFAULTS["measurement_only"].checkpoint.every == 1
     assert DEFAULTS["calibrate"].window.window == 100 and DEFAULTS["calibrate"].window.burn_in == 20
     assert DEFAULTS["measurement_only"].optimizer.optimizer == "lbfgs"
+
+
+def test_fit_likelihood_early_stopped_stays_stopped_on_resume(tmp_path):
+    """Through ``fit_likelihood``: a fit stopped by its held-out data checkpoints that iteration
+    with its reason, and resuming it returns the uninterrupted result without iterating."""
+    import ddp_support
+
+    import torchfilt
+
+    def run(**kw: Any) -> Any:
+        model, y, (Q, R) = ddp_support.problem()
+        fit = torchfilt.fit_likelihood(
+            model, y[:4], x0=torch.zeros(1, dtype=torch.float64),
+            P0=torch.eye(1, dtype=torch.float64), validation=torchfilt.Sequences(y[4:]),
+            lr=0.5, iterations=40, patience=2, checkpoint=tmp_path / "lik.ckpt",
+            checkpoint_every=100, **kw,
+        )  # fmt: skip
+        return fit, torch.stack([Q().detach().reshape(()), R().detach().reshape(())])
+
+    fit, values = run()
+    assert fit.stopped == "early stopping" and fit.iterations < 40
+    ck = torch.load(tmp_path / "lik.ckpt", weights_only=True)
+    assert ck["done"] == "early stopping" and ck["iteration"] == fit.iterations
+    again, values2 = run(resume=True)
+    assert again.stopped == "early stopping" and again.history == fit.history
+    assert torch.equal(values, values2) and again.log_likelihood == fit.log_likelihood

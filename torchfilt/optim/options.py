@@ -28,8 +28,10 @@ iteration; a GP's optimiser state is checkpointed by the caller through its call
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import Literal
 
 from torchfilt.exceptions import InputError
@@ -176,24 +178,26 @@ class FitDefaults:
     checkpoint: CheckpointOptions = field(default_factory=CheckpointOptions)
 
 
-#: Each fit's defaults (the table of the module docstring).
-DEFAULTS: dict[str, FitDefaults] = {
-    "likelihood": FitDefaults(),
-    "calibrate": FitDefaults(
-        OptimizerOptions("adam", lr=0.1, iterations=150),
-        WindowOptions(window=100, burn_in=20),
-        StoppingOptions(patience=15),
-    ),
-    "measurement_only": FitDefaults(
-        OptimizerOptions("lbfgs", iterations=100), checkpoint=CheckpointOptions(every=1)
-    ),
-    "em": FitDefaults(
-        # the gradient M-step of a non-linear model: L-BFGS, ``max_iter`` = m_step_iterations
-        OptimizerOptions(
-            "lbfgs", lr=1.0, iterations=100, tolerance_change=1e-12, tolerance_grad=1e-10
+#: Each fit's defaults (the table of the module docstring), read-only.
+DEFAULTS: Mapping[str, FitDefaults] = MappingProxyType(
+    {
+        "likelihood": FitDefaults(),
+        "calibrate": FitDefaults(
+            OptimizerOptions("adam", lr=0.1, iterations=150),
+            WindowOptions(window=100, burn_in=20),
+            StoppingOptions(patience=15),
         ),
-        stopping=StoppingOptions(tol=1e-9),
-        checkpoint=CheckpointOptions(every=1),
-    ),
-    "gp": FitDefaults(OptimizerOptions("adam", lr=0.05, iterations=200)),
-}
+        "measurement_only": FitDefaults(
+            OptimizerOptions("lbfgs", iterations=100), checkpoint=CheckpointOptions(every=1)
+        ),
+        "em": FitDefaults(
+            # the gradient M-step of a non-linear model: L-BFGS, ``max_iter`` = m_step_iterations
+            OptimizerOptions(
+                "lbfgs", lr=1.0, iterations=100, tolerance_change=1e-12, tolerance_grad=1e-10
+            ),
+            stopping=StoppingOptions(tol=1e-9),
+            checkpoint=CheckpointOptions(every=1),
+        ),
+        "gp": FitDefaults(OptimizerOptions("adam", lr=0.05, iterations=200)),
+    }
+)

@@ -14,9 +14,14 @@ import torch
 from torch import Tensor, nn
 
 from torchfilt.cubature import CubatureRule, sigma_points
-from torchfilt.exceptions import RunError
-from torchfilt.filters import FilterResult, rts_smooth
-from torchfilt.models import CovarianceParameter, StateSpaceModel
+from torchfilt.exceptions import GaugeError, ModelError, RunError
+from torchfilt.filters import CKF, FilterResult, rts_smooth
+from torchfilt.models import (
+    CovarianceParameter,
+    LinearGaussianModel,
+    StateSpaceModel,
+    linear_system,
+)
 from torchfilt.numerics import gaussian_log_prob, psd_solve, safe_cholesky, symmetrize
 from torchfilt.optim import DEFAULTS, make_optimizer
 
@@ -374,3 +379,121 @@ def _gradient_m_step(
         with torch.no_grad():
             for p, v in zip(plist, before, strict=True):
                 p.copy_(v)
+
+
+def _linear_start(model: StateSpaceModel, dtype: torch.dtype, known: list[int]) -> _Lin | None:
+    """The matrices of a model that :func:`~torchfilt.models.linear_system` recognises (copies,
+    in ``dtype``), for the closed-form M-step; ``None`` for any other model."""
+    sys = linear_system(model)
+    if sys is None:
+        return None
+    Qm, Rm = model.transition.noise_cov(), model.measurement.noise_cov()
+    if Qm is None or Rm is None:
+        raise ModelError("fit_em: a linear model needs both Q and R")
+    lin = _Lin(
+        sys.A.detach().to(dtype).clone(),
+        sys.H.detach().to(dtype).clone(),
+        Qm.detach().to(dtype).clone(),
+        Rm.detach().to(dtype).clone(),
+        None if sys.B is None else sys.B.detach().to(dtype).clone(),
+        None if sys.D is None else sys.D.detach().to(dtype).clone(),
+    )
+    if not bool((lin.H[known] != 0).any()):
+        raise GaugeError(
+            f"known_channels {known}: the known rows of H are all zero, so they pin no state "
+            "coordinate; give channels whose measurement map sees the state"
+        )
+    return lin
+
+
+class _EMProblem:
+    """The state of an EM fit between iterations: the parameters (the matrices ``lin`` of a
+    linear-Gaussian model, else the model's parameters ``plist``) and the data; an E-step and an
+    M-step on them."""
+
+    def __init__(
+        self,
+        model: StateSpaceModel,
+        lin: _Lin | None,
+        plist: list[nn.Parameter],
+        recs: Any,
+        valid: Tensor,
+        known: list[int],
+        rule: CubatureRule,
+        reduce: _Reducer | None,
+        learn_R: bool,
+        m_step_iterations: int,
+        backtracks: int,
+    ) -> None:
+        self.model, self.lin, self.plist = model, lin, plist
+        self.Y, self.U = recs.y, recs.u
+        self.X0, self.C0 = recs.x0.detach(), recs.P0.detach()
+        self.valid, self.known, self.rule, self.reduce = valid, known, rule, reduce
+        self.learn_R, self.m_step_iterations, self.backtracks = (
+            learn_R,
+            m_step_iterations,
+            backtracks,
+        )
+
+    def current(self) -> StateSpaceModel:
+        """The model at the current parameters."""
+        lin = self.lin
+        if lin is None:
+            return self.model
+        return LinearGaussianModel(lin.A, lin.H, lin.Q, lin.R, lin.B, lin.D)
+
+    def state(self) -> list[Tensor]:
+        """Copies of the current parameters."""
+        if self.lin is not None:
+            return [t.clone() for t in self.lin if t is not None]
+        return [p.detach().clone() for p in self.plist]
+
+    def load(self, values: list[Tensor]) -> None:
+        """Set the parameters to ``values`` (from :meth:`state`)."""
+        if self.lin is not None:
+            it = iter(values)
+            self.lin = _Lin(*(None if t is None else next(it) for t in self.lin))  # type: ignore[arg-type]
+            return
+        with torch.no_grad():
+            for p, v in zip(self.plist, values, strict=True):
+                p.copy_(v)
+
+    def e_step(self) -> tuple[float, SmoothedPairs]:
+        """The filter log-likelihood (summed over the processes) and the smoothed pairs."""
+        with torch.no_grad():
+            res = CKF(self.current(), rule=self.rule).filter(self.Y, self.U, x0=self.X0, P0=self.C0)
+            ll = _summed(self.reduce, res.log_likelihood.sum())[0]
+            return float(ll), smoothed_pairs(res, self.X0, self.C0)
+
+    def m_step(self, ll: float, sp: SmoothedPairs) -> tuple[float, SmoothedPairs, bool]:
+        """One M-step from the E-step ``(ll, sp)`` and the E-step after it: the new
+        log-likelihood and smoothed pairs, and whether no M-step raised the likelihood (then the
+        parameters are back where they were and ``(ll, sp)`` is returned)."""
+        before = self.state()
+        if self.lin is not None:
+            self.lin = _linear_m_step(
+                self.lin, sp, self.Y, self.U, self.valid, self.known, self.learn_R, self.reduce
+            )
+            return (*self.e_step(), False)
+        # The E-step of a non-linear model is the CKF's Gaussian approximation, so a better Q need
+        # not mean a better likelihood: halve the step until it is (safeguarded GEM). If the joint
+        # step still lowers it, try the maps alone, then the noises alone (expectation-conditional
+        # maximisation): a wrong model's smoothed states look noisy, and the noise step alone can
+        # be what lowers the likelihood.
+        for blocks in _M_STEP_BLOCKS:
+            _gradient_m_step(
+                self.model, self.plist, sp, self.Y, self.U, self.valid, self.rule, self.learn_R,
+                self.m_step_iterations, self.reduce, blocks=blocks,
+            )  # fmt: skip
+            ll_new, sp_new = self.e_step()
+            after = self.state()
+            for k in range(1, self.backtracks + 1):
+                if ll_new >= ll:
+                    break
+                t = 0.5**k
+                self.load([b + t * (a - b) for a, b in zip(after, before, strict=True)])
+                ll_new, sp_new = self.e_step()
+            if ll_new >= ll:
+                return ll_new, sp_new, False
+            self.load(before)
+        return ll, sp, True

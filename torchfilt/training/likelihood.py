@@ -649,9 +649,23 @@ def _run(
         }
 
     stopped = loop.run(step, payload)
-    it = loop.iteration
-    # The returned parameters: the best held-out ones; without held-out data the last (finite)
-    # ones, unless an earlier iteration scored a better training loss.
+    return _finish(obj, plist, loop, early, best_train, stopped, initial, t_start)
+
+
+def _finish(
+    obj: _Objective,
+    plist: list[nn.Parameter],
+    loop: FitLoop,
+    early: EarlyStopping,
+    best_train: tuple[float, list[Tensor], int],
+    stopped: str,
+    initial: float,
+    t_start: float,
+) -> LikelihoodFit:
+    """The result of a likelihood fit. The returned parameters: the best held-out ones; without
+    held-out data the last (finite) ones, unless an earlier iteration scored a better training
+    loss."""
+    it, counted = loop.iteration, obj.counted
     best_it = early.best_iteration
     if obj.val is not None:
         restore(plist, early.best_params)

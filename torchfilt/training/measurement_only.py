@@ -62,22 +62,17 @@ from torch import Tensor, nn
 
 from torchfilt.cubature import CubatureRule, SphericalRadialRule
 from torchfilt.exceptions import GaugeError, InputError, ModelError
-from torchfilt.filters import CKF
 from torchfilt.io import atomic_write
 from torchfilt.models import (
     CovarianceParameter,
-    LinearGaussianModel,
     StateSpaceModel,
-    linear_system,
 )
 from torchfilt.models.sensor import AffineSensor
 from torchfilt.optim import DEFAULTS, CheckpointFile, FitLoop, Outcome, fingerprint
 from torchfilt.training.em_steps import (
-    _M_STEP_BLOCKS,
     SmoothedPairs,
-    _gradient_m_step,
-    _Lin,
-    _linear_m_step,
+    _EMProblem,
+    _linear_start,
     _Reducer,
     _summed,
     smoothed_pairs,
@@ -385,63 +380,28 @@ def fit_em(
     known = check_gauge(model, known_channels)
     rule = SphericalRadialRule() if rule is None else rule
     recs = _recordings(model, y, u, x0, P0, dtype)
-    Y, U, X0, C0 = recs.y, recs.u, recs.x0.detach(), recs.P0.detach()
+    Y = recs.y
     reduce = None if all_reduce is None else _Reducer(all_reduce)
     # the steps of each recording (a shorter one is NaN-padded: those steps are no transitions)
     valid = torch.arange(Y.shape[-2]).unsqueeze(0) < torch.tensor(recs.lengths).unsqueeze(-1)
     counted = int(_summed(reduce, torch.tensor(float(torch.isfinite(Y).sum())))[0])
     if counted == 0:
         raise InputError("y: no measurement observed")
-    sys = linear_system(model)
-    lin: _Lin | None = None
-    if sys is not None:
-        Qm, Rm = model.transition.noise_cov(), model.measurement.noise_cov()
-        if Qm is None or Rm is None:
-            raise ModelError("fit_em: a linear model needs both Q and R")
-        lin = _Lin(
-            sys.A.detach().to(dtype).clone(),
-            sys.H.detach().to(dtype).clone(),
-            Qm.detach().to(dtype).clone(),
-            Rm.detach().to(dtype).clone(),
-            None if sys.B is None else sys.B.detach().to(dtype).clone(),
-            None if sys.D is None else sys.D.detach().to(dtype).clone(),
-        )
-        if not bool((lin.H[known] != 0).any()):
-            raise GaugeError(
-                f"known_channels {known}: the known rows of H are all zero, so they pin no state "
-                "coordinate; give channels whose measurement map sees the state"
-            )
-        plist: list[nn.Parameter] = []
-    else:
+    lin = _linear_start(model, dtype, known)
+    plist: list[nn.Parameter] = []
+    if lin is None:
         plist = [p for p in model.parameters() if p.requires_grad]
         if not plist:
             raise InputError("model: nothing to fit (no parameter with requires_grad)")
-
-    def current() -> StateSpaceModel:
-        if lin is None:
-            return model
-        return LinearGaussianModel(lin.A, lin.H, lin.Q, lin.R, lin.B, lin.D)
-
-    def state() -> list[Tensor]:
-        if lin is not None:
-            return [t.clone() for t in lin if t is not None]
-        return [p.detach().clone() for p in plist]
-
-    def load(values: list[Tensor]) -> None:
-        nonlocal lin
-        if lin is not None:
-            it = iter(values)
-            lin = _Lin(*(None if t is None else next(it) for t in lin))  # type: ignore[arg-type]
-            return
-        with torch.no_grad():
-            for p, v in zip(plist, values, strict=True):
-                p.copy_(v)
-
+    em = _EMProblem(
+        model, lin, plist, recs, valid, known, rule, reduce, learn_measurement_noise,
+        m_step_iterations, backtracks,
+    )  # fmt: skip
     ckpt = None
     if checkpoint is not None:
         ckpt = CheckpointFile(
-            checkpoint, fingerprint(Y, U, X0, C0, *state()), schema=_EM_SCHEMA, kind="EM",
-            write=atomic_write, all_reduce=reduce,
+            checkpoint, fingerprint(em.Y, em.U, em.X0, em.C0, *em.state()), schema=_EM_SCHEMA,
+            kind="EM", write=atomic_write, all_reduce=reduce,
         )  # fmt: skip
     bar = ProgressBar("fit EM", iterations, enabled=progress)
     loop = FitLoop(
@@ -451,54 +411,16 @@ def fit_em(
     initial: float | None = None
     ck = loop.resume() if resume else None
     if ck is not None:
-        load(list(ck["state"]))
+        em.load(list(ck["state"]))
         initial = float(ck["initial"])
-
-    def e_step() -> tuple[float, SmoothedPairs]:
-        with torch.no_grad():
-            res = CKF(current(), rule=rule).filter(Y, U, x0=X0, P0=C0)
-            ll = _summed(reduce, res.log_likelihood.sum())[0]
-            return float(ll), smoothed_pairs(res, X0, C0)
-
     t_start = time.perf_counter()
-    ll, sp = e_step()
+    ll, sp = em.e_step()
     if initial is None:
         initial = ll
 
-    def m_step() -> tuple[float, SmoothedPairs, bool]:
-        """One M-step and the E-step after it: the new log-likelihood and smoothed pairs, and
-        whether no M-step raised the likelihood (then the parameters are back where they were)."""
-        nonlocal lin
-        before = state()
-        if lin is not None:
-            lin = _linear_m_step(lin, sp, Y, U, valid, known, learn_measurement_noise, reduce)
-            return (*e_step(), False)
-        # The E-step of a non-linear model is the CKF's Gaussian approximation, so a better Q need
-        # not mean a better likelihood: halve the step until it is (safeguarded GEM). If the joint
-        # step still lowers it, try the maps alone, then the noises alone (expectation-conditional
-        # maximisation): a wrong model's smoothed states look noisy, and the noise step alone can
-        # be what lowers the likelihood.
-        for blocks in _M_STEP_BLOCKS:
-            _gradient_m_step(
-                model, plist, sp, Y, U, valid, rule, learn_measurement_noise, m_step_iterations,
-                reduce, blocks=blocks,
-            )  # fmt: skip
-            ll_new, sp_new = e_step()
-            after = state()
-            for k in range(1, backtracks + 1):
-                if ll_new >= ll:
-                    break
-                t = 0.5**k
-                load([b + t * (a - b) for a, b in zip(after, before, strict=True)])
-                ll_new, sp_new = e_step()
-            if ll_new >= ll:
-                return ll_new, sp_new, False
-            load(before)
-        return ll, sp, True
-
     def step(it: int) -> Outcome:
         nonlocal ll, sp
-        ll_new, sp_new, stalled = m_step()
+        ll_new, sp_new, stalled = em.m_step(ll, sp)
         change = (ll_new - ll) / counted
         ll, sp = ll_new, sp_new
         elapsed = time.perf_counter() - t_start
@@ -510,12 +432,11 @@ def fit_em(
             done,
         )
 
-    stopped = loop.run(step, lambda: {"state": state(), "initial": initial})
+    stopped = loop.run(step, lambda: {"state": em.state(), "initial": initial})
     history = loop.history
-    final = ll
     return EMFit(
-        model=current(),
-        log_likelihood=final,
+        model=em.current(),
+        log_likelihood=ll,
         initial_log_likelihood=initial,
         iterations=len(history),
         stopped=stopped,
