@@ -17,6 +17,12 @@ have made ``GPModel.fit`` depend on the layer that uses the models.
   region), ``EarlyStopping``.
 * :mod:`torchfilt.optim.checkpoint`: ``CheckpointFile`` (atomic, fingerprinted, bit-identical
   resume, data-parallel agreement on where to resume).
+
+Where the next capabilities land: a new stopping rule (e.g. a relative change over a window of
+iterations) in ``StoppingOptions`` and ``FitLoop._rule``; an estimate of the remaining time in
+``FitLoop.run`` (every fit reports through it); parameters held fixed in the parameter list a fit
+hands to ``GuardedStep``; stochastic subsets of windows in the likelihood fit's step
+(:mod:`torchfilt.training.likelihood`), whose full objective the loop's rules can then evaluate.
 """
 
 from torchfilt.optim.checkpoint import AtomicWrite, CheckpointFile, fingerprint
