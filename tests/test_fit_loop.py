@@ -271,13 +271,13 @@ def test_fit_likelihood_early_stopped_stays_stopped_on_resume(tmp_path):
     with its reason, and resuming it returns the uninterrupted result without iterating."""
     import ddp_support
 
-    import torchfilt
+    from torchfilt.training import Sequences, fit_likelihood
 
     def run(**kw: Any) -> Any:
         model, y, (Q, R) = ddp_support.problem()
-        fit = torchfilt.fit_likelihood(
+        fit = fit_likelihood(
             model, y[:4], x0=torch.zeros(1, dtype=torch.float64),
-            P0=torch.eye(1, dtype=torch.float64), validation=torchfilt.Sequences(y[4:]),
+            P0=torch.eye(1, dtype=torch.float64), validation=Sequences(y[4:]),
             lr=0.5, iterations=40, patience=2, checkpoint=tmp_path / "lik.ckpt",
             checkpoint_every=100, **kw,
         )  # fmt: skip
