@@ -5,12 +5,13 @@ from pathlib import Path
 
 PKG = Path(__file__).resolve().parents[1] / "torchfilt"
 
-#: numerics -> cubature -> models -> filters -> systems/dmc -> io -> training/plots -> pipeline -> cli
+#: numerics/optim -> cubature -> models -> filters -> systems/dmc -> io -> training/plots -> pipeline -> cli
 LAYERS = {
     "_version": 0,
     "exceptions": 0,
     "settings": 0,
     "numerics": 1,
+    "optim": 1,
     "cubature": 2,
     "models": 3,
     "filters": 4,

@@ -28,6 +28,7 @@ from torchfilt.filters import CKF, coverage, nees, nis
 from torchfilt.io import Recording
 from torchfilt.models import CalibratedModel, ConditionalModel, StateSpaceModel
 from torchfilt.models.drift import DriftMeasurement, DriftModel, DriftTransition
+from torchfilt.optim import DEFAULTS
 from torchfilt.training.likelihood import (
     LikelihoodFit,
     LikelihoodState,
@@ -47,6 +48,10 @@ __all__ = [
 FLOOR_INIT = 1e-2
 #: The floor's reference variance of an output that has none (a noise-free state).
 NEGLIGIBLE_VARIANCE = 1e-12
+#: The defaults of :func:`calibrate` (see :mod:`torchfilt.optim.options`: windows of 100 steps
+#: with 20 of burn-in, larger Adam steps and less patience than :func:`fit_likelihood`).
+_C = DEFAULTS["calibrate"]
+_C_LR = _C.optimizer.learning_rate
 
 
 @dataclass
@@ -140,18 +145,18 @@ def calibrate(
     P0: Tensor,
     validation: Sequence[Recording] | Sequences | None = None,
     sides: Sequence[Literal["transition", "measurement"]] = ("transition", "measurement"),
-    window: int | None = 100,
-    burn_in: int = 20,
-    iterations: int = 150,
-    lr: float = 0.1,
-    optimizer: Literal["adam", "lbfgs"] = "adam",
-    patience: int = 15,
+    window: int | None = _C.window.window,
+    burn_in: int = _C.window.burn_in,
+    iterations: int = _C.optimizer.iterations,
+    lr: float = _C_LR,
+    optimizer: Literal["adam", "lbfgs"] = _C.optimizer.optimizer,
+    patience: int = _C.stopping.patience,
     inflate_only: bool = True,
     progress: bool = False,
     callback: Callable[[LikelihoodState], bool | None] | None = None,
-    checkpoint: str | Path | None = None,
-    resume: bool = False,
-    checkpoint_every: int = 10,
+    checkpoint: str | Path | None = _C.checkpoint.path,
+    resume: bool = _C.checkpoint.resume,
+    checkpoint_every: int = _C.checkpoint.every,
     dtype: torch.dtype = torch.float64,
     sqrt: bool = False,
     compile: bool = False,

@@ -27,8 +27,6 @@ with the current parameters. ``x0`` may itself be a learnable tensor listed in `
 
 from __future__ import annotations
 
-import copy
-import hashlib
 import math
 import time
 import warnings
@@ -41,11 +39,26 @@ import torch
 from torch import Tensor, nn
 
 from torchfilt.cubature import CubatureRule
-from torchfilt.exceptions import DivergenceWarning, InputError, RunError, ShapeError
+from torchfilt.exceptions import DivergenceWarning, InputError, ShapeError
 from torchfilt.filters import CKF, FilterResult, rts_smooth
 from torchfilt.io import atomic_write
 from torchfilt.models import StateSpaceModel
 from torchfilt.numerics import gaussian_log_prob, safe_cholesky
+from torchfilt.optim import (
+    DEFAULTS,
+    CheckpointFile,
+    CheckpointOptions,
+    EarlyStopping,
+    FitLoop,
+    GuardedStep,
+    OptimizerOptions,
+    Outcome,
+    StoppingOptions,
+    WindowOptions,
+    fingerprint,
+    restore,
+    snapshot,
+)
 from torchfilt.training.progress import ProgressBar
 
 __all__ = [
@@ -295,14 +308,8 @@ class LikelihoodFit:
     elapsed: float = 0.0
 
 
-# ----------------------------------------------------------------------------------- the fit
-def _digest(*tensors: Tensor | None) -> str:
-    h = hashlib.sha256()
-    for t in tensors:
-        if t is not None:
-            h.update(str(tuple(t.shape)).encode())
-            h.update(t.detach().cpu().contiguous().numpy().tobytes())
-    return h.hexdigest()
+#: The defaults of :func:`fit_likelihood` (see :mod:`torchfilt.optim.options`).
+_D = DEFAULTS["likelihood"]
 
 
 def fit_likelihood(
@@ -313,17 +320,17 @@ def fit_likelihood(
     x0: Tensor,
     P0: Tensor,
     params: Iterable[nn.Parameter] | None = None,
-    window: int | None = None,
-    burn_in: int = 0,
-    start: Literal["filtered", "smoothed"] = "filtered",
-    refresh_every: int = 10,
+    window: int | None = _D.window.window,
+    burn_in: int = _D.window.burn_in,
+    start: Literal["filtered", "smoothed"] = _D.window.start,
+    refresh_every: int = _D.window.refresh_every,
     validation: Sequences | None = None,
-    validate_every: int = 1,
-    patience: int = 20,
-    optimizer: Literal["adam", "lbfgs"] = "adam",
-    lr: float | None = None,
-    iterations: int = 200,
-    tol: float | None = None,
+    validate_every: int = _D.stopping.validate_every,
+    patience: int = _D.stopping.patience,
+    optimizer: Literal["adam", "lbfgs"] = _D.optimizer.optimizer,
+    lr: float | None = _D.optimizer.lr,
+    iterations: int = _D.optimizer.iterations,
+    tol: float | None = _D.stopping.tol,
     callback: Callable[[LikelihoodState], bool | None] | None = None,
     project: Callable[[], None] | None = None,
     prepare: Callable[[], None] | None = None,
@@ -333,9 +340,9 @@ def fit_likelihood(
     sqrt: bool = False,
     rule: CubatureRule | None = None,
     compile: bool = False,
-    checkpoint: str | Path | None = None,
-    checkpoint_every: int = 10,
-    resume: bool = False,
+    checkpoint: str | Path | None = _D.checkpoint.path,
+    checkpoint_every: int = _D.checkpoint.every,
+    resume: bool = _D.checkpoint.resume,
 ) -> LikelihoodFit:
     """Maximise the CKF's innovation log-likelihood over a model's parameters.
 
@@ -405,71 +412,80 @@ def fit_likelihood(
     """
     if not isinstance(model, StateSpaceModel):
         raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
-    if optimizer not in ("adam", "lbfgs"):
-        raise InputError(f"optimizer must be 'adam' or 'lbfgs', got {optimizer!r}")
-    if start not in ("filtered", "smoothed"):
-        raise InputError(f"start must be 'filtered' or 'smoothed', got {start!r}")
-    if iterations < 0:
-        raise InputError(f"iterations must be non-negative, got {iterations}")
-    for name, v in (
-        ("refresh_every", refresh_every),
-        ("validate_every", validate_every),
-        ("patience", patience),
-        ("checkpoint_every", checkpoint_every),
-    ):
-        if v < 1:
-            raise InputError(f"{name} must be at least 1, got {v}")
-    lr = (0.05 if optimizer == "adam" else 1.0) if lr is None else float(lr)
-    if not (math.isfinite(lr) and 0 < lr <= 100):
-        raise InputError(f"lr must be a finite positive number (at most 100), got {lr}")
-    tol = (1e-10 if optimizer == "lbfgs" else 0.0) if tol is None else float(tol)
+    opt_o = OptimizerOptions(optimizer, lr, iterations)
+    win_o = WindowOptions(window, burn_in, start, refresh_every)
+    stop_o = StoppingOptions(patience, validate_every, tol)
+    ckpt_o = CheckpointOptions(checkpoint, checkpoint_every, resume)
     if dtype not in (torch.float32, torch.float64):
         raise InputError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
-
     model.to(dtype)
     recs = _recordings(model, y, u, x0, P0, dtype)
     plist = [p for p in (model.parameters() if params is None else params) if p.requires_grad]
     if not plist:
         raise InputError("params: nothing to fit (no parameter with requires_grad)")
-    win = window_data(recs.y, recs.u, recs.lengths, window, burn_in)
-    counted = int((torch.isfinite(win.y) & win.counted.unsqueeze(-1)).sum())
-    if counted == 0:
-        raise InputError("y: no measurement is counted (all missing, or burn_in covers them)")
-
-    def summed(*values: Tensor) -> Tensor:
-        """The values flattened into one float64 tensor, summed over the processes."""
-        flat = torch.cat([v.detach().reshape(-1).to(torch.float64) for v in values])
-        if all_reduce is not None:
-            all_reduce(flat)
-        return flat
-
-    windows = int(win.y.shape[0])
-    if all_reduce is not None:  # the counts of the whole fit, as one process on all recordings
-        total = summed(torch.tensor([float(counted), float(windows)]))
-        counted, windows = int(total[0]), int(total[1])
     val = None
     if validation is not None:
         vx0 = recs.x0[0] if validation.x0 is None else validation.x0
         vP0 = recs.P0[0] if validation.P0 is None else validation.P0
         val = _recordings(model, validation.y, validation.u, vx0, vP0, dtype, "validation.")
-        val_count = int(torch.isfinite(val.y).sum())
-        if val_count == 0:
+        if int(torch.isfinite(val.y).sum()) == 0:
             raise InputError("validation.y: no measurement observed")
+    obj = _Objective(
+        model, recs, val, x0, win_o, CKF(model, rule=rule, sqrt=sqrt, compile=compile),
+        prepare, all_reduce,
+    )  # fmt: skip
+    return _run(obj, plist, opt_o, stop_o, ckpt_o, callback, project, progress)
 
-    filt = CKF(model, rule=rule, sqrt=sqrt, compile=compile)
-    first = win.start == 0
-    R = int(recs.y.shape[0])
+
+class _Objective:
+    """The training windows and held-out recordings of a likelihood fit, and their
+    log-likelihoods (summed over the processes of a data-parallel fit)."""
+
+    def __init__(
+        self,
+        model: StateSpaceModel,
+        recs: _Recs,
+        val: _Recs | None,
+        x0: Tensor,
+        options: WindowOptions,
+        filt: CKF,
+        prepare: Callable[[], None] | None,
+        all_reduce: Callable[[Tensor], None] | None,
+    ) -> None:
+        self.model, self.recs, self.val, self.options = model, recs, val, options
+        self.filt, self.prepare, self.all_reduce = filt, prepare, all_reduce
+        self.win = win = window_data(recs.y, recs.u, recs.lengths, options.window, options.burn_in)
+        counted = int((torch.isfinite(win.y) & win.counted.unsqueeze(-1)).sum())
+        if counted == 0:
+            raise InputError("y: no measurement is counted (all missing, or burn_in covers them)")
+        windows = int(win.y.shape[0])
+        if all_reduce is not None:  # the counts of the whole fit, as one process on all recordings
+            total = self.summed(torch.tensor([float(counted), float(windows)]))
+            counted, windows = int(total[0]), int(total[1])
+        self.counted, self.windows = counted, windows
+        self.val_count = 0 if val is None else int(torch.isfinite(val.y).sum())
+        self.first = win.start == 0
+        # windows that start a recording take the learnable prior mean, with its graph
+        self.x0 = x0 if isinstance(x0, Tensor) and x0.requires_grad else None
+
+    def summed(self, *values: Tensor) -> Tensor:
+        """The values flattened into one float64 tensor, summed over the processes."""
+        flat = torch.cat([v.detach().reshape(-1).to(torch.float64) for v in values])
+        if self.all_reduce is not None:
+            self.all_reduce(flat)
+        return flat
 
     @torch.no_grad()
-    def starts() -> tuple[Tensor, Tensor]:
+    def starts(self) -> tuple[Tensor, Tensor]:
         """Initial means ``(W, n)`` and covariances ``(W, n, n)`` of the windows."""
+        recs, win, first = self.recs, self.win, self.first
         wx0, wP0 = recs.x0[win.rec].detach().clone(), recs.P0[win.rec].detach().clone()
         if bool(first.all()):
             return wx0, wP0
-        if prepare is not None:
-            prepare()
-        res = filt.filter(recs.y, recs.u, x0=recs.x0.detach(), P0=recs.P0.detach())
-        if start == "smoothed":
+        if self.prepare is not None:
+            self.prepare()
+        res = self.filt.filter(recs.y, recs.u, x0=recs.x0.detach(), P0=recs.P0.detach())
+        if self.options.start == "smoothed":
             sm = rts_smooth(res)
             mean, cov = sm.mean, sm.cov
         else:
@@ -480,343 +496,199 @@ def fit_likelihood(
         wP0[later] = cov[win.rec[later], idx]
         return wx0, wP0
 
-    learn_x0 = isinstance(x0, Tensor) and x0.requires_grad
-
-    def x0_windows(wx0: Tensor) -> Tensor:
-        # windows that start a recording take the learnable prior mean, with its graph
-        if not learn_x0:
-            return wx0
-        X0 = _prior_batch(x0.to(dtype), R, (model.state_dim,), "x0")
-        return torch.where(first.unsqueeze(-1), X0[win.rec], wx0)
-
-    def train_loglik(wx0: Tensor, wP0: Tensor) -> Tensor:
-        if prepare is not None:
-            prepare()
+    def train(self, wx0: Tensor, wP0: Tensor) -> Tensor:
+        """The training log-likelihood of this process's windows (with its graph)."""
+        if self.prepare is not None:
+            self.prepare()
+        if self.x0 is not None:
+            X0 = _prior_batch(
+                self.x0.to(wx0.dtype), int(self.recs.y.shape[0]), (self.model.state_dim,), "x0"
+            )
+            wx0 = torch.where(self.first.unsqueeze(-1), X0[self.win.rec], wx0)
         with warnings.catch_warnings():
             # a trial step of the optimiser may diverge: the fit scores it -inf and steps back
             warnings.simplefilter("ignore", DivergenceWarning)
-            res = filt.filter(win.y, win.u, x0=x0_windows(wx0), P0=wP0)
+            res = self.filt.filter(self.win.y, self.win.u, x0=wx0, P0=wP0)
         ll = step_log_likelihood(res)
-        return (ll * win.counted.to(ll.dtype)).sum()
+        return (ll * self.win.counted.to(ll.dtype)).sum()
 
-    def total_loglik(wx0: Tensor, wP0: Tensor) -> float:
+    def total(self, wx0: Tensor, wP0: Tensor) -> float:
         """The training log-likelihood summed over the processes (no gradient)."""
         with torch.no_grad():
-            return float(summed(train_loglik(wx0, wP0).reshape(1))[0])
+            return float(self.summed(self.train(wx0, wP0).reshape(1))[0])
 
-    def val_loglik() -> float:
+    def held_out(self) -> float:
+        """The held-out log-likelihood per measurement."""
+        val = self.val
         assert val is not None
         with torch.no_grad():
-            if prepare is not None:
-                prepare()
-            res = filt.filter(val.y, val.u, x0=val.x0, P0=val.P0)
-        return float(res.log_likelihood.sum()) / val_count
+            if self.prepare is not None:
+                self.prepare()
+            res = self.filt.filter(val.y, val.u, x0=val.x0, P0=val.P0)
+        return float(res.log_likelihood.sum()) / self.val_count
 
-    opt: torch.optim.Optimizer
-    if optimizer == "adam":
-        opt = torch.optim.Adam(plist, lr=lr)
-    else:
-        opt = torch.optim.LBFGS(
-            plist,
-            lr=lr,
-            max_iter=20,
-            line_search_fn="strong_wolfe",
-            tolerance_change=1e-14,
-            tolerance_grad=1e-12,
-            history_size=20,
-        )
+    def loss(self, plist: list[nn.Parameter], wx0: Tensor, wP0: Tensor) -> Tensor:
+        """The loss per counted measurement and its gradient in ``plist`` (``+inf`` where it
+        is not finite, without a gradient): an optimiser's closure."""
+        counted = self.counted
+        if self.all_reduce is None:
+            loss = -self.train(wx0, wP0) / counted
+            if bool(torch.isfinite(loss)):
+                loss.backward()
+                return loss.detach()
+            # +inf, not NaN: L-BFGS's line search then shortens the step
+            return torch.full_like(loss.detach(), math.inf)
+        # data-parallel: local sums, then one collective for the loss and the gradient (called on
+        # every process whatever its loss, so that none waits forever)
+        ll = self.train(wx0, wP0)
+        if bool(torch.isfinite(ll)):
+            (-ll).backward()
+        grads = [
+            torch.full_like(p, math.nan)
+            if not bool(torch.isfinite(ll))
+            else (torch.zeros_like(p) if p.grad is None else p.grad)
+            for p in plist
+        ]
+        flat = self.summed(ll.reshape(1), *grads)
+        offset = 1
+        for p in plist:
+            k = p.numel()
+            p.grad = (flat[offset : offset + k] / counted).reshape(p.shape).to(p.dtype)
+            offset += k
+        total = (-flat[0] / counted).to(ll.dtype)
+        return total if bool(torch.isfinite(total)) else torch.full_like(total, math.inf)
 
-    def snapshot() -> list[Tensor]:
-        return [p.detach().clone() for p in plist]
 
-    def restore(values: list[Tensor]) -> None:
-        with torch.no_grad():
-            for p, v in zip(plist, values, strict=True):
-                p.copy_(v)
-
-    ckpt_path = None if checkpoint is None else Path(checkpoint)
-    fingerprint = _digest(recs.y, recs.u, *snapshot()) if ckpt_path is not None else ""
-    it0, history, bad = 0, [], 0
-    best_it, best_score, best_params = 0, -math.inf, snapshot()
+def _run(
+    obj: _Objective,
+    plist: list[nn.Parameter],
+    opt_o: OptimizerOptions,
+    stop_o: StoppingOptions,
+    ckpt_o: CheckpointOptions,
+    callback: Callable[[LikelihoodState], bool | None] | None,
+    project: Callable[[], None] | None,
+    progress: bool,
+) -> LikelihoodFit:
+    """The fitting loop of :func:`fit_likelihood` on the objective ``obj``."""
+    iterations, counted, tol = opt_o.iterations, obj.counted, stop_o.tolerance(opt_o.optimizer)
+    guarded = GuardedStep(plist, opt_o, project)
+    ckpt = None
+    if ckpt_o.path is not None:
+        fp = fingerprint(obj.recs.y, obj.recs.u, *snapshot(plist))
+        ckpt = CheckpointFile(
+            ckpt_o.path, fp, schema=_CKPT_SCHEMA, kind="likelihood", write=atomic_write,
+            all_reduce=obj.all_reduce,
+        )  # fmt: skip
+    val_score = obj.held_out if obj.val is not None else None
+    early = EarlyStopping(stop_o, val_score, lambda: snapshot(plist))
+    bar = ProgressBar("fit likelihood", iterations, enabled=progress)
+    loop = FitLoop(
+        iterations=iterations, progress=bar, callback=callback, all_reduce=obj.all_reduce,
+        stopping=early, tol=tol, checkpoint=ckpt, every=ckpt_o.every,
+    )  # fmt: skip
     wx0: Tensor | None = None
     wP0: Tensor | None = None
     initial: float | None = None
     # without held-out data: the parameters with the lowest training loss seen (loss, values, it)
-    best_train: tuple[float, list[Tensor], int] = (math.inf, snapshot(), 0)
-    ck = None
-    if resume:
-        ck = _resume_checkpoint(ckpt_path, fingerprint, _CKPT_SCHEMA, "likelihood", all_reduce)
-    # the last checkpoint, which a data-parallel save keeps (a copy: the optimiser updates the
-    # state tensors it loaded from a checkpoint in place)
-    saved = _kept(ck) if all_reduce is not None else None
+    best_train: tuple[float, list[Tensor], int] = (math.inf, snapshot(plist), 0)
+    ck = loop.resume() if ckpt_o.resume else None
     if ck is not None:
-        restore(ck["params"])
-        opt.load_state_dict(ck["optimizer"])
-        it0, history, bad = int(ck["iteration"]), list(ck["history"]), int(ck["bad"])
-        best_it, best_score = int(ck["best_iteration"]), float(ck["best_score"])
-        best_params = [t.clone() for t in ck["best_params"]]
+        restore(plist, ck["params"])
+        guarded.optimizer.load_state_dict(ck["optimizer"])
         wx0, wP0, initial = ck["wx0"], ck["wP0"], float(ck["initial"])
         best_train = (
             float(ck["best_train_loss"]),
             [t.clone() for t in ck["best_train_params"]],
             int(ck["best_train_iteration"]),
         )
-
     t_start = time.perf_counter()
     if wx0 is None or wP0 is None:
-        wx0, wP0 = starts()
+        wx0, wP0 = obj.starts()
     if initial is None:
-        initial = total_loglik(wx0, wP0)
-        best_score = val_loglik() if val is not None else initial / counted
-    bar = ProgressBar("fit likelihood", iterations, enabled=progress)
-    stopped = "iterations"
-    last_loss = math.inf if not history else float(history[-1]["loss"])
-    good = snapshot()
-    retried = False
-    it = it0
-    for it in range(it0 + 1, iterations + 1):
-        if it > 1 and (it - 1) % refresh_every == 0:
-            wx0, wP0 = starts()
+        initial = obj.total(wx0, wP0)
+        early.best_score = obj.held_out() if obj.val is not None else initial / counted
 
-        def closure(ux0: Tensor = wx0, uP0: Tensor = wP0) -> Tensor:
-            opt.zero_grad()
-            if all_reduce is None:
-                loss = -train_loglik(ux0, uP0) / counted
-                if bool(torch.isfinite(loss)):
-                    loss.backward()
-                    return loss.detach()
-                # +inf, not NaN: L-BFGS's line search then shortens the step
-                return torch.full_like(loss.detach(), math.inf)
-            # data-parallel: local sums, then one collective for the loss and the gradient
-            # (called on every process whatever its loss, so that none waits forever)
-            ll = train_loglik(ux0, uP0)
-            if bool(torch.isfinite(ll)):
-                (-ll).backward()
-            grads = [
-                torch.full_like(p, math.nan)
-                if not bool(torch.isfinite(ll))
-                else (torch.zeros_like(p) if p.grad is None else p.grad)
-                for p in plist
-            ]
-            flat = summed(ll.reshape(1), *grads)
-            offset = 1
-            for p in plist:
-                k = p.numel()
-                p.grad = (flat[offset : offset + k] / counted).reshape(p.shape).to(p.dtype)
-                offset += k
-            total = (-flat[0] / counted).to(ll.dtype)
-            return total if bool(torch.isfinite(total)) else torch.full_like(total, math.inf)
+    def step(it: int) -> Outcome:
+        nonlocal wx0, wP0, best_train
+        if it > 1 and (it - 1) % obj.options.refresh_every == 0:
+            wx0, wP0 = obj.starts()
+        assert wx0 is not None and wP0 is not None
+        ux0, uP0 = wx0, wP0
 
-        if optimizer == "adam":
-            loss_t = closure()
-            finite = bool(torch.isfinite(loss_t))
-            if finite:
-                good = snapshot()  # the parameters that loss_t scores
-                opt.step()  # type: ignore[call-arg]
-                if project is not None:
-                    project()
-        else:
-            good = snapshot()
-            try:
-                loss_t = opt.step(closure)  # type: ignore[assignment]
-            except IndexError:
-                # torch's strong-Wolfe search fails when every trial step was non-finite (and
-                # the same on every process of a data-parallel fit: the loss is their sum)
-                loss_t = torch.tensor(math.nan)
-            if project is not None:
-                project()
-            finite = bool(torch.isfinite(loss_t))
-        loss = float(loss_t)
-        if finite and loss < best_train[0]:  # loss_t scores the parameters before this step
-            best_train = (loss, good, it - 1)
-        finite = finite and all(bool(torch.isfinite(p).all()) for p in plist)
+        def closure() -> Tensor:
+            guarded.optimizer.zero_grad()
+            return obj.loss(plist, ux0, uP0)
+
+        res = guarded(closure)
+        loss = res.loss
+        if res.loss_finite and loss < best_train[0]:  # it scores the parameters before the step
+            best_train = (loss, res.good, it - 1)
+        if res.status == "retry":
+            return Outcome(None)
+        if res.status == "failed":
+            return Outcome(None, abort="non-finite")
         elapsed = time.perf_counter() - t_start
-        if not finite:
-            restore(good)
-            if optimizer == "lbfgs" and not retried:
-                # a line search that left the finite region: forget the curvature history and
-                # start again from the last good parameters with a short first step
-                retried = True
-                opt.state.clear()
-                continue
-            stopped = "non-finite"
-            break
-        retried = False
         rec: dict[str, Any] = {"iteration": it, "loss": loss, "elapsed": elapsed}
-        vscore = None
-        if val is not None and it % validate_every == 0:
-            vscore = val_loglik()
+        vscore = early.observe(it)
+        if vscore is not None:
             rec["validation"] = vscore
-            if vscore > best_score:
-                best_it, best_score, best_params, bad = it, vscore, snapshot(), 0
-            else:
-                bad += 1
-        history.append(rec)
         info = f"-loglik/meas {loss:.5g}" + ("" if vscore is None else f", held-out {vscore:.5g}")
-        bar.update(it, info)
         state = LikelihoodState(it, iterations, loss, -loss * counted, vscore, elapsed)
-        stop = bool(callback(state)) if callback is not None else False
-        if all_reduce is not None:  # one process's callback stops them all
-            stop = bool(summed(torch.tensor([float(stop)]))[0] > 0)
-        if ckpt_path is not None and (it % checkpoint_every == 0 or it == iterations):
-            payload = {
-                "fingerprint": fingerprint,
-                "iteration": it,
-                "params": snapshot(),
-                "optimizer": opt.state_dict(),
-                "history": history,
-                "bad": bad,
-                "best_iteration": best_it,
-                "best_score": best_score,
-                "best_params": best_params,
-                "wx0": wx0,
-                "wP0": wP0,
-                "initial": initial,
-                "best_train_loss": best_train[0],
-                "best_train_params": best_train[1],
-                "best_train_iteration": best_train[2],
-            }
-            _save_checkpoint(ckpt_path, payload, previous=saved)
-            if all_reduce is not None:
-                saved = _kept(payload)
-        if stop:
-            stopped = "callback"
-            break
-        if val is not None and bad >= patience:
-            stopped = "early stopping"
-            break
-        if tol > 0 and abs(last_loss - loss) <= tol * (1 + abs(loss)):
-            stopped = "converged"
-            break
-        last_loss = loss
+        return Outcome(rec, state, info)
 
-    # The returned parameters: the best held-out ones; without held-out data the last (finite)
-    # ones, unless an earlier iteration scored a better training loss.
-    if val is not None:
-        restore(best_params)
+    def payload() -> dict[str, Any]:
+        return {
+            "params": snapshot(plist),
+            "optimizer": guarded.optimizer.state_dict(),
+            "wx0": wx0,
+            "wP0": wP0,
+            "initial": initial,
+            "best_train_loss": best_train[0],
+            "best_train_params": best_train[1],
+            "best_train_iteration": best_train[2],
+        }
+
+    stopped = loop.run(step, payload)
+    return _finish(obj, plist, loop, early, best_train, stopped, initial, t_start)
+
+
+def _finish(
+    obj: _Objective,
+    plist: list[nn.Parameter],
+    loop: FitLoop,
+    early: EarlyStopping,
+    best_train: tuple[float, list[Tensor], int],
+    stopped: str,
+    initial: float,
+    t_start: float,
+) -> LikelihoodFit:
+    """The result of a likelihood fit. The returned parameters: the best held-out ones; without
+    held-out data the last (finite) ones, unless an earlier iteration scored a better training
+    loss."""
+    it, counted = loop.iteration, obj.counted
+    best_it = early.best_iteration
+    if obj.val is not None:
+        restore(plist, early.best_params)
     else:
         best_it = it if stopped != "non-finite" else max(it - 1, 0)
-    wx0, wP0 = starts()
-    final = total_loglik(wx0, wP0)
-    if val is None and -final / counted > best_train[0]:
-        restore(best_train[1])
+    wx0, wP0 = obj.starts()
+    final = obj.total(wx0, wP0)
+    if obj.val is None and -final / counted > best_train[0]:
+        restore(plist, best_train[1])
         best_it = best_train[2]
-        wx0, wP0 = starts()
-        final = total_loglik(wx0, wP0)
-    vfinal = val_loglik() if val is not None else None
+        wx0, wP0 = obj.starts()
+        final = obj.total(wx0, wP0)
+    vfinal = obj.held_out() if obj.val is not None else None
     return LikelihoodFit(
         log_likelihood=final,
         per_measurement=final / counted,
         initial_log_likelihood=initial,
         validation=vfinal,
-        iterations=len(history),
+        iterations=len(loop.history),
         best_iteration=best_it,
         stopped=stopped,
         measurements=counted,
-        windows=windows,
-        history=history,
+        windows=obj.windows,
+        history=loop.history,
         elapsed=time.perf_counter() - t_start,
     )
-
-
-def _load_checkpoint(
-    path: Path, fingerprint: str, schema: str = _CKPT_SCHEMA, kind: str = "likelihood"
-) -> dict[str, Any]:
-    """A checkpoint of this fit (``schema``, ``fingerprint``), or a :class:`RunError` naming the
-    file; also EM's (:mod:`torchfilt.training.measurement_only`)."""
-    try:
-        ck = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:
-        raise RunError(
-            f"{path}: unreadable checkpoint ({type(e).__name__}); delete it to start again"
-        ) from None
-    if not isinstance(ck, dict) or ck.get("schema") != schema:
-        raise RunError(f"{path}: not a torchfilt {kind} checkpoint; delete it to start again")
-    if ck.get("fingerprint") != fingerprint:
-        raise RunError(
-            f"{path}: the checkpoint belongs to another fit (different data, model, parameters "
-            "or initial values); delete it to start again"
-        )
-    return ck
-
-
-def _save_checkpoint(
-    path: Path,
-    payload: dict[str, Any],
-    schema: str = _CKPT_SCHEMA,
-    previous: dict[str, Any] | None = None,
-) -> None:
-    """Write a checkpoint atomically, tagged with ``schema``; with ``previous`` (the last
-    checkpoint, of a data-parallel fit) that one is kept in it too (see
-    :func:`_resume_checkpoint`)."""
-    data = {"schema": schema, **payload}
-    if previous is not None:
-        data["previous"] = {k: v for k, v in previous.items() if k != "previous"}
-
-    def write(fh: Any) -> None:
-        torch.save(data, fh)
-
-    atomic_write(path, write)
-
-
-def _kept(ck: dict[str, Any] | None) -> dict[str, Any] | None:
-    """A deep copy of a checkpoint without its ``previous``: what the next data-parallel save
-    keeps as its previous (the live history and optimiser state change after a save)."""
-    if ck is None:
-        return None
-    return copy.deepcopy({k: v for k, v in ck.items() if k != "previous"})
-
-
-def _resume_checkpoint(
-    path: Path | None,
-    fingerprint: str,
-    schema: str,
-    kind: str,
-    all_reduce: Callable[[Tensor], None] | None,
-) -> dict[str, Any] | None:
-    """The checkpoint to resume from (``None``: start afresh); a :class:`RunError` for one that
-    belongs to another fit.
-
-    In a data-parallel fit (``all_reduce``) the processes must resume from the same iteration,
-    but a process that died stopped saving while the others may have saved one checkpoint more
-    (the collectives keep them within one checkpoint of each other). So every checkpoint of a
-    data-parallel fit also holds the one before it, and the processes agree here, with two
-    collectives, on the latest iteration all of them have: one ahead of another resumes from its
-    previous checkpoint. A process whose checkpoint cannot be used makes all of them raise (none
-    is left waiting in a collective)."""
-    ck: dict[str, Any] | None = None
-    error: RunError | None = None
-    if path is not None and path.is_file():
-        try:
-            ck = _load_checkpoint(path, fingerprint, schema, kind)
-        except RunError as e:
-            error = e
-    if all_reduce is None:
-        if error is not None:
-            raise error
-        return ck
-    it = 0 if ck is None else int(ck["iteration"])
-    flat = torch.tensor([1.0, float(it), float(error is not None)], dtype=torch.float64)
-    all_reduce(flat)
-    world, total, errors = (float(v) for v in flat)
-    if errors > 0:
-        if error is not None:
-            raise error
-        peer = RunError(
-            f"{path}: another process of this data-parallel fit cannot use its checkpoint (its "
-            "own error says why); delete the checkpoints of all processes to start again"
-        )
-        peer.peer = True  # type: ignore[attr-defined]  # a launcher reports the other's first
-        raise peer
-    if it * world > total and ck is not None:  # ahead of another process
-        ck = ck.get("previous")
-    it = 0 if ck is None else int(ck["iteration"])
-    flat = torch.tensor([float(it), float(it) ** 2], dtype=torch.float64)
-    all_reduce(flat)
-    if abs(float(flat[0]) ** 2 - world * float(flat[1])) > 0.5:  # not all equal
-        raise RunError(
-            f"{path}: the checkpoints of this data-parallel fit's processes are more than one "
-            f"checkpoint apart (this one at iteration {it}, mean "
-            f"{float(flat[0]) / world:.4g}); delete the checkpoints of all processes to start again"
-        )
-    return ck

@@ -60,26 +60,28 @@ from typing import Any, Literal, NamedTuple
 import torch
 from torch import Tensor, nn
 
-from torchfilt.cubature import CubatureRule, SphericalRadialRule, sigma_points
+from torchfilt.cubature import CubatureRule, SphericalRadialRule
 from torchfilt.exceptions import GaugeError, InputError, ModelError
-from torchfilt.filters import CKF, FilterResult, rts_smooth
+from torchfilt.io import atomic_write
 from torchfilt.models import (
     CovarianceParameter,
-    LinearGaussianModel,
     StateSpaceModel,
-    linear_system,
 )
 from torchfilt.models.sensor import AffineSensor
-from torchfilt.numerics import gaussian_log_prob, psd_solve, safe_cholesky, symmetrize
+from torchfilt.optim import DEFAULTS, CheckpointFile, FitLoop, Outcome, fingerprint
+from torchfilt.training.em_steps import (
+    SmoothedPairs,
+    _EMProblem,
+    _linear_start,
+    _Reducer,
+    _summed,
+    smoothed_pairs,
+)
 from torchfilt.training.likelihood import (
     LikelihoodFit,
     LikelihoodState,
     Sequences,
-    _digest,
-    _kept,
     _recordings,
-    _resume_checkpoint,
-    _save_checkpoint,
     fit_likelihood,
 )
 from torchfilt.training.progress import ProgressBar
@@ -96,10 +98,11 @@ __all__ = [
 ]
 
 _EM_SCHEMA = "torchfilt.em-checkpoint/1"
-
-#: The M-step's parameter blocks of a non-linear model, tried in this order until one raises the
-#: filter likelihood: the joint step, the maps alone, the noises alone.
-_M_STEP_BLOCKS: tuple[tuple[str, ...], ...] = (("noise", "maps", "noise"), ("maps",), ("noise",))
+#: The defaults of :func:`fit_em` and :func:`fit_measurement_only` (see
+#: :mod:`torchfilt.optim.options`).
+_EM = DEFAULTS["em"]
+_MO = DEFAULTS["measurement_only"]
+_EM_TOL = _EM.stopping.tolerance("lbfgs")
 
 
 # ----------------------------------------------------------------------------------- gauge
@@ -207,49 +210,6 @@ def _check_nonlinear(sensor: AffineSensor, channels: list[int], n: int) -> None:
                 )
 
 
-# ----------------------------------------------------------------------------------- E-step
-class SmoothedPairs(NamedTuple):
-    """Smoothed moments of every transition ``x_{t-1} -> x_t``, ``t = 0..T-1`` (``x_{-1}`` is the
-    prior).
-
-    Attributes:
-        prev_mean: ``E[x_{t-1} | y] (..., T, n)``.
-        prev_cov: ``Cov(x_{t-1} | y) (..., T, n, n)``.
-        mean: ``E[x_t | y] (..., T, n)``.
-        cov: ``Cov(x_t | y) (..., T, n, n)``.
-        cross_cov: ``Cov(x_{t-1}, x_t | y) = G_{t-1} P^s_t`` ``(..., T, n, n)``.
-    """
-
-    prev_mean: Tensor
-    prev_cov: Tensor
-    mean: Tensor
-    cov: Tensor
-    cross_cov: Tensor
-
-
-def smoothed_pairs(res: FilterResult, x0: Tensor, P0: Tensor) -> SmoothedPairs:
-    """RTS-smooth a filter result, the prior state ``x_{-1}`` included, with lag-one covariances.
-
-    Args:
-        res: a filter result ``(..., T, ...)``.
-        x0: the prior mean the filter started from, ``(..., n)``.
-        P0: the prior covariance, ``(..., n, n)``.
-
-    Returns:
-        A :class:`SmoothedPairs`.
-    """
-    sm = rts_smooth(res)
-    Pp0 = res.predicted_cov[..., 0, :, :]
-    G0 = psd_solve(Pp0, res.cross_cov[..., 0, :, :].mT, name="predicted covariance").mT
-    ms0, Ps0 = sm.mean[..., 0, :], sm.cov[..., 0, :, :]
-    m_prev0 = x0 + (G0 @ (ms0 - res.predicted_mean[..., 0, :]).unsqueeze(-1)).squeeze(-1)
-    P_prev0 = symmetrize(P0 + G0 @ (Ps0 - Pp0) @ G0.mT)
-    gains = torch.cat([G0.unsqueeze(-3), sm.gain], -3)  # G_{t-1}, t = 0..T-1
-    prev_mean = torch.cat([m_prev0.unsqueeze(-2), sm.mean[..., :-1, :]], -2)
-    prev_cov = torch.cat([P_prev0.unsqueeze(-3), sm.cov[..., :-1, :, :]], -3)
-    return SmoothedPairs(prev_mean, prev_cov, sm.mean, sm.cov, gains @ sm.cov)
-
-
 # ----------------------------------------------------------------------------------- results
 class EMState(NamedTuple):
     """What the per-iteration callback of :func:`fit_em` sees.
@@ -325,181 +285,6 @@ class MeasurementOnlyFit:
     detail: EMFit | LikelihoodFit
 
 
-# ----------------------------------------------------------------------------------- M-steps
-class _Lin(NamedTuple):
-    A: Tensor
-    H: Tensor
-    Q: Tensor
-    R: Tensor
-    B: Tensor | None
-    D: Tensor | None
-
-
-def _summed(all_reduce: Callable[[Tensor], None] | None, *values: Tensor) -> list[Tensor]:
-    """The values in float64, summed over the processes of a data-parallel fit with one
-    collective (unchanged without ``all_reduce``)."""
-    vals = [v.detach().to(torch.float64) for v in values]
-    if all_reduce is None:
-        return vals
-    flat = torch.cat([v.reshape(-1) for v in vals])
-    all_reduce(flat)
-    out, offset = [], 0
-    for v in vals:
-        out.append(flat[offset : offset + v.numel()].reshape(v.shape))
-        offset += v.numel()
-    return out
-
-
-def _linear_m_step(
-    lin: _Lin,
-    sp: SmoothedPairs,
-    Y: Tensor,
-    U: Tensor | None,
-    valid: Tensor,
-    known: list[int],
-    learn_R: bool,
-    all_reduce: Callable[[Tensor], None] | None = None,
-) -> _Lin:
-    """Closed-form M-step of a linear-Gaussian model (Shumway & Stoffer 1982; Ghahramani &
-    Hinton 1996), with inputs, known rows of ``H`` and missing measurement rows.
-
-    The expected sufficient statistics (float64) are sums over the steps ``valid (R, T)`` (a
-    padded step past a recording's end is no transition of it), so a data-parallel fit sums them
-    over the processes (one collective) before the closed form."""
-    n, dtype = lin.A.shape[-1], lin.A.dtype
-    f64 = torch.float64
-    keep = valid.reshape(-1)
-    m_prev = sp.prev_mean.reshape(-1, n)[keep].to(f64)
-    m_cur = sp.mean.reshape(-1, n)[keep].to(f64)
-    P_prev = sp.prev_cov.reshape(-1, n, n)[keep].to(f64)
-    P_cur = sp.cov.reshape(-1, n, n)[keep].to(f64)
-    C = sp.cross_cov.reshape(-1, n, n)[keep].to(f64)  # Cov(x_{t-1}, x_t)
-    with_B = lin.B is not None and U is not None
-    u = U.reshape(-1, U.shape[-1])[keep].to(f64) if U is not None else None
-    stats = [
-        torch.tensor(float(m_cur.shape[0]), dtype=f64),  # N
-        (P_cur + m_cur.unsqueeze(-1) * m_cur.unsqueeze(-2)).sum(0),  # Sxx
-        (P_prev + m_prev.unsqueeze(-1) * m_prev.unsqueeze(-2)).sum(0),  # Spp
-        (C.mT + m_cur.unsqueeze(-1) * m_prev.unsqueeze(-2)).sum(0),  # Sxp = E[x_t x_{t-1}^T]
-    ]
-    if with_B:
-        assert u is not None
-        stats += [m_prev.mT @ u, u.mT @ u, m_cur.mT @ u]  # Spu, Suu, Sxu
-    # measurement: rows with every component observed
-    y = Y.reshape(-1, Y.shape[-1])[keep].to(f64)
-    ok = torch.isfinite(y).all(-1)
-    yo, mo, Po = y[ok], m_cur[ok], P_cur[ok]
-    if lin.D is not None and U is not None:
-        assert u is not None
-        yo = yo - u[ok] @ lin.D.to(f64).mT
-    stats += [
-        torch.tensor(float(ok.sum()), dtype=f64),  # observed rows
-        (Po + mo.unsqueeze(-1) * mo.unsqueeze(-2)).sum(0),  # Sxx_o
-        mo.mT @ yo,  # Sxy
-        yo.mT @ yo,  # Syy
-    ]
-    stats = _summed(all_reduce, *stats)
-    N, Sxx, Spp, Sxp = stats[:4]
-    if with_B:
-        Spu, Suu, Sxu = stats[4:7]
-        Szz = torch.cat([torch.cat([Spp, Spu], -1), torch.cat([Spu.mT, Suu], -1)], -2)
-        Sxz = torch.cat([Sxp, Sxu], -1)
-    else:
-        Szz, Sxz = Spp, Sxp
-    n_ok, Sxx_o, Sxy, Syy = stats[-4:]
-    AB = psd_solve(Szz, Sxz.mT, name="expected state second moment").mT
-    Q = symmetrize((Sxx - AB @ Sxz.mT) / N).to(dtype)
-    A = AB[:, :n].to(dtype)
-    B = AB[:, n:].to(dtype) if with_B else lin.B
-    H, R = lin.H, lin.R
-    if float(n_ok) > 0:
-        Hd = H.to(f64)
-        unknown = [j for j in range(H.shape[0]) if j not in known]
-        if unknown:
-            Hu = psd_solve(Sxx_o, Sxy[:, unknown], name="state second moment").mT
-            Hd = Hd.clone()
-            Hd[unknown] = Hu
-            H = Hd.to(dtype)
-        if learn_R:
-            # sum_t E[(y_t - H x_t)(y_t - H x_t)^T] from the sums
-            R = symmetrize((Syy - Hd @ Sxy - Sxy.mT @ Hd.mT + Hd @ Sxx_o @ Hd.mT) / n_ok).to(dtype)
-    return _Lin(A, H, Q, R, B, lin.D)
-
-
-def _point_cov(side: Any, pred: Any) -> Tensor:
-    """Per-point covariance ``(..., P, d, d)`` of a side's output: its additive noise plus the
-    covariance (or variance) its prediction ``pred`` reports."""
-    d = pred.mean.shape[-1]
-    noise = side.noise_cov()
-    dtype = pred.mean.dtype
-    cov = torch.zeros(d, d, dtype=dtype) if noise is None else noise.to(dtype)
-    cov = cov.expand(*pred.mean.shape[:-1], d, d)
-    if pred.cov is not None:
-        return cov + pred.cov
-    if pred.var is not None:
-        return cov + torch.diag_embed(pred.var)
-    return cov
-
-
-def _expected_loglik(
-    model: StateSpaceModel,
-    sp: SmoothedPairs,
-    Y: Tensor,
-    U: Tensor | None,
-    rule: CubatureRule,
-    measurement_term: bool,
-    valid: Tensor,
-) -> Tensor:
-    """``Q(theta)``: the cubature expectation of the complete-data log-likelihood over the steps
-    ``valid (R, T)``."""
-    n = model.state_dim
-    dtype = sp.mean.dtype
-    keep = valid.reshape(-1)
-    mean2 = torch.cat([sp.prev_mean, sp.mean], -1).reshape(-1, 2 * n)[keep]
-    cov2 = torch.cat(
-        [
-            torch.cat([sp.prev_cov, sp.cross_cov], -1),
-            torch.cat([sp.cross_cov.mT, sp.cov], -1),
-        ],
-        -2,
-    ).reshape(-1, 2 * n, 2 * n)[keep]
-    xi, wm, _ = rule.unit_points(2 * n, dtype=dtype, device=mean2.device)
-    S = safe_cholesky(symmetrize(cov2), name="smoothed pair covariance")
-    pts = sigma_points(mean2, S, xi)  # (N, P, 2n)
-    xa, xb = pts[..., :n], pts[..., n:]
-    uu = None
-    if U is not None:
-        uu = U.reshape(-1, U.shape[-1])[keep].unsqueeze(-2).expand(-1, pts.shape[-2], -1)
-    pred = model.transition.predict(xa, uu)
-    L = safe_cholesky(_point_cov(model.transition, pred), name="transition covariance")
-    q = (gaussian_log_prob(xb - pred.mean, L) * wm).sum()
-    if measurement_term:
-        m = model.obs_dim
-        y = Y.reshape(-1, m)
-        seen = torch.isfinite(y) & keep.unsqueeze(-1)  # (N, m): the observed components
-        ok = seen.any(-1)
-        xi1, wm1, _ = rule.unit_points(n, dtype=dtype, device=mean2.device)
-        S1 = safe_cholesky(symmetrize(sp.cov.reshape(-1, n, n)[ok]), name="smoothed covariance")
-        p1 = sigma_points(sp.mean.reshape(-1, n)[ok], S1, xi1)
-        u1 = None
-        if U is not None:
-            u1 = U.reshape(-1, U.shape[-1])[ok].unsqueeze(-2).expand(-1, p1.shape[-2], -1)
-        hp = model.measurement.predict(p1, u1)
-        # the marginal density of the observed components of a partly observed step: a missing
-        # component gets residual 0, unit variance and no covariance with the others, and is
-        # not counted in the normalising constant (as in the filter's masked update)
-        o = seen[ok].unsqueeze(-2)  # (K, 1, m)
-        both = o.unsqueeze(-1) & o.unsqueeze(-2)
-        C = torch.where(both, _point_cov(model.measurement, hp), 0.0) + torch.diag_embed(
-            (~o).to(dtype)
-        )
-        r = torch.where(o, y[ok].nan_to_num().unsqueeze(-2) - hp.mean, 0.0)
-        Lr = safe_cholesky(C, name="measurement covariance")
-        lp = gaussian_log_prob(r, Lr, dim=o.sum(-1))
-        q = q + (lp * wm1).sum()
-    return q
-
-
 # ----------------------------------------------------------------------------------- EM
 def fit_em(
     model: StateSpaceModel,
@@ -509,8 +294,8 @@ def fit_em(
     x0: Tensor,
     P0: Tensor,
     known_channels: Sequence[int] | None,
-    iterations: int = 100,
-    tol: float = 1e-9,
+    iterations: int = _EM.optimizer.iterations,
+    tol: float = _EM_TOL,
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
     backtracks: int = 4,
@@ -519,7 +304,7 @@ def fit_em(
     progress: bool = False,
     dtype: torch.dtype = torch.float64,
     checkpoint: str | Path | None = None,
-    checkpoint_every: int = 1,
+    checkpoint_every: int = _EM.checkpoint.every,
     resume: bool = False,
     all_reduce: Callable[[Tensor], None] | None = None,
 ) -> EMFit:
@@ -595,157 +380,63 @@ def fit_em(
     known = check_gauge(model, known_channels)
     rule = SphericalRadialRule() if rule is None else rule
     recs = _recordings(model, y, u, x0, P0, dtype)
-    Y, U, X0, C0 = recs.y, recs.u, recs.x0.detach(), recs.P0.detach()
+    Y = recs.y
     reduce = None if all_reduce is None else _Reducer(all_reduce)
     # the steps of each recording (a shorter one is NaN-padded: those steps are no transitions)
     valid = torch.arange(Y.shape[-2]).unsqueeze(0) < torch.tensor(recs.lengths).unsqueeze(-1)
     counted = int(_summed(reduce, torch.tensor(float(torch.isfinite(Y).sum())))[0])
     if counted == 0:
         raise InputError("y: no measurement observed")
-    sys = linear_system(model)
-    lin: _Lin | None = None
-    if sys is not None:
-        Qm, Rm = model.transition.noise_cov(), model.measurement.noise_cov()
-        if Qm is None or Rm is None:
-            raise ModelError("fit_em: a linear model needs both Q and R")
-        lin = _Lin(
-            sys.A.detach().to(dtype).clone(),
-            sys.H.detach().to(dtype).clone(),
-            Qm.detach().to(dtype).clone(),
-            Rm.detach().to(dtype).clone(),
-            None if sys.B is None else sys.B.detach().to(dtype).clone(),
-            None if sys.D is None else sys.D.detach().to(dtype).clone(),
-        )
-        if not bool((lin.H[known] != 0).any()):
-            raise GaugeError(
-                f"known_channels {known}: the known rows of H are all zero, so they pin no state "
-                "coordinate; give channels whose measurement map sees the state"
-            )
-        plist: list[nn.Parameter] = []
-    else:
+    lin = _linear_start(model, dtype, known)
+    plist: list[nn.Parameter] = []
+    if lin is None:
         plist = [p for p in model.parameters() if p.requires_grad]
         if not plist:
             raise InputError("model: nothing to fit (no parameter with requires_grad)")
-
-    def current() -> StateSpaceModel:
-        if lin is None:
-            return model
-        return LinearGaussianModel(lin.A, lin.H, lin.Q, lin.R, lin.B, lin.D)
-
-    def state() -> list[Tensor]:
-        if lin is not None:
-            return [t.clone() for t in lin if t is not None]
-        return [p.detach().clone() for p in plist]
-
-    def load(values: list[Tensor]) -> None:
-        nonlocal lin
-        if lin is not None:
-            it = iter(values)
-            lin = _Lin(*(None if t is None else next(it) for t in lin))  # type: ignore[arg-type]
-            return
-        with torch.no_grad():
-            for p, v in zip(plist, values, strict=True):
-                p.copy_(v)
-
-    ckpt_path = None if checkpoint is None else Path(checkpoint)
-    fingerprint = _digest(Y, U, X0, C0, *state()) if ckpt_path is not None else ""
-    it0, history = 0, []
-    initial: float | None = None
-    finished: str | None = None
-    ck = _resume_checkpoint(ckpt_path, fingerprint, _EM_SCHEMA, "EM", reduce) if resume else None
-    saved = _kept(ck) if reduce is not None else None  # a data-parallel save keeps it
-    if ck is not None:
-        load(list(ck["state"]))
-        it0, history, initial = int(ck["iteration"]), list(ck["history"]), float(ck["initial"])
-        finished = ck.get("done")  # a fit that had stopped by itself stays stopped
-
-    def e_step() -> tuple[float, SmoothedPairs]:
-        with torch.no_grad():
-            res = CKF(current(), rule=rule).filter(Y, U, x0=X0, P0=C0)
-            ll = _summed(reduce, res.log_likelihood.sum())[0]
-            return float(ll), smoothed_pairs(res, X0, C0)
-
-    t_start = time.perf_counter()
+    em = _EMProblem(
+        model, lin, plist, recs, valid, known, rule, reduce, learn_measurement_noise,
+        m_step_iterations, backtracks,
+    )  # fmt: skip
+    ckpt = None
+    if checkpoint is not None:
+        ckpt = CheckpointFile(
+            checkpoint, fingerprint(em.Y, em.U, em.X0, em.C0, *em.state()), schema=_EM_SCHEMA,
+            kind="EM", write=atomic_write, all_reduce=reduce,
+        )  # fmt: skip
     bar = ProgressBar("fit EM", iterations, enabled=progress)
-    stopped = "iterations"
-    ll, sp = e_step()
+    loop = FitLoop(
+        iterations=iterations, progress=bar, callback=callback, all_reduce=reduce,
+        checkpoint=ckpt, every=checkpoint_every,
+    )  # fmt: skip
+    initial: float | None = None
+    ck = loop.resume() if resume else None
+    if ck is not None:
+        em.load(list(ck["state"]))
+        initial = float(ck["initial"])
+    t_start = time.perf_counter()
+    ll, sp = em.e_step()
     if initial is None:
         initial = ll
-    if finished is not None:
-        stopped = finished
-    for it in range(it0 + 1, iterations + 1 if finished is None else it0 + 1):
-        stalled = False
-        before = state()
-        if lin is not None:
-            lin = _linear_m_step(lin, sp, Y, U, valid, known, learn_measurement_noise, reduce)
-            ll_new, sp_new = e_step()
-        else:
-            # The E-step of a non-linear model is the CKF's Gaussian approximation, so a better
-            # Q need not mean a better likelihood: halve the step until it is (safeguarded GEM).
-            # If the joint step still lowers it, try the maps alone, then the noises alone
-            # (expectation-conditional maximisation): a wrong model's smoothed states look
-            # noisy, and the noise step alone can be what lowers the likelihood.
-            for blocks in _M_STEP_BLOCKS:
-                _gradient_m_step(
-                    model,
-                    plist,
-                    sp,
-                    Y,
-                    U,
-                    valid,
-                    rule,
-                    learn_measurement_noise,
-                    m_step_iterations,
-                    reduce,
-                    blocks=blocks,
-                )
-                ll_new, sp_new = e_step()
-                after = state()
-                for k in range(1, backtracks + 1):
-                    if ll_new >= ll:
-                        break
-                    t = 0.5**k
-                    load([b + t * (a - b) for a, b in zip(after, before, strict=True)])
-                    ll_new, sp_new = e_step()
-                if ll_new >= ll:
-                    break
-                load(before)
-            if ll_new < ll:
-                ll_new, sp_new = ll, sp
-                stalled = True
+
+    def step(it: int) -> Outcome:
+        nonlocal ll, sp
+        ll_new, sp_new, stalled = em.m_step(ll, sp)
         change = (ll_new - ll) / counted
         ll, sp = ll_new, sp_new
         elapsed = time.perf_counter() - t_start
-        history.append({"iteration": it, "log_likelihood": ll, "elapsed": elapsed})
-        bar.update(it, f"loglik/meas {ll / counted:.6g}")
-        stop = bool(callback(EMState(it, iterations, ll, elapsed))) if callback else False
-        if reduce is not None:  # one process's callback stops them all
-            stop = bool(_summed(reduce, torch.tensor(float(stop)))[0] > 0)
         done = "no improvement" if stalled else ("converged" if abs(change) <= tol else None)
-        if ckpt_path is not None and (
-            it % checkpoint_every == 0 or it == iterations or done is not None
-        ):
-            payload = {
-                "fingerprint": fingerprint,
-                "iteration": it,
-                "state": state(),
-                "history": history,
-                "initial": initial,
-                "done": done,
-            }
-            _save_checkpoint(ckpt_path, payload, _EM_SCHEMA, previous=saved)
-            if reduce is not None:
-                saved = _kept(payload)
-        if stop:
-            stopped = "callback"
-            break
-        if done is not None:
-            stopped = done
-            break
-    final = ll
+        return Outcome(
+            {"iteration": it, "log_likelihood": ll, "elapsed": elapsed},
+            EMState(it, iterations, ll, elapsed),
+            f"loglik/meas {ll / counted:.6g}",
+            done,
+        )
+
+    stopped = loop.run(step, lambda: {"state": em.state(), "initial": initial})
+    history = loop.history
     return EMFit(
-        model=current(),
-        log_likelihood=final,
+        model=em.current(),
+        log_likelihood=ll,
         initial_log_likelihood=initial,
         iterations=len(history),
         stopped=stopped,
@@ -753,138 +444,6 @@ def fit_em(
         history=history,
         elapsed=time.perf_counter() - t_start,
     )
-
-
-class _MStepFailed(RuntimeError):
-    """A process of a data-parallel gradient M-step failed to evaluate ``Q``: all undo it."""
-
-
-class _Reducer:
-    """``all_reduce`` that remembers whether a collective itself failed (a lost process), so that
-    such a failure is never mistaken for a failed M-step and swallowed."""
-
-    def __init__(self, all_reduce: Callable[[Tensor], None] | None) -> None:
-        self.all_reduce, self.broken = all_reduce, False
-
-    def __call__(self, flat: Tensor) -> None:
-        assert self.all_reduce is not None
-        try:
-            self.all_reduce(flat)
-        except BaseException:
-            self.broken = True
-            raise
-
-
-def _gradient_m_step(
-    model: StateSpaceModel,
-    plist: list[nn.Parameter],
-    sp: SmoothedPairs,
-    Y: Tensor,
-    U: Tensor | None,
-    valid: Tensor,
-    rule: CubatureRule,
-    measurement_term: bool,
-    iterations: int,
-    all_reduce: Callable[[Tensor], None] | None = None,
-    *,
-    blocks: tuple[str, ...] = ("noise", "maps", "noise"),
-) -> None:
-    """Block coordinate L-BFGS on ``-Q(theta)`` over ``blocks`` in turn: by default the noise
-    covariances, then the other parameters (the maps), then the noise again (the maps'
-    gradients dwarf the noises', so a joint step leaves ``Q`` and ``R`` almost where they
-    were); undone if ``Q`` does not improve (generalised EM).
-
-    Data-parallel (``all_reduce``): every evaluation of ``Q`` and its gradient is one collective
-    that sums them over the processes (whatever the local outcome: a process whose evaluation
-    failed sends NaN and a flag, and then every process undoes the step), so all take the same
-    L-BFGS steps."""
-    reduce = None if all_reduce is None else _Reducer(all_reduce)
-    scale = float(_summed(reduce, torch.tensor(float(valid.sum())))[0])
-    before = [p.detach().clone() for p in plist]
-    noise_ids = {
-        id(p)
-        for mod in model.modules()
-        if isinstance(mod, CovarianceParameter)
-        for p in mod.parameters()
-    }
-    noise = [p for p in plist if id(p) in noise_ids]
-    rest = [p for p in plist if id(p) not in noise_ids]
-
-    def q_value() -> float:
-        """``Q`` at the current parameters, summed over the processes."""
-        failed = False
-        with torch.no_grad():
-            try:
-                q = _expected_loglik(model, sp, Y, U, rule, measurement_term, valid).detach()
-            except (RuntimeError, ValueError):
-                if reduce is None:
-                    raise
-                q, failed = torch.tensor(math.nan), True
-        total, flag = _summed(reduce, q.reshape(()), torch.tensor(float(failed)))
-        if float(flag) > 0:
-            raise _MStepFailed("Q could not be evaluated on some process")
-        return float(total)
-
-    q0 = q_value()
-
-    def run(group: list[nn.Parameter]) -> None:
-        opt = torch.optim.LBFGS(
-            group,
-            lr=1.0,
-            max_iter=iterations,
-            line_search_fn="strong_wolfe",
-            tolerance_change=1e-12,
-            tolerance_grad=1e-10,
-            history_size=20,
-        )
-
-        def closure() -> Tensor:
-            opt.zero_grad()
-            if reduce is None:
-                loss = -_expected_loglik(model, sp, Y, U, rule, measurement_term, valid) / scale
-                loss.backward()
-                return loss.detach()
-            # data-parallel: local sums, then one collective for the value and the gradient
-            # (on every process whatever its outcome, so that none waits forever)
-            failed = False
-            try:
-                local = -_expected_loglik(model, sp, Y, U, rule, measurement_term, valid)
-                local.backward()
-                value = local.detach()
-            except (RuntimeError, ValueError):
-                value, failed = torch.tensor(math.nan), True
-            grads = [
-                torch.full_like(p, math.nan)
-                if failed
-                else (torch.zeros_like(p) if p.grad is None else p.grad)
-                for p in group
-            ]
-            total, flag, *summed = _summed(
-                reduce, value.reshape(()), torch.tensor(float(failed)), *grads
-            )
-            if float(flag) > 0:
-                raise _MStepFailed("Q could not be evaluated on some process")
-            for p, g in zip(group, summed, strict=True):
-                p.grad = (g / scale).to(p.dtype)
-            return (total / scale).to(before[0].dtype)
-
-        opt.step(closure)  # type: ignore[arg-type]
-
-    try:
-        for group in ({"noise": noise, "maps": rest}[b] for b in blocks):
-            if group:
-                run(group)
-        q1 = q_value()
-        ok = math.isfinite(q1) and q1 >= q0
-    except (RuntimeError, ValueError, IndexError):  # a failed factorisation, or torch's
-        # strong-Wolfe search left without a finite bracket, on a wild line-search step
-        if reduce is not None and reduce.broken:
-            raise  # a lost process, not a bad step
-        ok = False
-    if not ok:
-        with torch.no_grad():
-            for p, v in zip(plist, before, strict=True):
-                p.copy_(v)
 
 
 # ----------------------------------------------------------------------------------- front
@@ -897,13 +456,13 @@ def fit_measurement_only(
     P0: Tensor,
     known_channels: Sequence[int] | None,
     method: Literal["em", "likelihood"] = "em",
-    iterations: int = 100,
-    window: int | None = None,
-    burn_in: int = 0,
+    iterations: int = _MO.optimizer.iterations,
+    window: int | None = _MO.window.window,
+    burn_in: int = _MO.window.burn_in,
     validation: Sequences | None = None,
-    optimizer: Literal["adam", "lbfgs"] = "lbfgs",
-    lr: float | None = None,
-    tol: float | None = None,
+    optimizer: Literal["adam", "lbfgs"] = _MO.optimizer.optimizer,
+    lr: float | None = _MO.optimizer.lr,
+    tol: float | None = _MO.stopping.tol,
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
     rule: CubatureRule | None = None,
@@ -911,7 +470,7 @@ def fit_measurement_only(
     progress: bool = False,
     dtype: torch.dtype = torch.float64,
     checkpoint: str | Path | None = None,
-    checkpoint_every: int = 1,
+    checkpoint_every: int = _MO.checkpoint.every,
     resume: bool = False,
     all_reduce: Callable[[Tensor], None] | None = None,
 ) -> MeasurementOnlyFit:
@@ -967,7 +526,7 @@ def fit_measurement_only(
             P0=P0,
             known_channels=known,
             iterations=iterations,
-            tol=1e-9 if tol is None else tol,
+            tol=_EM_TOL if tol is None else tol,
             learn_measurement_noise=learn_measurement_noise,
             m_step_iterations=m_step_iterations,
             rule=rule,

@@ -32,7 +32,7 @@ from torchfilt.models.gp.data import MIN_POINTS, PairData
 from torchfilt.models.gp.group import GPGroup, GroupPosterior
 from torchfilt.models.gp.noise import neighbour_noise
 from torchfilt.models.gp.noise import noise_floor as auto_floor
-from torchfilt.models.gp.optimize import Callback, Progress, run_adam
+from torchfilt.models.gp.optimize import Callback, load_checkpoint, train_groups
 from torchfilt.models.gp.predictor import (
     AUTO_TOL,
     CHUNK_SIZE,
@@ -45,6 +45,7 @@ from torchfilt.models.gp.predictor import (
 )
 from torchfilt.models.gp.standardize import Standardizer
 from torchfilt.numerics.dtypes import check_real_tensor
+from torchfilt.optim import DEFAULTS
 
 __all__ = ["STATE_FORMAT", "GPModel"]
 
@@ -56,6 +57,9 @@ DEFAULT_SUBSET = 1000
 INIT_NOISE_MAX = 0.1
 #: Largest accepted learning rate (Adam on log-hyperparameters, natural-gradient step).
 MAX_LR = 1.0
+#: The defaults of :meth:`GPModel.optimize` (see :mod:`torchfilt.optim.options`).
+_GP = DEFAULTS["gp"]
+_GP_LR = _GP.optimizer.learning_rate
 
 
 class GPModel(ConditionalModel):
@@ -304,8 +308,8 @@ class GPModel(ConditionalModel):
     # ------------------------------------------------------------------ training
     def optimize(
         self,
-        iterations: int = 200,
-        lr: float = 0.05,
+        iterations: int = _GP.optimizer.iterations,
+        lr: float = _GP_LR,
         *,
         natural_lr: float = 0.1,
         subset: int | None = DEFAULT_SUBSET,
@@ -354,76 +358,18 @@ class GPModel(ConditionalModel):
             raise InputError(f"batch_size must be positive, got {batch_size}")
         start, opt_state = 0, None
         if resume is not None:
-            start, opt_state = self._load_checkpoint(resume)
+            start, opt_state = load_checkpoint(self, resume)
         frozen = self._freeze_opts
         self.predictor = None
-        gen = torch.Generator().manual_seed(seed)
-        for grp in self.groups:
-            assert isinstance(grp, GPGroup)
-            if subset is not None and grp.structure != "sparse" and grp.num_points > subset:
-                grp.use_rows(
-                    torch.randperm(grp.num_points, generator=gen)[:subset].to(grp.train_x.device)
-                )
-
-        def loss_fn(it: int) -> Tensor:
-            g = torch.Generator().manual_seed(seed * 1_000_003 + it)
-            total = None
-            for grp in self.groups:
-                assert isinstance(grp, GPGroup)
-                batch = None
-                if grp.structure == "sparse" and grp.num_points > batch_size:
-                    batch = torch.randperm(grp.num_points, generator=g)[:batch_size]
-                    batch = batch.to(grp.train_x.device)
-                term = grp.loss(batch)
-                total = term if total is None else total + term
-            assert total is not None
-            return total
-
-        prog = Progress(type(self).__name__, iterations) if progress else None
-        natural = []
-        for grp in self.groups:
-            assert isinstance(grp, GPGroup)
-            if grp.structure == "sparse":
-                natural.append((grp.variational_parameters(), grp.num_points))
-        skip = {id(p) for ps, _ in natural for p in ps}
-        try:
-            losses = run_adam(
-                [p for p in self.parameters() if id(p) not in skip],
-                loss_fn,
-                natural=natural,
-                natural_lr=natural_lr,
-                iterations=iterations,
-                lr=lr,
-                start=start,
-                optimizer_state=opt_state,
-                callback=callback,
-                progress=prog,
-                model=self,
-            )
-        finally:
-            for grp in self.groups:
-                assert isinstance(grp, GPGroup)
-                grp.use_rows(None)
+        losses = train_groups(
+            self, iterations=iterations, lr=lr, natural_lr=natural_lr, subset=subset,
+            batch_size=batch_size, seed=seed, callback=callback, progress=progress, start=start,
+            optimizer_state=opt_state,
+        )  # fmt: skip
         self.history.extend(losses)
         if frozen is not None:
             self.freeze(**frozen)
         return losses
-
-    def _load_checkpoint(self, ckpt: dict[str, Any]) -> tuple[int, dict[str, Any]]:
-        if not isinstance(ckpt, dict) or not {"model", "optimizer", "iteration"} <= set(ckpt):
-            raise InputError("resume: expected a checkpoint from FitState.checkpoint()")
-        state = ckpt["model"]
-        if state.get("config") != self.config.to_dict():
-            mine, theirs = self.config.to_dict(), state.get("config") or {}
-            diff = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
-            raise InputError(f"resume: the checkpoint's model options differ in {diff}")
-        sd = state["state_dict"]
-        own = self.state_dict()
-        for k, v in own.items():
-            if k.endswith(("train_x", "train_y")) and (k not in sd or not torch.equal(sd[k], v)):
-                raise InputError("resume: the checkpoint was trained on different data")
-        self.load_state_dict(sd)
-        return int(ckpt["iteration"]), ckpt["optimizer"]
 
     # ------------------------------------------------------------------ freezing
     def freeze(

@@ -1,5 +1,6 @@
-"""The training loop: Adam on the negative log marginal likelihood (exact) or ELBO (sparse; plus
-natural-gradient steps for the variational distribution).
+"""The training of a GP's hyperparameters: Adam on the negative log marginal likelihood (exact)
+or ELBO (sparse; plus natural-gradient steps for the variational distribution), one step per
+iteration of the fitting loop every fit shares (:class:`torchfilt.optim.FitLoop`).
 
 Progress goes to stderr as a light line every tenth of the run (``progress=False`` silences it). A
 per-iteration callback receives a :class:`FitState` from which a checkpoint (model state +
@@ -14,15 +15,18 @@ import math
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import replace
 from typing import Any, NamedTuple, TextIO
 
 import gpytorch
 import torch
 from torch import Tensor, nn
 
-from torchfilt.exceptions import ModelError
+from torchfilt.exceptions import InputError, ModelError
+from torchfilt.models.gp.group import GPGroup
+from torchfilt.optim import DEFAULTS, FitLoop, Outcome, make_optimizer
 
-__all__ = ["FitDivergedError", "FitState", "Progress", "run_adam"]
+__all__ = ["FitDivergedError", "FitState", "Progress", "run_adam", "train_groups"]
 
 
 class FitDivergedError(ModelError, FloatingPointError):
@@ -91,13 +95,21 @@ class Progress:
         self.total = total
         self.every = max(1, total // 10)
         self.stream = stream if stream is not None else sys.stderr
+        self.start = time.perf_counter()
 
     def __call__(self, it: int, loss: float, elapsed: float, final: bool = False) -> None:
         if final or it % self.every == 0 or it == self.total:
-            self.stream.write(
-                f"{self.label}: iteration {it}/{self.total}  loss {loss:.5g}  ({elapsed:.1f} s)\n"
-            )
-            self.stream.flush()
+            self._write(it, f"loss {loss:.5g}", elapsed)
+
+    def update(self, done: int, info: str = "", final: bool = False) -> None:
+        """Show iteration ``done`` with ``info`` (the loop's :class:`~torchfilt.optim.Reporter`
+        protocol), every tenth of the run, at the end, and when ``final``."""
+        if final or done % self.every == 0 or done == self.total:
+            self._write(done, info, time.perf_counter() - self.start)
+
+    def _write(self, it: int, info: str, elapsed: float) -> None:
+        self.stream.write(f"{self.label}: iteration {it}/{self.total}  {info}  ({elapsed:.1f} s)\n")
+        self.stream.flush()
 
 
 def run_adam(
@@ -137,7 +149,8 @@ def run_adam(
         FitDivergedError: if the loss becomes non-finite.
     """
     plist = [p for p in params if p.requires_grad]
-    opt = torch.optim.Adam(plist, lr=lr) if plist else None
+    options = replace(DEFAULTS["gp"].optimizer, lr=lr, iterations=iterations)
+    opt = make_optimizer(plist, options) if plist else None
     ngd = tuple(gpytorch.optim.NGD(list(ps), num_data=n, lr=natural_lr) for ps, n in natural)
     if opt is None and not ngd:  # nothing to learn (e.g. every output constant)
         return []
@@ -149,7 +162,8 @@ def run_adam(
     everything = ([opt] if opt is not None else []) + list(ngd)
     t0 = time.perf_counter()
     losses: list[float] = []
-    for it in range(start + 1, iterations + 1):
+
+    def step(it: int) -> Outcome:
         for o in everything:
             o.zero_grad(set_to_none=True)
         loss = loss_fn(it)
@@ -163,12 +177,103 @@ def run_adam(
         for o in everything:
             o.step()
         losses.append(value)
-        elapsed = time.perf_counter() - t0
-        if progress is not None:
-            progress(it, value, elapsed)
-        state = FitState(it, iterations, value, elapsed, model, opt, ngd)
-        if callback is not None and callback(state):
-            if progress is not None:
-                progress(it, value, elapsed, final=True)
-            break
+        state = FitState(it, iterations, value, time.perf_counter() - t0, model, opt, ngd)
+        return Outcome({"iteration": it, "loss": value}, state, f"loss {value:.5g}")
+
+    loop = FitLoop(iterations=iterations, progress=progress, callback=callback, start=start)
+    if loop.run(step) == "callback" and progress is not None:
+        progress.update(loop.iteration, f"loss {losses[-1]:.5g}", final=True)
     return losses
+
+
+def train_groups(
+    model: Any,
+    *,
+    iterations: int,
+    lr: float,
+    natural_lr: float,
+    subset: int | None,
+    batch_size: int,
+    seed: int,
+    callback: Callback | None,
+    progress: bool,
+    start: int = 0,
+    optimizer_state: dict[str, Any] | None = None,
+) -> list[float]:
+    """Train the hyperparameters of ``model``'s groups (a :class:`~torchfilt.models.gp.GPModel`;
+    see :meth:`~torchfilt.models.gp.GPModel.optimize` for the arguments): an exact group on a
+    seeded subset of its rows, a sparse one on seeded minibatches with natural-gradient steps for
+    its ``q(u)``.
+
+    Returns:
+        The loss of each iteration run.
+    """
+    groups = [grp for grp in model.groups if isinstance(grp, GPGroup)]
+    gen = torch.Generator().manual_seed(seed)
+    for grp in groups:
+        if subset is not None and grp.structure != "sparse" and grp.num_points > subset:
+            grp.use_rows(
+                torch.randperm(grp.num_points, generator=gen)[:subset].to(grp.train_x.device)
+            )
+
+    def loss_fn(it: int) -> Tensor:
+        g = torch.Generator().manual_seed(seed * 1_000_003 + it)
+        total = None
+        for grp in groups:
+            batch = None
+            if grp.structure == "sparse" and grp.num_points > batch_size:
+                batch = torch.randperm(grp.num_points, generator=g)[:batch_size]
+                batch = batch.to(grp.train_x.device)
+            term = grp.loss(batch)
+            total = term if total is None else total + term
+        assert total is not None
+        return total
+
+    prog = Progress(type(model).__name__, iterations) if progress else None
+    natural = [
+        (g.variational_parameters(), g.num_points) for g in groups if g.structure == "sparse"
+    ]
+    skip = {id(p) for ps, _ in natural for p in ps}
+    try:
+        return run_adam(
+            [p for p in model.parameters() if id(p) not in skip],
+            loss_fn,
+            natural=natural,
+            natural_lr=natural_lr,
+            iterations=iterations,
+            lr=lr,
+            start=start,
+            optimizer_state=optimizer_state,
+            callback=callback,
+            progress=prog,
+            model=model,
+        )
+    finally:
+        for grp in groups:
+            grp.use_rows(None)
+
+
+def load_checkpoint(model: Any, ckpt: dict[str, Any]) -> tuple[int, dict[str, Any]]:
+    """Load a checkpoint from :meth:`FitState.checkpoint` into ``model`` (a
+    :class:`~torchfilt.models.gp.GPModel` with the same options and data).
+
+    Returns:
+        The iterations done and the optimiser states.
+
+    Raises:
+        InputError: not such a checkpoint, other options or other data.
+    """
+    if not isinstance(ckpt, dict) or not {"model", "optimizer", "iteration"} <= set(ckpt):
+        raise InputError("resume: expected a checkpoint from FitState.checkpoint()")
+    state = ckpt["model"]
+    if state.get("config") != model.config.to_dict():
+        mine, theirs = model.config.to_dict(), state.get("config") or {}
+        diff = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
+        raise InputError(f"resume: the checkpoint's model options differ in {diff}")
+    sd = state["state_dict"]
+    own = model.state_dict()
+    for k, v in own.items():
+        if k.endswith(("train_x", "train_y")) and (k not in sd or not torch.equal(sd[k], v)):
+            raise InputError("resume: the checkpoint was trained on different data")
+    model.load_state_dict(sd)
+    return int(ckpt["iteration"]), ckpt["optimizer"]

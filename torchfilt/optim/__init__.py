@@ -1,0 +1,68 @@
+"""The fitting loop every fit runs, and the typed options the fits share.
+
+Why a package of its own, at the numerics layer: the loop is needed by fits in two layers, the GP
+hyperparameter training in :mod:`torchfilt.models.gp` (layer 3) and the likelihood, calibration
+and EM fits in :mod:`torchfilt.training` (layer 7). A layer may import only from layers to its
+left, so the loop sits below both and knows nothing of models, filters, files or terminals: it
+needs only ``torch``. What depends on higher layers is passed in: the atomic file write of the
+checkpoints (:func:`torchfilt.io.atomic_write`), the progress reporter
+(:class:`torchfilt.training.progress.ProgressBar`, or the GP's light progress line) and the
+``all_reduce`` of a data-parallel fit. Moving the GP training up into ``training`` instead would
+have made ``GPModel.fit`` depend on the layer that uses the models.
+
+* :mod:`torchfilt.optim.options`: ``OptimizerOptions``, ``WindowOptions``, ``StoppingOptions``,
+  ``CheckpointOptions`` and every fit's defaults (``DEFAULTS``, with a table of where they differ).
+* :mod:`torchfilt.optim.loop`: ``FitLoop`` (iterations, progress, callback, data-parallel stop,
+  stopping rules, checkpoints), ``GuardedStep`` (Adam / L-BFGS that never leaves the finite
+  region), ``EarlyStopping``.
+* :mod:`torchfilt.optim.checkpoint`: ``CheckpointFile`` (atomic, fingerprinted, bit-identical
+  resume, data-parallel agreement on where to resume).
+
+Where the next capabilities land: a new stopping rule (e.g. a relative change over a window of
+iterations) in ``StoppingOptions`` and ``FitLoop._rule``; an estimate of the remaining time in
+``FitLoop.run`` (every fit reports through it); parameters held fixed in the parameter list a fit
+hands to ``GuardedStep``; stochastic subsets of windows in the likelihood fit's step
+(:mod:`torchfilt.training.likelihood`), whose full objective the loop's rules can then evaluate.
+"""
+
+from torchfilt.optim.checkpoint import AtomicWrite, CheckpointFile, fingerprint
+from torchfilt.optim.loop import (
+    EarlyStopping,
+    FitLoop,
+    GuardedStep,
+    Outcome,
+    Reporter,
+    StepResult,
+    make_optimizer,
+    restore,
+    snapshot,
+)
+from torchfilt.optim.options import (
+    DEFAULTS,
+    CheckpointOptions,
+    FitDefaults,
+    OptimizerOptions,
+    StoppingOptions,
+    WindowOptions,
+)
+
+__all__ = [
+    "DEFAULTS",
+    "AtomicWrite",
+    "CheckpointFile",
+    "CheckpointOptions",
+    "EarlyStopping",
+    "FitDefaults",
+    "FitLoop",
+    "GuardedStep",
+    "OptimizerOptions",
+    "Outcome",
+    "Reporter",
+    "StepResult",
+    "StoppingOptions",
+    "WindowOptions",
+    "fingerprint",
+    "make_optimizer",
+    "restore",
+    "snapshot",
+]

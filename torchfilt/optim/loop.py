@@ -1,0 +1,348 @@
+"""The fitting loop: one iteration after another, with progress, the user's callback, the
+data-parallel stop, stopping rules and checkpoints, around a step that the fit supplies.
+
+A fit (the likelihood fit, EM, a GP's hyperparameters) writes only its *step*: what one
+iteration does (an optimiser step, an E- and an M-step), returning an :class:`Outcome`.
+:class:`FitLoop` does everything around it, in this order at every iteration:
+
+1. the step (an :class:`Outcome` with ``abort`` ends the loop at once; one without a
+   ``record`` is an iteration that does not count: no record, callback or checkpoint);
+2. the record is appended to the history; the progress reporter shows ``info``;
+3. the callback sees ``state``; in a data-parallel fit (``all_reduce``) one process's stop
+   stops all (one collective);
+4. the stopping rules: the step's own ``done``, then early stopping on held-out data
+   (:class:`EarlyStopping`, after ``patience`` evaluations without improvement), then
+   convergence (the loss changed by less than ``tol * (1 + |loss|)``);
+5. a checkpoint every ``every`` iterations, at the last one and when a rule stopped the fit:
+   the loop's state (iteration, history, the stop reason, the early-stopping state) and the
+   fit's own entries, written atomically; a fit resumed from it continues exactly where the
+   uninterrupted one would (a fit that had stopped by itself stays stopped).
+
+:class:`GuardedStep` is the optimiser step of the gradient fits: Adam or L-BFGS
+(:func:`make_optimizer`), never leaving the finite region (a non-finite loss or parameter
+restores the last good parameters; L-BFGS then forgets its curvature once and tries again).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any, Literal, NamedTuple, Protocol
+
+import torch
+from torch import Tensor
+
+from torchfilt.optim.checkpoint import CheckpointFile
+from torchfilt.optim.options import OptimizerOptions, StoppingOptions
+
+__all__ = [
+    "EarlyStopping",
+    "FitLoop",
+    "GuardedStep",
+    "Outcome",
+    "Reporter",
+    "StepResult",
+    "make_optimizer",
+    "restore",
+    "snapshot",
+]
+
+
+class Reporter(Protocol):
+    """Shows progress (e.g. :class:`torchfilt.training.progress.ProgressBar`)."""
+
+    def update(self, done: int, info: str = "") -> None: ...
+
+
+def snapshot(params: Iterable[Tensor]) -> list[Tensor]:
+    """Detached copies of ``params``."""
+    return [p.detach().clone() for p in params]
+
+
+def restore(params: Sequence[Tensor], values: Sequence[Tensor]) -> None:
+    """Copy ``values`` into ``params`` in place (no gradient)."""
+    with torch.no_grad():
+        for p, v in zip(params, values, strict=True):
+            p.copy_(v)
+
+
+def make_optimizer(params: Sequence[Tensor], options: OptimizerOptions) -> torch.optim.Optimizer:
+    """The optimiser of ``options`` over ``params``: Adam, or L-BFGS with a strong-Wolfe line
+    search and the options' tolerances."""
+    lr = options.learning_rate
+    if options.optimizer == "adam":
+        return torch.optim.Adam(list(params), lr=lr)
+    return torch.optim.LBFGS(
+        list(params),
+        lr=lr,
+        max_iter=options.max_iter,
+        line_search_fn="strong_wolfe",
+        tolerance_change=options.tolerance_change,
+        tolerance_grad=options.tolerance_grad,
+        history_size=options.history_size,
+    )
+
+
+class StepResult(NamedTuple):
+    """What :class:`GuardedStep` returns.
+
+    Attributes:
+        loss: the loss the step evaluated (at the parameters before it; NaN after a failed
+            L-BFGS search).
+        loss_finite: whether ``loss`` is finite.
+        good: the parameters ``loss`` scores (before the step) when it is finite; else the last
+            parameters scored finite (where a failed step leaves them).
+        status: ``"ok"``; ``"retry"`` (L-BFGS left the finite region: the parameters are back at
+            ``good``, its curvature is forgotten, the iteration does not count); ``"failed"``
+            (non-finite again: the parameters are back at ``good``).
+    """
+
+    loss: float
+    loss_finite: bool
+    good: list[Tensor]
+    status: Literal["ok", "retry", "failed"]
+
+
+class GuardedStep:
+    """One optimiser iteration over ``params`` that never leaves the finite region.
+
+    Args:
+        params: the parameters.
+        options: the optimiser.
+        project: called after every step to project the parameters back onto their feasible set
+            in place.
+    """
+
+    def __init__(
+        self,
+        params: Sequence[Tensor],
+        options: OptimizerOptions,
+        project: Callable[[], None] | None = None,
+    ) -> None:
+        self.params, self.options, self.project = list(params), options, project
+        self.optimizer = make_optimizer(self.params, options)
+        self.retried = False
+        self.good: list[Tensor] | None = None  # the last parameters scored finite
+
+    def __call__(self, closure: Callable[[], Tensor]) -> StepResult:
+        """Step with ``closure`` (zeroes the gradients, returns the loss, ``+inf`` where it is not
+        finite, after its backward pass)."""
+        opt = self.optimizer
+        if self.good is None:
+            self.good = snapshot(self.params)
+        if self.options.optimizer == "adam":
+            loss_t = closure()
+            finite = bool(torch.isfinite(loss_t))
+            if finite:
+                self.good = snapshot(self.params)  # the parameters that loss_t scores
+                opt.step()
+                if self.project is not None:
+                    self.project()
+        else:
+            self.good = snapshot(self.params)
+            try:
+                loss_t = opt.step(closure)  # type: ignore[assignment,arg-type]
+            except IndexError:
+                # torch's strong-Wolfe search fails when every trial step was non-finite (and
+                # the same on every process of a data-parallel fit: the loss is their sum)
+                loss_t = torch.tensor(math.nan)
+            if self.project is not None:
+                self.project()
+            finite = bool(torch.isfinite(loss_t))
+        loss = float(loss_t)
+        loss_finite, good = finite, self.good
+        finite = finite and all(bool(torch.isfinite(p).all()) for p in self.params)
+        if finite:
+            self.retried = False
+            return StepResult(loss, loss_finite, good, "ok")
+        restore(self.params, good)
+        if self.options.optimizer == "lbfgs" and not self.retried:
+            # a line search that left the finite region: forget the curvature history and start
+            # again from the last good parameters with a short first step
+            self.retried = True
+            opt.state.clear()
+            return StepResult(loss, loss_finite, good, "retry")
+        return StepResult(loss, loss_finite, good, "failed")
+
+
+class EarlyStopping:
+    """Early stopping on held-out data: the best held-out score and its parameters, and the
+    evaluations since it improved.
+
+    Args:
+        options: ``patience`` and ``validate_every``.
+        score: the held-out score (higher is better), or ``None`` (no held-out data: never
+            exhausted, the best stays the start).
+        snapshot: the current parameters (copies), kept at the best score.
+    """
+
+    def __init__(
+        self,
+        options: StoppingOptions,
+        score: Callable[[], float] | None,
+        snapshot: Callable[[], list[Tensor]],
+    ) -> None:
+        self.options, self.score, self.snapshot = options, score, snapshot
+        self.bad, self.best_iteration, self.best_score = 0, 0, -math.inf
+        self.best_params = snapshot()
+
+    def observe(self, iteration: int) -> float | None:
+        """Evaluate the held-out score when ``iteration`` is due (``None`` otherwise)."""
+        if self.score is None or iteration % self.options.validate_every != 0:
+            return None
+        value = self.score()
+        if value > self.best_score:
+            self.best_iteration, self.best_score, self.bad = iteration, value, 0
+            self.best_params = self.snapshot()
+        else:
+            self.bad += 1
+        return value
+
+    @property
+    def exhausted(self) -> bool:
+        """``patience`` evaluations in a row without improvement."""
+        return self.score is not None and self.bad >= self.options.patience
+
+    def state_dict(self) -> dict[str, Any]:
+        """The checkpoint entries."""
+        return {
+            "bad": self.bad,
+            "best_iteration": self.best_iteration,
+            "best_score": self.best_score,
+            "best_params": self.best_params,
+        }
+
+    def load_state_dict(self, ck: dict[str, Any]) -> None:
+        """Restore from a checkpoint's entries."""
+        self.bad, self.best_iteration = int(ck["bad"]), int(ck["best_iteration"])
+        self.best_score = float(ck["best_score"])
+        self.best_params = [t.clone() for t in ck["best_params"]]
+
+
+class Outcome(NamedTuple):
+    """What a fit's step returns for one iteration.
+
+    Attributes:
+        record: the iteration's history record (``None``: the iteration does not count).
+        state: what the user's callback sees.
+        info: progress text.
+        done: the step's own reason to stop after this iteration (checkpointed; ``None``: go on).
+        abort: stop at once, before recording (e.g. ``"non-finite"``).
+    """
+
+    record: dict[str, Any] | None
+    state: Any = None
+    info: str = ""
+    done: str | None = None
+    abort: str | None = None
+
+
+class FitLoop:
+    """The loop around a fit's step (see the module docstring).
+
+    Args:
+        iterations: the budget (counting the iterations of a resumed run).
+        progress: shows ``info`` after every counted iteration (``None``: silent).
+        callback: sees each counted iteration's ``state``; ``True`` stops.
+        all_reduce: of a data-parallel fit: sums a flat float64 tensor in place across the
+            processes (a stop by one process's callback stops all).
+        stopping: early stopping on held-out data (checkpointed with the loop).
+        tol: convergence: stop when the record's ``loss`` changed by less than
+            ``tol * (1 + |loss|)`` since the previous record (0: off).
+        checkpoint: the checkpoint file (``None``: none).
+        every: iterations between checkpoints.
+        start: iterations already done (a run resumed by its caller, without a checkpoint file).
+    """
+
+    def __init__(
+        self,
+        *,
+        iterations: int,
+        progress: Reporter | None = None,
+        callback: Callable[[Any], bool | None] | None = None,
+        all_reduce: Callable[[Tensor], None] | None = None,
+        stopping: EarlyStopping | None = None,
+        tol: float = 0.0,
+        checkpoint: CheckpointFile | None = None,
+        every: int = 1,
+        start: int = 0,
+    ) -> None:
+        self.iterations, self.progress, self.callback = iterations, progress, callback
+        self.all_reduce, self.stopping, self.tol = all_reduce, stopping, tol
+        self.checkpoint, self.every = checkpoint, every
+        self.iteration = start  # the last iteration started (or resumed from)
+        self.history: list[dict[str, Any]] = []
+        self.done: str | None = None  # why a resumed fit had stopped by itself
+
+    def resume(self) -> dict[str, Any] | None:
+        """Continue from the checkpoint, if there is one: the loop's state is restored and the
+        checkpoint returned for the fit's own entries (``None``: start afresh)."""
+        ck = None if self.checkpoint is None else self.checkpoint.resume()
+        if ck is not None:
+            self.iteration, self.history = int(ck["iteration"]), list(ck["history"])
+            self.done = ck.get("done")
+            if self.stopping is not None:
+                self.stopping.load_state_dict(ck)
+        return ck
+
+    def run(
+        self,
+        step: Callable[[int], Outcome],
+        payload: Callable[[], dict[str, Any]] | None = None,
+    ) -> str:
+        """Run ``step`` from the iteration after the current one to the budget.
+
+        Args:
+            step: one iteration, given its number (1-based).
+            payload: the fit's own checkpoint entries (its parameters, optimiser state, ...).
+
+        Returns:
+            Why the loop ended: ``"iterations"``, ``"callback"``, ``"early stopping"``,
+            ``"converged"``, the step's ``done`` or ``abort``, or the resumed fit's stop reason.
+        """
+        if self.done is not None:
+            return self.done
+        for it in range(self.iteration + 1, self.iterations + 1):
+            self.iteration = it
+            out = step(it)
+            if out.abort is not None:
+                return out.abort
+            if out.record is None:
+                continue
+            self.history.append(out.record)
+            if self.progress is not None:
+                self.progress.update(it, out.info)
+            stop = bool(self.callback(out.state)) if self.callback is not None else False
+            if self.all_reduce is not None:
+                flat = torch.tensor([float(stop)], dtype=torch.float64)
+                self.all_reduce(flat)
+                stop = bool(flat[0] > 0)
+            done = out.done or self._rule()
+            if self.checkpoint is not None and (
+                it % self.every == 0 or it == self.iterations or done is not None
+            ):
+                self.checkpoint.save(self._payload(it, done, payload))
+            if stop:
+                return "callback"
+            if done is not None:
+                return done
+        return "iterations"
+
+    def _rule(self) -> str | None:
+        if self.stopping is not None and self.stopping.exhausted:
+            return "early stopping"
+        if self.tol > 0 and len(self.history) > 1:
+            last, loss = float(self.history[-2]["loss"]), float(self.history[-1]["loss"])
+            if abs(last - loss) <= self.tol * (1 + abs(loss)):
+                return "converged"
+        return None
+
+    def _payload(
+        self, it: int, done: str | None, payload: Callable[[], dict[str, Any]] | None
+    ) -> dict[str, Any]:
+        data: dict[str, Any] = {"iteration": it, "history": self.history, "done": done}
+        if self.stopping is not None:
+            data.update(self.stopping.state_dict())
+        if payload is not None:
+            data.update(payload())
+        return data

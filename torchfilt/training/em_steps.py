@@ -1,0 +1,499 @@
+"""The E-step and M-steps of :func:`~torchfilt.training.fit_em` (see
+:mod:`torchfilt.training.measurement_only` for the method): the smoothed pairs of consecutive
+states, the closed-form M-step of a linear-Gaussian model, and the gradient M-step (L-BFGS on the
+cubature expectation of the complete-data log-likelihood) of any other model."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import replace
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from torchfilt.cubature import CubatureRule, sigma_points
+from torchfilt.exceptions import GaugeError, ModelError, RunError
+from torchfilt.filters import CKF, FilterResult, rts_smooth
+from torchfilt.models import (
+    CovarianceParameter,
+    LinearGaussianModel,
+    StateSpaceModel,
+    linear_system,
+)
+from torchfilt.numerics import gaussian_log_prob, psd_solve, safe_cholesky, symmetrize
+from torchfilt.optim import DEFAULTS, make_optimizer
+
+__all__ = ["SmoothedPairs", "smoothed_pairs"]
+
+#: The M-step's parameter blocks of a non-linear model, tried in this order until one raises the
+#: filter likelihood: the joint step, the maps alone, the noises alone.
+_M_STEP_BLOCKS: tuple[tuple[str, ...], ...] = (("noise", "maps", "noise"), ("maps",), ("noise",))
+
+
+# ----------------------------------------------------------------------------------- E-step
+class SmoothedPairs(NamedTuple):
+    """Smoothed moments of every transition ``x_{t-1} -> x_t``, ``t = 0..T-1`` (``x_{-1}`` is the
+    prior).
+
+    Attributes:
+        prev_mean: ``E[x_{t-1} | y] (..., T, n)``.
+        prev_cov: ``Cov(x_{t-1} | y) (..., T, n, n)``.
+        mean: ``E[x_t | y] (..., T, n)``.
+        cov: ``Cov(x_t | y) (..., T, n, n)``.
+        cross_cov: ``Cov(x_{t-1}, x_t | y) = G_{t-1} P^s_t`` ``(..., T, n, n)``.
+    """
+
+    prev_mean: Tensor
+    prev_cov: Tensor
+    mean: Tensor
+    cov: Tensor
+    cross_cov: Tensor
+
+
+def smoothed_pairs(res: FilterResult, x0: Tensor, P0: Tensor) -> SmoothedPairs:
+    """RTS-smooth a filter result, the prior state ``x_{-1}`` included, with lag-one covariances.
+
+    Args:
+        res: a filter result ``(..., T, ...)``.
+        x0: the prior mean the filter started from, ``(..., n)``.
+        P0: the prior covariance, ``(..., n, n)``.
+
+    Returns:
+        A :class:`SmoothedPairs`.
+    """
+    sm = rts_smooth(res)
+    Pp0 = res.predicted_cov[..., 0, :, :]
+    G0 = psd_solve(Pp0, res.cross_cov[..., 0, :, :].mT, name="predicted covariance").mT
+    ms0, Ps0 = sm.mean[..., 0, :], sm.cov[..., 0, :, :]
+    m_prev0 = x0 + (G0 @ (ms0 - res.predicted_mean[..., 0, :]).unsqueeze(-1)).squeeze(-1)
+    P_prev0 = symmetrize(P0 + G0 @ (Ps0 - Pp0) @ G0.mT)
+    gains = torch.cat([G0.unsqueeze(-3), sm.gain], -3)  # G_{t-1}, t = 0..T-1
+    prev_mean = torch.cat([m_prev0.unsqueeze(-2), sm.mean[..., :-1, :]], -2)
+    prev_cov = torch.cat([P_prev0.unsqueeze(-3), sm.cov[..., :-1, :, :]], -3)
+    return SmoothedPairs(prev_mean, prev_cov, sm.mean, sm.cov, gains @ sm.cov)
+
+
+# ----------------------------------------------------------------------------------- M-steps
+class _Lin(NamedTuple):
+    A: Tensor
+    H: Tensor
+    Q: Tensor
+    R: Tensor
+    B: Tensor | None
+    D: Tensor | None
+
+
+def _summed(all_reduce: Callable[[Tensor], None] | None, *values: Tensor) -> list[Tensor]:
+    """The values in float64, summed over the processes of a data-parallel fit with one
+    collective (unchanged without ``all_reduce``)."""
+    vals = [v.detach().to(torch.float64) for v in values]
+    if all_reduce is None:
+        return vals
+    flat = torch.cat([v.reshape(-1) for v in vals])
+    all_reduce(flat)
+    out, offset = [], 0
+    for v in vals:
+        out.append(flat[offset : offset + v.numel()].reshape(v.shape))
+        offset += v.numel()
+    return out
+
+
+def _linear_m_step(
+    lin: _Lin,
+    sp: SmoothedPairs,
+    Y: Tensor,
+    U: Tensor | None,
+    valid: Tensor,
+    known: list[int],
+    learn_R: bool,
+    all_reduce: Callable[[Tensor], None] | None = None,
+) -> _Lin:
+    """Closed-form M-step of a linear-Gaussian model (Shumway & Stoffer 1982; Ghahramani &
+    Hinton 1996), with inputs, known rows of ``H`` and missing measurement rows.
+
+    The expected sufficient statistics (float64) are sums over the steps ``valid (R, T)`` (a
+    padded step past a recording's end is no transition of it), so a data-parallel fit sums them
+    over the processes (one collective) before the closed form."""
+    n, dtype = lin.A.shape[-1], lin.A.dtype
+    f64 = torch.float64
+    keep = valid.reshape(-1)
+    m_prev = sp.prev_mean.reshape(-1, n)[keep].to(f64)
+    m_cur = sp.mean.reshape(-1, n)[keep].to(f64)
+    P_prev = sp.prev_cov.reshape(-1, n, n)[keep].to(f64)
+    P_cur = sp.cov.reshape(-1, n, n)[keep].to(f64)
+    C = sp.cross_cov.reshape(-1, n, n)[keep].to(f64)  # Cov(x_{t-1}, x_t)
+    with_B = lin.B is not None and U is not None
+    u = U.reshape(-1, U.shape[-1])[keep].to(f64) if U is not None else None
+    stats = [
+        torch.tensor(float(m_cur.shape[0]), dtype=f64),  # N
+        (P_cur + m_cur.unsqueeze(-1) * m_cur.unsqueeze(-2)).sum(0),  # Sxx
+        (P_prev + m_prev.unsqueeze(-1) * m_prev.unsqueeze(-2)).sum(0),  # Spp
+        (C.mT + m_cur.unsqueeze(-1) * m_prev.unsqueeze(-2)).sum(0),  # Sxp = E[x_t x_{t-1}^T]
+    ]
+    if with_B:
+        assert u is not None
+        stats += [m_prev.mT @ u, u.mT @ u, m_cur.mT @ u]  # Spu, Suu, Sxu
+    # measurement: rows with every component observed
+    y = Y.reshape(-1, Y.shape[-1])[keep].to(f64)
+    ok = torch.isfinite(y).all(-1)
+    yo, mo, Po = y[ok], m_cur[ok], P_cur[ok]
+    if lin.D is not None and U is not None:
+        assert u is not None
+        yo = yo - u[ok] @ lin.D.to(f64).mT
+    stats += [
+        torch.tensor(float(ok.sum()), dtype=f64),  # observed rows
+        (Po + mo.unsqueeze(-1) * mo.unsqueeze(-2)).sum(0),  # Sxx_o
+        mo.mT @ yo,  # Sxy
+        yo.mT @ yo,  # Syy
+    ]
+    stats = _summed(all_reduce, *stats)
+    N, Sxx, Spp, Sxp = stats[:4]
+    if with_B:
+        Spu, Suu, Sxu = stats[4:7]
+        Szz = torch.cat([torch.cat([Spp, Spu], -1), torch.cat([Spu.mT, Suu], -1)], -2)
+        Sxz = torch.cat([Sxp, Sxu], -1)
+    else:
+        Szz, Sxz = Spp, Sxp
+    n_ok, Sxx_o, Sxy, Syy = stats[-4:]
+    AB = psd_solve(Szz, Sxz.mT, name="expected state second moment").mT
+    Q = symmetrize((Sxx - AB @ Sxz.mT) / N).to(dtype)
+    A = AB[:, :n].to(dtype)
+    B = AB[:, n:].to(dtype) if with_B else lin.B
+    H, R = lin.H, lin.R
+    if float(n_ok) > 0:
+        Hd = H.to(f64)
+        unknown = [j for j in range(H.shape[0]) if j not in known]
+        if unknown:
+            Hu = psd_solve(Sxx_o, Sxy[:, unknown], name="state second moment").mT
+            Hd = Hd.clone()
+            Hd[unknown] = Hu
+            H = Hd.to(dtype)
+        if learn_R:
+            # sum_t E[(y_t - H x_t)(y_t - H x_t)^T] from the sums
+            R = symmetrize((Syy - Hd @ Sxy - Sxy.mT @ Hd.mT + Hd @ Sxx_o @ Hd.mT) / n_ok).to(dtype)
+    return _Lin(A, H, Q, R, B, lin.D)
+
+
+def _point_cov(side: Any, pred: Any) -> Tensor:
+    """Per-point covariance ``(..., P, d, d)`` of a side's output: its additive noise plus the
+    covariance (or variance) its prediction ``pred`` reports."""
+    d = pred.mean.shape[-1]
+    noise = side.noise_cov()
+    dtype = pred.mean.dtype
+    cov = torch.zeros(d, d, dtype=dtype) if noise is None else noise.to(dtype)
+    cov = cov.expand(*pred.mean.shape[:-1], d, d)
+    if pred.cov is not None:
+        return cov + pred.cov
+    if pred.var is not None:
+        return cov + torch.diag_embed(pred.var)
+    return cov
+
+
+def _expected_loglik(
+    model: StateSpaceModel,
+    sp: SmoothedPairs,
+    Y: Tensor,
+    U: Tensor | None,
+    rule: CubatureRule,
+    measurement_term: bool,
+    valid: Tensor,
+) -> Tensor:
+    """``Q(theta)``: the cubature expectation of the complete-data log-likelihood over the steps
+    ``valid (R, T)``."""
+    n = model.state_dim
+    dtype = sp.mean.dtype
+    keep = valid.reshape(-1)
+    mean2 = torch.cat([sp.prev_mean, sp.mean], -1).reshape(-1, 2 * n)[keep]
+    cov2 = torch.cat(
+        [
+            torch.cat([sp.prev_cov, sp.cross_cov], -1),
+            torch.cat([sp.cross_cov.mT, sp.cov], -1),
+        ],
+        -2,
+    ).reshape(-1, 2 * n, 2 * n)[keep]
+    xi, wm, _ = rule.unit_points(2 * n, dtype=dtype, device=mean2.device)
+    S = safe_cholesky(symmetrize(cov2), name="smoothed pair covariance")
+    pts = sigma_points(mean2, S, xi)  # (N, P, 2n)
+    xa, xb = pts[..., :n], pts[..., n:]
+    uu = None
+    if U is not None:
+        uu = U.reshape(-1, U.shape[-1])[keep].unsqueeze(-2).expand(-1, pts.shape[-2], -1)
+    pred = model.transition.predict(xa, uu)
+    L = safe_cholesky(_point_cov(model.transition, pred), name="transition covariance")
+    q = (gaussian_log_prob(xb - pred.mean, L) * wm).sum()
+    if measurement_term:
+        m = model.obs_dim
+        y = Y.reshape(-1, m)
+        seen = torch.isfinite(y) & keep.unsqueeze(-1)  # (N, m): the observed components
+        ok = seen.any(-1)
+        xi1, wm1, _ = rule.unit_points(n, dtype=dtype, device=mean2.device)
+        S1 = safe_cholesky(symmetrize(sp.cov.reshape(-1, n, n)[ok]), name="smoothed covariance")
+        p1 = sigma_points(sp.mean.reshape(-1, n)[ok], S1, xi1)
+        u1 = None
+        if U is not None:
+            u1 = U.reshape(-1, U.shape[-1])[ok].unsqueeze(-2).expand(-1, p1.shape[-2], -1)
+        hp = model.measurement.predict(p1, u1)
+        # the marginal density of the observed components of a partly observed step: a missing
+        # component gets residual 0, unit variance and no covariance with the others, and is
+        # not counted in the normalising constant (as in the filter's masked update)
+        o = seen[ok].unsqueeze(-2)  # (K, 1, m)
+        both = o.unsqueeze(-1) & o.unsqueeze(-2)
+        C = torch.where(both, _point_cov(model.measurement, hp), 0.0) + torch.diag_embed(
+            (~o).to(dtype)
+        )
+        r = torch.where(o, y[ok].nan_to_num().unsqueeze(-2) - hp.mean, 0.0)
+        Lr = safe_cholesky(C, name="measurement covariance")
+        lp = gaussian_log_prob(r, Lr, dim=o.sum(-1))
+        q = q + (lp * wm1).sum()
+    return q
+
+
+class _MStepFailed(RunError):
+    """A process of a data-parallel gradient M-step failed to evaluate ``Q``: all undo it (a
+    :class:`~torchfilt.exceptions.RunError` where it escapes, at the M-step's start)."""
+
+
+class _Reducer:
+    """``all_reduce`` that remembers whether a collective itself failed (a lost process), so that
+    such a failure is never mistaken for a failed M-step and swallowed."""
+
+    def __init__(self, all_reduce: Callable[[Tensor], None] | None) -> None:
+        self.all_reduce, self.broken = all_reduce, False
+
+    def __call__(self, flat: Tensor) -> None:
+        assert self.all_reduce is not None
+        try:
+            self.all_reduce(flat)
+        except BaseException:
+            self.broken = True
+            raise
+
+
+def _gradient_m_step(
+    model: StateSpaceModel,
+    plist: list[nn.Parameter],
+    sp: SmoothedPairs,
+    Y: Tensor,
+    U: Tensor | None,
+    valid: Tensor,
+    rule: CubatureRule,
+    measurement_term: bool,
+    iterations: int,
+    all_reduce: Callable[[Tensor], None] | None = None,
+    *,
+    blocks: tuple[str, ...] = ("noise", "maps", "noise"),
+) -> None:
+    """Block coordinate L-BFGS on ``-Q(theta)`` over ``blocks`` in turn: by default the noise
+    covariances, then the other parameters (the maps), then the noise again (the maps'
+    gradients dwarf the noises', so a joint step leaves ``Q`` and ``R`` almost where they
+    were); undone if ``Q`` does not improve (generalised EM).
+
+    Data-parallel (``all_reduce``): every evaluation of ``Q`` and its gradient is one collective
+    that sums them over the processes (whatever the local outcome: a process whose evaluation
+    failed sends NaN and a flag, and then every process undoes the step), so all take the same
+    L-BFGS steps."""
+    reduce = None if all_reduce is None else _Reducer(all_reduce)
+    scale = float(_summed(reduce, torch.tensor(float(valid.sum())))[0])
+    before = [p.detach().clone() for p in plist]
+    noise_ids = {
+        id(p)
+        for mod in model.modules()
+        if isinstance(mod, CovarianceParameter)
+        for p in mod.parameters()
+    }
+    noise = [p for p in plist if id(p) in noise_ids]
+    rest = [p for p in plist if id(p) not in noise_ids]
+
+    def q_value() -> float:
+        """``Q`` at the current parameters, summed over the processes."""
+        failed = False
+        with torch.no_grad():
+            try:
+                q = _expected_loglik(model, sp, Y, U, rule, measurement_term, valid).detach()
+            except (RuntimeError, ValueError):
+                if reduce is None:
+                    raise
+                q, failed = torch.tensor(math.nan), True
+        total, flag = _summed(reduce, q.reshape(()), torch.tensor(float(failed)))
+        if float(flag) > 0:
+            raise _MStepFailed(
+                "fit_em: the M-step's Q could not be evaluated on some process of the "
+                "data-parallel fit"
+            )
+        return float(total)
+
+    q0 = q_value()
+
+    def run(group: list[nn.Parameter]) -> None:
+        opt = make_optimizer(group, replace(DEFAULTS["em"].optimizer, max_iter=iterations))
+
+        def closure() -> Tensor:
+            opt.zero_grad()
+            if reduce is None:
+                loss = -_expected_loglik(model, sp, Y, U, rule, measurement_term, valid) / scale
+                loss.backward()
+                return loss.detach()
+            # data-parallel: local sums, then one collective for the value and the gradient
+            # (on every process whatever its outcome, so that none waits forever)
+            failed = False
+            try:
+                local = -_expected_loglik(model, sp, Y, U, rule, measurement_term, valid)
+                local.backward()
+                value = local.detach()
+            except (RuntimeError, ValueError):
+                value, failed = torch.tensor(math.nan), True
+            grads = [
+                torch.full_like(p, math.nan)
+                if failed
+                else (torch.zeros_like(p) if p.grad is None else p.grad)
+                for p in group
+            ]
+            total, flag, *summed = _summed(
+                reduce, value.reshape(()), torch.tensor(float(failed)), *grads
+            )
+            if float(flag) > 0:
+                raise _MStepFailed(
+                    "fit_em: the M-step's Q could not be evaluated on some process of the "
+                    "data-parallel fit"
+                )
+            for p, g in zip(group, summed, strict=True):
+                p.grad = (g / scale).to(p.dtype)
+            return (total / scale).to(before[0].dtype)
+
+        opt.step(closure)  # type: ignore[arg-type]
+
+    try:
+        for group in ({"noise": noise, "maps": rest}[b] for b in blocks):
+            if group:
+                run(group)
+        q1 = q_value()
+        ok = math.isfinite(q1) and q1 >= q0
+    except (RuntimeError, ValueError, IndexError):  # a failed factorisation, or torch's
+        # strong-Wolfe search left without a finite bracket, on a wild line-search step
+        if reduce is not None and reduce.broken:
+            raise  # a lost process, not a bad step
+        ok = False
+    if not ok:
+        with torch.no_grad():
+            for p, v in zip(plist, before, strict=True):
+                p.copy_(v)
+
+
+def _linear_start(model: StateSpaceModel, dtype: torch.dtype, known: list[int]) -> _Lin | None:
+    """The matrices of a model that :func:`~torchfilt.models.linear_system` recognises (copies,
+    in ``dtype``), for the closed-form M-step; ``None`` for any other model."""
+    sys = linear_system(model)
+    if sys is None:
+        return None
+    Qm, Rm = model.transition.noise_cov(), model.measurement.noise_cov()
+    if Qm is None or Rm is None:
+        raise ModelError("fit_em: a linear model needs both Q and R")
+    lin = _Lin(
+        sys.A.detach().to(dtype).clone(),
+        sys.H.detach().to(dtype).clone(),
+        Qm.detach().to(dtype).clone(),
+        Rm.detach().to(dtype).clone(),
+        None if sys.B is None else sys.B.detach().to(dtype).clone(),
+        None if sys.D is None else sys.D.detach().to(dtype).clone(),
+    )
+    if not bool((lin.H[known] != 0).any()):
+        raise GaugeError(
+            f"known_channels {known}: the known rows of H are all zero, so they pin no state "
+            "coordinate; give channels whose measurement map sees the state"
+        )
+    return lin
+
+
+class _EMProblem:
+    """The state of an EM fit between iterations: the parameters (the matrices ``lin`` of a
+    linear-Gaussian model, else the model's parameters ``plist``) and the data; an E-step and an
+    M-step on them."""
+
+    def __init__(
+        self,
+        model: StateSpaceModel,
+        lin: _Lin | None,
+        plist: list[nn.Parameter],
+        recs: Any,
+        valid: Tensor,
+        known: list[int],
+        rule: CubatureRule,
+        reduce: _Reducer | None,
+        learn_R: bool,
+        m_step_iterations: int,
+        backtracks: int,
+    ) -> None:
+        self.model, self.lin, self.plist = model, lin, plist
+        self.Y, self.U = recs.y, recs.u
+        self.X0, self.C0 = recs.x0.detach(), recs.P0.detach()
+        self.valid, self.known, self.rule, self.reduce = valid, known, rule, reduce
+        self.learn_R, self.m_step_iterations, self.backtracks = (
+            learn_R,
+            m_step_iterations,
+            backtracks,
+        )
+
+    def current(self) -> StateSpaceModel:
+        """The model at the current parameters."""
+        lin = self.lin
+        if lin is None:
+            return self.model
+        return LinearGaussianModel(lin.A, lin.H, lin.Q, lin.R, lin.B, lin.D)
+
+    def state(self) -> list[Tensor]:
+        """Copies of the current parameters."""
+        if self.lin is not None:
+            return [t.clone() for t in self.lin if t is not None]
+        return [p.detach().clone() for p in self.plist]
+
+    def load(self, values: list[Tensor]) -> None:
+        """Set the parameters to ``values`` (from :meth:`state`)."""
+        if self.lin is not None:
+            it = iter(values)
+            self.lin = _Lin(*(None if t is None else next(it) for t in self.lin))  # type: ignore[arg-type]
+            return
+        with torch.no_grad():
+            for p, v in zip(self.plist, values, strict=True):
+                p.copy_(v)
+
+    def e_step(self) -> tuple[float, SmoothedPairs]:
+        """The filter log-likelihood (summed over the processes) and the smoothed pairs."""
+        with torch.no_grad():
+            res = CKF(self.current(), rule=self.rule).filter(self.Y, self.U, x0=self.X0, P0=self.C0)
+            ll = _summed(self.reduce, res.log_likelihood.sum())[0]
+            return float(ll), smoothed_pairs(res, self.X0, self.C0)
+
+    def m_step(self, ll: float, sp: SmoothedPairs) -> tuple[float, SmoothedPairs, bool]:
+        """One M-step from the E-step ``(ll, sp)`` and the E-step after it: the new
+        log-likelihood and smoothed pairs, and whether no M-step raised the likelihood (then the
+        parameters are back where they were and ``(ll, sp)`` is returned)."""
+        before = self.state()
+        if self.lin is not None:
+            self.lin = _linear_m_step(
+                self.lin, sp, self.Y, self.U, self.valid, self.known, self.learn_R, self.reduce
+            )
+            return (*self.e_step(), False)
+        # The E-step of a non-linear model is the CKF's Gaussian approximation, so a better Q need
+        # not mean a better likelihood: halve the step until it is (safeguarded GEM). If the joint
+        # step still lowers it, try the maps alone, then the noises alone (expectation-conditional
+        # maximisation): a wrong model's smoothed states look noisy, and the noise step alone can
+        # be what lowers the likelihood.
+        for blocks in _M_STEP_BLOCKS:
+            _gradient_m_step(
+                self.model, self.plist, sp, self.Y, self.U, self.valid, self.rule, self.learn_R,
+                self.m_step_iterations, self.reduce, blocks=blocks,
+            )  # fmt: skip
+            ll_new, sp_new = self.e_step()
+            after = self.state()
+            for k in range(1, self.backtracks + 1):
+                if ll_new >= ll:
+                    break
+                t = 0.5**k
+                self.load([b + t * (a - b) for a, b in zip(after, before, strict=True)])
+                ll_new, sp_new = self.e_step()
+            if ll_new >= ll:
+                return ll_new, sp_new, False
+            self.load(before)
+        return ll, sp, True
