@@ -123,6 +123,17 @@ def _vec(
     return _vector(value, n, name, torch.float64).numpy()
 
 
+def _finite_vector(value: Tensor, n: int, name: str) -> np.ndarray:
+    """A finite real vector of shape ``(n,)`` as float64 NumPy; the error names ``name``."""
+    t = _real_tensor(value, name)
+    if t.shape != (n,):
+        raise ShapeError(f"{name}: expected shape ({n},), got {tuple(t.shape)}")
+    x = t.detach().cpu().double().numpy()
+    if not np.isfinite(x).all():
+        raise InputError(f"{name} must be finite, got {x.tolist()}")
+    return x
+
+
 def _bounds(
     lo: float | Sequence[float] | Tensor | None,
     hi: float | Sequence[float] | Tensor | None,
@@ -395,18 +406,8 @@ class MultiPriorityTarget:
             InfeasibleError: the hard constraints admit no steady state.
             ShapeError: wrong input shapes.
         """
-        ny, nu = self.ny, self.nu
-        y_t = _real_tensor(y_ss, "y_ss")
-        u_t = _real_tensor(u_prev, "u_prev")
-        if y_t.shape != (ny,):
-            raise ShapeError(f"y_ss: expected shape ({ny},), got {tuple(y_t.shape)}")
-        if u_t.shape != (nu,):
-            raise ShapeError(f"u_prev: expected shape ({nu},), got {tuple(u_t.shape)}")
-        y0 = y_t.detach().cpu().double().numpy()
-        up = u_t.detach().cpu().double().numpy()
-        for name, x in (("y_ss", y0), ("u_prev", up)):
-            if not np.isfinite(x).all():
-                raise InputError(f"{name} must be finite, got {x.tolist()}")
+        nu = self.nu
+        y0, up = _finite_vector(y_ss, self.ny, "y_ss"), _finite_vector(u_prev, nu, "u_prev")
         lo, hi = self._box(up)
         self._check_hard(y0, up, lo, hi)
         F, g = self._affine(y0, up)

@@ -61,9 +61,7 @@ def plot_estimates(
     mean = to_numpy(result.mean)
     cov = to_numpy(result.cov)
     if mean.ndim != 2:
-        raise ShapeError(
-            f"result: plot_estimates takes one sequence, mean (T, n); got {mean.shape}"
-        )
+        raise ShapeError(f"result: plot_estimates takes one sequence (T, n), got {mean.shape}")
     T, n = mean.shape
     t = np.arange(T, dtype=float) if times is None else to_numpy(times)
     sd = np.sqrt(np.clip(np.diagonal(cov, axis1=-2, axis2=-1), 0.0, None))
