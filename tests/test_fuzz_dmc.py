@@ -340,14 +340,21 @@ def _check_answer(res, rows, sstc, y0, up, kw) -> None:
     assert (u >= sstc.u_min - tol).all() and (u <= sstc.u_max + tol).all(), (u, kw)
     assert (np.abs(du) <= sstc.du_max + tol).all(), (du, kw)
     assert (y >= sstc.y_min - tol).all() and (y <= sstc.y_max + tol).all(), (y, kw)
-    ny = y0.size
-    a = np.stack([sstc._a[i] for i in range(len(rows))])
+    ny, nu = y0.size, up.size
+    a = np.zeros((len(rows), ny + nu))
+    for i, r in enumerate(rows):
+        name, idx = r.variable
+        if name == "lin":
+            a[i] = idx
+        else:
+            a[i, idx if name == "y" else ny + idx] = 1.0
     F, g = a[:, :ny] @ G + a[:, ny:], a[:, :ny] @ y0 + a[:, ny:] @ up
     viol = _row_values(rows, F, g, du)
     np.testing.assert_allclose(res.relaxation.numpy(), viol, rtol=0, atol=1e-9 * (1 + viol.max()))
     levels = sorted({int(r.priority) for r in rows})
     if len(levels) > 1:  # the first LP stage is optimal, and later stages keep its answer
-        lo, hi = sstc._box(up)
+        lo = np.maximum(sstc.u_min - up, -sstc.du_max)
+        hi = np.minimum(sstc.u_max - up, sstc.du_max)
         y_lim = list(zip(sstc.y_min, sstc.y_max, strict=True))
         ref = _first_priority_reference(rows, F, g, lo, hi, G, y0, y_lim, levels[0])
         top = [i for i, r in enumerate(rows) if r.priority == levels[0]]

@@ -65,7 +65,7 @@ from torch import Tensor
 from torchfilt.dmc.controller import _real_tensor, _vector
 from torchfilt.dmc.qp import solve_one
 from torchfilt.dmc.step_response import StepResponseModel
-from torchfilt.dmc.target import Target, TargetRow, _real, check_row
+from torchfilt.dmc.target import Target, TargetRow, _check_row, _real
 from torchfilt.exceptions import (
     ConvergenceWarning,
     InfeasibleError,
@@ -237,7 +237,7 @@ class MultiPriorityTarget:
             raise InputError(f"economic_weight must be finite and non-negative, got {self.w_J}")
         if isinstance(rows, str | bytes) or not isinstance(rows, Sequence) or not rows:
             raise InputError(f"rows: give a non-empty list of soft rows (TargetRow), got {rows!r}")
-        rows = [check_row(r, f"rows[{k}]") for k, r in enumerate(rows)]
+        rows = [_check_row(r, f"rows[{k}]") for k, r in enumerate(rows)]
         a, kinds, values, concern, prio, names = [], [], [], [], [], []
         for k, r in enumerate(rows):
             name, idx = r.variable

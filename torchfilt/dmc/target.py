@@ -37,14 +37,7 @@ from torchfilt.dmc.qp import solve_qp
 from torchfilt.dmc.step_response import StepResponseModel
 from torchfilt.exceptions import InfeasibleError, InputError, InputTypeError, ShapeError
 
-__all__ = [
-    "FixedTarget",
-    "SteadyStateTarget",
-    "Target",
-    "TargetRow",
-    "WeightedTarget",
-    "check_row",
-]
+__all__ = ["FixedTarget", "SteadyStateTarget", "Target", "TargetRow", "WeightedTarget"]
 
 #: Weight ratio between consecutive priority levels of :class:`WeightedTarget`.
 PRIORITY_BASE = 10.0
@@ -89,7 +82,7 @@ class _TargetRowFields(NamedTuple):
 
 
 #: The kinds a :class:`TargetRow` may have.
-ROW_KINDS = ("ideal", "lower", "upper", "hold")
+_ROW_KINDS = ("ideal", "lower", "upper", "hold")
 
 
 def _real(value: Any, name: str) -> float:
@@ -103,7 +96,7 @@ def _real(value: Any, name: str) -> float:
     raise InputTypeError(f"{name} must be a real number, got {value!r}")
 
 
-def check_row(row: Any, where: str) -> TargetRow:
+def _check_row(row: Any, where: str) -> TargetRow:
     """Validate a target row (a :class:`TargetRow` or a 5-tuple of its fields).
 
     Checks what no model makes valid: the variable's form, the kind, and that ``value`` (unless
@@ -149,7 +142,7 @@ def check_row(row: Any, where: str) -> TargetRow:
             raise InputError(
                 f"{where}.variable: the linear weights must be a finite vector, got {idx!r}"
             )
-    if not isinstance(kind, str) or kind not in ROW_KINDS:
+    if not isinstance(kind, str) or kind not in _ROW_KINDS:
         raise InputError(f"{where}.kind must be ideal/lower/upper/hold, got {kind!r}")
     for field, v in (("value", value), ("concern", concern), ("priority", priority)):
         x = _real(v, f"{where}.{field}")
@@ -187,7 +180,7 @@ class TargetRow(_TargetRowFields):
         priority: int,
     ) -> TargetRow:
         fields = (variable, kind, value, concern, priority)
-        check_row(fields, "TargetRow")
+        _check_row(fields, "TargetRow")
         return super().__new__(cls, *fields)
 
 
@@ -230,7 +223,7 @@ class WeightedTarget:
             raise InputError(f"du_ss_max must be non-negative, got {self.du_ss_max.tolist()}")
         if isinstance(rows, str | bytes) or not isinstance(rows, Sequence) or not rows:
             raise InputError(f"rows: give a non-empty list of TargetRow, got {rows!r}")
-        rows = [check_row(r, f"rows[{k}]") for k, r in enumerate(rows)]
+        rows = [_check_row(r, f"rows[{k}]") for k, r in enumerate(rows)]
         pmax = max(r.priority for r in rows)
         self.rows = list(rows)
         a, kinds, values, weights = [], [], [], []
