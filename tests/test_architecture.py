@@ -159,3 +159,66 @@ def test_no_private_imports_across_packages():
             ):
                 bad.append(f"{mod} imports {target}{'.' + name if name else ''}")
     assert not bad, "\n".join(bad)
+
+
+#: Built-in exception classes a ``raise`` in the package must not use for a user error: every
+#: user error is a ``TorchfiltError`` subclass (which may also derive from one of these).
+BUILTIN_ERRORS = {
+    "TypeError",
+    "ValueError",
+    "RuntimeError",
+    "KeyError",
+    "IndexError",
+    "NotImplementedError",
+    "OSError",
+    "FileNotFoundError",
+    "LookupError",
+    "AssertionError",
+}
+#: The comment that marks a raise of a built-in as a genuine internal-bug check.
+INTERNAL_MARK = "# internal: not a user error"
+#: Files (relative to the package) whose built-in raises are still being converted on other
+#: branches; empty this set as they land (the test fails on an entry that has none left).
+_NOT_YET_CONVERTED: set[str] = {
+    "filters/constrained.py",
+    "filters/gaussian.py",
+    "filters/graphed.py",
+    "filters/results.py",
+    "filters/steps.py",
+    "models/gp/predictor.py",
+    "pipeline/evaluate.py",
+    "training/bundle.py",
+    "training/run.py",
+}
+
+
+def _builtin_raises(path: Path) -> list[str]:
+    lines = path.read_text().splitlines()
+    out = []
+    for node in ast.walk(ast.parse("\n".join(lines))):
+        if not isinstance(node, ast.Raise) or node.exc is None:
+            continue
+        exc = node.exc.func if isinstance(node.exc, ast.Call) else node.exc
+        if isinstance(exc, ast.Name) and exc.id in BUILTIN_ERRORS:
+            if INTERNAL_MARK not in lines[node.lineno - 1]:
+                out.append(f"{node.lineno}: raise {exc.id}")
+    return out
+
+
+def test_no_builtin_raises():
+    bad = []
+    for path in sorted(PKG.rglob("*.py")):
+        rel = path.relative_to(PKG).as_posix()
+        if rel in _NOT_YET_CONVERTED:
+            continue
+        bad += [f"torchfilt/{rel}:{where}" for where in _builtin_raises(path)]
+    stale = sorted(
+        rel
+        for rel in _NOT_YET_CONVERTED
+        if not (PKG / rel).is_file() or not _builtin_raises(PKG / rel)
+    )
+    assert not stale, f"remove from _NOT_YET_CONVERTED (no built-in raise left): {stale}"
+    assert not bad, (
+        "raise a torchfilt.exceptions.TorchfiltError subclass for a user error (or mark an "
+        f"internal-bug check with {INTERNAL_MARK!r}):\n" + "\n".join(bad)
+    )

@@ -133,6 +133,49 @@ def test_bad_arguments():
         sstc.solve(torch.zeros(2, dtype=D), torch.zeros(1, dtype=D))
 
 
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), float("-inf")])
+@pytest.mark.parametrize("field", ["value", "concern", "priority"])
+def test_non_finite_row_fields_are_refused_naming_the_field(field, bad):
+    # issue 24: a NaN value reached scipy's linprog ("Invalid input for linprog")
+    m = gain_model([[1.0]])
+    good = R(("y", 0), "ideal", 0.0, 1.0, 1)
+    with pytest.raises(InputError, match=rf"TargetRow\.{field} must be finite"):
+        R(**{**good._asdict(), field: bad})
+    # rows that bypass the constructor (_replace, a plain tuple) are checked by the target
+    for row in (good._replace(**{field: bad}), tuple(good._replace(**{field: bad}))):
+        with pytest.raises(InputError, match=rf"rows\[1\]\.{field} must be finite"):
+            MultiPriorityTarget(m, [good, row], u_min=-1, u_max=1)
+
+
+def test_non_finite_bounds_weights_and_inputs_are_refused():
+    m = gain_model([[1.0, 2.0]])
+    rows = [R(("y", 0), "ideal", 0.0, 1.0, 1)]
+    nan, inf = float("nan"), float("inf")
+    cases = [
+        ({"u_min": inf}, "u_min must be finite or -inf"),
+        ({"u_max": -inf}, "u_max must be finite or \\+inf"),
+        ({"u_min": nan}, "u_min contains NaN"),
+        ({"y_max": nan}, "y_max contains NaN"),
+        ({"du_ss_max": nan}, "du_ss_max contains NaN"),
+        ({"cost": [1.0, inf]}, "cost must be finite"),
+        ({"J_min": nan}, "J_min must be finite"),
+        ({"economic_weight": inf}, "economic_weight must be finite"),
+        ({"minimum_move": [0.5]}, "minimum_move"),
+    ]
+    for kw, match in cases:
+        with pytest.raises(InputError, match=match):
+            MultiPriorityTarget(m, rows, **{"u_min": -1.0, "u_max": 1.0, **kw})
+    with pytest.raises(
+        InputError, match=r"TargetRow\.variable: the linear weights must be a finite"
+    ):
+        R(("lin", [1.0, nan, 0.0]), "ideal", 0.0, 1.0, 1)
+    sstc = MultiPriorityTarget(m, rows, u_min=-1.0, u_max=1.0)
+    with pytest.raises(InputError, match="y_ss must be finite"):
+        sstc.solve(torch.tensor([nan], dtype=D), torch.zeros(2, dtype=D))
+    with pytest.raises(InputError, match="u_prev must be finite"):
+        sstc.solve(torch.zeros(1, dtype=D), torch.tensor([0.0, inf], dtype=D))
+
+
 def test_paper_economics_reach_j_min():
     # h = [-2, 1, 2], u2 minimum-move, |du_ss| <= 0.1 and nothing else binding: J_min = -0.4 is
     # reached at du = [0.1, 0, -0.1]

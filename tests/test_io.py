@@ -201,6 +201,18 @@ def test_unparsable_value_and_ragged_row(tmp_path):
             "duplicate column",
         ),
         ({"recordings": [{"file": "x.csv", "split": "dev"}]}, "split must be one of"),
+        # issue 24: JSON types are checked, not converted with str()
+        ({"recordings": [{"file": ["a.csv"]}]}, r"recordings\[0\]\.file must be a string"),
+        ({"recordings": "a.csv"}, "recordings must be a list"),
+        ({"channels": [{"name": 3, "role": "state"}]}, r"channels\[0\]\.name must be a string"),
+        ({"channels": [{"name": "a", "role": 1}]}, r"channels\[0\] \('a'\): role must be one of"),
+        ({"channels": [{"name": "a", "role": "state", "unit": 2}]}, r"channels\[0\]\.unit"),
+        (
+            {"channels": [{"name": "a", "role": "state", "units": "m"}]},
+            r"unknown key\(s\) \['units'\]",
+        ),
+        ({"time": "t"}, "time must be an object"),
+        ({"sample_time": "0.5"}, "sample_time must be a number"),
     ],
 )
 def test_manifest_errors(tmp_path, patch, message):

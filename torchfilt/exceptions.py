@@ -18,6 +18,8 @@ __all__ = [
     "InputError",
     "InputTypeError",
     "MissingDependencyError",
+    "MissingFileError",
+    "MissingKeyError",
     "ModelError",
     "NotDetectableError",
     "NumericsWarning",
@@ -116,6 +118,19 @@ class OutputError(TorchfiltError, OSError):
 class MissingDependencyError(TorchfiltError, ImportError):
     """An optional dependency a feature needs is not installed; the message says how to install
     it (e.g. ``pip install 'torchfilt[distributed]'`` for Ray)."""
+
+
+class MissingKeyError(TorchfiltError, KeyError):
+    """A name that was asked for does not exist (a recording's channel, ...). The message names it
+    and lists the names there are. Also a ``KeyError``; ``str()`` gives the plain message."""
+
+    def __str__(self) -> str:
+        return Exception.__str__(self)
+
+
+class MissingFileError(TorchfiltError, FileNotFoundError):
+    """An input file a feature reads does not exist where it must be (for example a data file an
+    optional package should ship). The message names the path and how to get it."""
 
 
 class BundleError(TorchfiltError, ValueError):

@@ -27,7 +27,7 @@ from torchfilt.dmc.predictor import OpenLoopPredictor
 from torchfilt.dmc.step_response import StepResponseModel
 from torchfilt.dmc.target import SteadyStateTarget
 from torchfilt.dmc.transfer import TransferEntry
-from torchfilt.exceptions import ShapeError
+from torchfilt.exceptions import InputError, ShapeError
 
 __all__ = ["ClosedLoopResult", "SampledPlant", "run_closed_loop"]
 
@@ -119,7 +119,7 @@ def run_closed_loop(
         )
     K = steps if steps is not None else (v.shape[0] if v is not None else plant.steps)
     if K > plant.steps:
-        raise ValueError(f"steps = {K} exceeds the {plant.steps} samples the plant was built for")
+        raise InputError(f"steps = {K} exceeds the {plant.steps} samples the plant was built for")
     v_t = torch.zeros(K, nv, dtype=dt) if v is None else torch.as_tensor(v, dtype=dt)
     if v_t.shape != (K, nv):
         raise ShapeError(f"v: expected shape ({K}, {nv}), got {tuple(v_t.shape)}")

@@ -42,7 +42,8 @@ from torch import Tensor
 
 from torchfilt.dmc.qp import QP_MAX_ITER, QP_TOL, solve_qp
 from torchfilt.dmc.step_response import StepResponseModel
-from torchfilt.exceptions import InfeasibleError, InputError, ShapeError
+from torchfilt.dmc.transfer import _positive_int
+from torchfilt.exceptions import InfeasibleError, InputError, InputTypeError, ShapeError
 from torchfilt.numerics import psd_solve
 
 __all__ = ["ControlPlan", "DMCController", "InfeasibleError"]
@@ -70,8 +71,24 @@ class ControlPlan(NamedTuple):
     cost: Tensor
 
 
+def _real_tensor(value: Any, name: str, dtype: torch.dtype | None = None) -> Tensor:
+    """``value`` as a real tensor (of ``dtype`` if given); an InputTypeError naming ``name`` for
+    anything that is not real numbers (strings, complex values, ragged lists)."""
+    if isinstance(value, str | bytes) or (
+        isinstance(value, Tensor) and (value.is_complex() or value.dtype == torch.bool)
+    ):
+        raise InputTypeError(f"{name} must be real numbers, got {value!r}")
+    try:
+        t = torch.as_tensor(value, dtype=dtype)
+    except (TypeError, ValueError, RuntimeError):
+        raise InputTypeError(f"{name} must be real numbers, got {value!r}") from None
+    if t.is_complex() or t.dtype == torch.bool:
+        raise InputTypeError(f"{name} must be real numbers, got dtype {t.dtype}")
+    return t
+
+
 def _vector(value: Any, size: int, name: str, dtype: torch.dtype) -> Tensor:
-    t = torch.as_tensor(value, dtype=dtype)
+    t = _real_tensor(value, name, dtype)
     if t.dim() == 0:
         t = t.expand(size)
     if t.shape != (size,):
@@ -124,28 +141,32 @@ class DMCController:
         tol: float = QP_TOL,
     ) -> None:
         if not isinstance(model, StepResponseModel):
-            raise TypeError(f"model must be a StepResponseModel, got {type(model).__name__}")
-        if int(P) != P or P < 1:
-            raise ValueError(f"P (prediction horizon) must be a positive integer, got {P}")
-        if int(M) != M or not 1 <= M <= P:
-            raise ValueError(f"M (control horizon) must be an integer in 1..P = {P}, got {M}")
-        self.model, self.P, self.M, self.tol = model, int(P), int(M), tol
+            raise InputTypeError(f"model must be a StepResponseModel, got {type(model).__name__}")
+        P = _positive_int(P, "P (prediction horizon)")
+        M = _positive_int(M, "M (control horizon)")
+        if M > P:
+            raise InputError(f"M (control horizon) must be an integer in 1..P = {P}, got {M}")
+        self.model, self.P, self.M, self.tol = model, P, M, tol
         ny, nu, dt = model.ny, model.nu, model.dtype
         self.Q = _vector(Q, ny, "Q", dt)
         self.Lambda = _vector(Lambda, nu, "Lambda", dt)
         self.W = _vector(W, nu, "W", dt)
         if bool((self.Q < 0).any()) or bool((self.W < 0).any()):
-            raise ValueError("Q and W must be non-negative")
+            raise InputError(
+                f"Q and W must be non-negative, got Q = {self.Q.tolist()}, W = {self.W.tolist()}"
+            )
         if bool((self.Lambda <= 0).any()):
-            raise ValueError("Lambda (move suppression) must be positive")
+            raise InputError(
+                f"Lambda (move suppression) must be positive, got {self.Lambda.tolist()}"
+            )
         inf = float("inf")
         self.u_min = _vector(-inf if u_min is None else u_min, nu, "u_min", dt)
         self.u_max = _vector(inf if u_max is None else u_max, nu, "u_max", dt)
         self.du_max = _vector(inf if du_max is None else du_max, nu, "du_max", dt)
         if bool((self.u_min > self.u_max).any()):
-            raise ValueError(f"u_min must not exceed u_max (got {self.u_min} > {self.u_max})")
+            raise InputError(f"u_min must not exceed u_max (got {self.u_min} > {self.u_max})")
         if bool((self.du_max <= 0).any()):
-            raise ValueError("du_max must be positive")
+            raise InputError(f"du_max must be positive, got {self.du_max.tolist()}")
         self.y_min = _vector(-inf if y_min is None else y_min, ny, "y_min", dt)
         self.y_max = _vector(inf if y_max is None else y_max, ny, "y_max", dt)
         self.z_min = _vector(-inf if z_min is None else z_min, ny, "z_min", dt)
@@ -154,9 +175,12 @@ class DMCController:
         self.q_upper = _vector(q_upper, ny, "q_upper", dt)
         for lo, hi, name in ((self.y_min, self.y_max, "y"), (self.z_min, self.z_max, "z")):
             if bool((lo > hi).any()):
-                raise ValueError(f"{name}_min must not exceed {name}_max (got {lo} > {hi})")
+                raise InputError(f"{name}_min must not exceed {name}_max (got {lo} > {hi})")
         if bool((self.q_lower <= 0).any()) or bool((self.q_upper <= 0).any()):
-            raise ValueError("q_lower and q_upper (soft CV bound weights) must be positive")
+            raise InputError(
+                "q_lower and q_upper (soft CV bound weights) must be positive, got "
+                f"{self.q_lower.tolist()} and {self.q_upper.tolist()}"
+            )
         # dynamic matrix D (P ny x M nu), time-major blocks
         S = model.coefficients(self.P, "u")  # (P, ny, nu)
         D = S.new_zeros(self.P, ny, self.M, nu)
@@ -237,7 +261,7 @@ class DMCController:
             raise ShapeError(f"u_target: expected shape (..., {m.nu}), got {tuple(ut.shape)}")
         for name, t in (("free", free), ("u_prev", u_prev), ("y_target", yt), ("u_target", ut)):
             if not bool(torch.isfinite(t).all()):
-                raise ValueError(f"{name} contains non-finite entries")
+                raise InputError(f"{name} contains non-finite entries")
         Yol = free[..., : self.P, :]
         err = (Yol - yt.unsqueeze(-2)).flatten(-2)  # (..., P ny)
         f = 2.0 * (err @ self._DtQ.mT + (u_prev - ut) @ self._CtW.mT)

@@ -21,7 +21,7 @@ import scipy.sparse as sp
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import ShapeError
+from torchfilt.exceptions import InputError, InputTypeError, ShapeError
 from torchfilt.numerics import psd_solve
 
 __all__ = ["QPResult", "solve_qp"]
@@ -67,7 +67,7 @@ def _bound_rows(
     finite = torch.isfinite(bt)
     keep = finite.reshape(-1, n).any(0)
     if bool((~finite.reshape(-1, n)[:, keep]).any()):
-        raise ValueError(
+        raise InputError(
             f"{name}: a bound must be finite for every batch element or infinite for every one"
         )
     if not bool(keep.any()):
@@ -106,10 +106,12 @@ def solve_qp(
 
     Raises:
         ShapeError: inconsistent shapes (names the argument).
-        ValueError: ``G`` not symmetric positive definite, or non-finite data.
+        InputError: ``G`` not symmetric positive definite, or non-finite data.
     """
     if not isinstance(G, Tensor) or not isinstance(c, Tensor):
-        raise TypeError("G and c must be torch.Tensors")
+        raise InputTypeError(
+            f"G and c must be torch.Tensors, got {type(G).__name__} and {type(c).__name__}"
+        )
     if G.dim() < 2 or G.shape[-1] != G.shape[-2]:
         raise ShapeError(f"G: expected shape (..., n, n), got {tuple(G.shape)}")
     n = G.shape[-1]
@@ -118,17 +120,17 @@ def solve_qp(
     dtype = torch.promote_types(G.dtype, c.dtype)
     G, c = G.to(dtype), c.to(dtype)
     if not bool(torch.isfinite(G).all() & torch.isfinite(c).all()):
-        raise ValueError("G and c must be finite")
+        raise InputError("G and c must be finite")
     gscale = float(G.abs().amax().clamp_min(1.0))
     if not torch.allclose(G, G.mT, rtol=0.0, atol=SYMMETRY_RTOL * gscale):
-        raise ValueError("G is not symmetric")
+        raise InputError("G is not symmetric")
     if not bool((torch.linalg.cholesky_ex(G)[1] == 0).all()):
-        raise ValueError("G must be positive definite (the QP must be strictly convex)")
+        raise InputError("G must be positive definite (the QP must be strictly convex)")
     rows: list[Tensor] = []
     rhs: list[Tensor] = []
     if A is not None:
         if b is None:
-            raise ValueError("b is required with A")
+            raise InputError("b is required with A")
         A = torch.as_tensor(A, dtype=dtype)
         b = torch.as_tensor(b, dtype=dtype)
         if A.dim() < 2 or A.shape[-1] != n:
@@ -136,11 +138,11 @@ def solve_qp(
         if b.shape[-1:] != A.shape[-2:-1]:
             raise ShapeError(f"b: expected shape (..., {A.shape[-2]}), got {tuple(b.shape)}")
         if not bool(torch.isfinite(A).all() & torch.isfinite(b).all()):
-            raise ValueError("A and b must be finite")
+            raise InputError("A and b must be finite")
         rows.append(A)
         rhs.append(b)
     elif b is not None:
-        raise ValueError("b given without A")
+        raise InputError("b given without A")
     for bound, sign, name in ((lb, -1.0, "lb"), (ub, 1.0, "ub")):
         got = _bound_rows(bound, n, sign, name, G)  # type: ignore[arg-type]
         if got is not None:

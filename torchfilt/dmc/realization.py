@@ -43,6 +43,8 @@ import torch
 from torch import Tensor
 
 from torchfilt.dmc.step_response import StepResponseModel
+from torchfilt.dmc.transfer import _positive_int
+from torchfilt.exceptions import InputTypeError
 
 __all__ = ["Realization", "lmg_realization", "realize"]
 
@@ -101,11 +103,8 @@ def _measurement(
 
 def _check_horizon(model: StepResponseModel, horizon: int | None) -> int:
     if not isinstance(model, StepResponseModel):
-        raise TypeError(f"model must be a StepResponseModel, got {type(model).__name__}")
-    N = model.horizon if horizon is None else horizon
-    if int(N) != N or N < 1:
-        raise ValueError(f"horizon must be a positive integer, got {horizon}")
-    return int(N)
+        raise InputTypeError(f"model must be a StepResponseModel, got {type(model).__name__}")
+    return model.horizon if horizon is None else _positive_int(horizon, "horizon")
 
 
 def _with_horizon(model: StepResponseModel, N: int) -> StepResponseModel:

@@ -51,8 +51,10 @@ Only stable CVs are supported (an integrating CV has no steady-state level to ta
 
 from __future__ import annotations
 
+import math
+import operator
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -60,14 +62,15 @@ import scipy.optimize
 import torch
 from torch import Tensor
 
-from torchfilt.dmc.controller import _vector
+from torchfilt.dmc.controller import _real_tensor, _vector
 from torchfilt.dmc.qp import solve_one
 from torchfilt.dmc.step_response import StepResponseModel
-from torchfilt.dmc.target import Target, TargetRow
+from torchfilt.dmc.target import Target, TargetRow, _check_row, _real
 from torchfilt.exceptions import (
     ConvergenceWarning,
     InfeasibleError,
     InputError,
+    InputTypeError,
     RunError,
     ShapeError,
 )
@@ -120,6 +123,55 @@ def _vec(
     return _vector(value, n, name, torch.float64).numpy()
 
 
+def _finite_vector(value: Tensor, n: int, name: str) -> np.ndarray:
+    """A finite real vector of shape ``(n,)`` as float64 NumPy; the error names ``name``."""
+    t = _real_tensor(value, name)
+    if t.shape != (n,):
+        raise ShapeError(f"{name}: expected shape ({n},), got {tuple(t.shape)}")
+    x = t.detach().cpu().double().numpy()
+    if not np.isfinite(x).all():
+        raise InputError(f"{name} must be finite, got {x.tolist()}")
+    return x
+
+
+def _bounds(
+    lo: float | Sequence[float] | Tensor | None,
+    hi: float | Sequence[float] | Tensor | None,
+    n: int,
+    name: str,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``name_min`` and ``name_max`` as ``(n,)`` arrays; ``None`` / ``-inf`` / ``+inf`` for none."""
+    inf = float("inf")
+    lo_a = _vec(lo, n, f"{name}_min", -inf)
+    hi_a = _vec(hi, n, f"{name}_max", inf)
+    if (lo_a == inf).any():
+        raise InputError(f"{name}_min must be finite or -inf (none), got {lo_a.tolist()}")
+    if (hi_a == -inf).any():
+        raise InputError(f"{name}_max must be finite or +inf (none), got {hi_a.tolist()}")
+    if (lo_a > hi_a).any():
+        raise InputError(f"{name}_min must not exceed {name}_max (got {lo_a} > {hi_a})")
+    return lo_a, hi_a
+
+
+def _indices(minimum_move: Iterable[int], nu: int) -> list[int]:
+    """The minimum-move MV indices, sorted and unique (each an int in ``0..nu-1``)."""
+    if isinstance(minimum_move, str | bytes) or not isinstance(minimum_move, Iterable):
+        raise InputTypeError(
+            f"minimum_move must be a sequence of MV indices, got {type(minimum_move).__name__}"
+        )
+    given = list(minimum_move)
+    out: set[int] = set()
+    for i in given:
+        try:
+            k = -1 if isinstance(i, bool) else operator.index(i)
+        except TypeError:
+            k = -1
+        if not 0 <= k < nu:
+            raise InputError(f"minimum_move: MV indices must be ints in 0..{nu - 1}, got {given}")
+        out.add(k)
+    return sorted(out)
+
+
 def _fmt(x: float) -> str:
     return f"{x:.4g}"
 
@@ -153,7 +205,7 @@ class MultiPriorityTarget:
         y_min: float | Tensor | None = None,
         y_max: float | Tensor | None = None,
         cost: Sequence[float] | Tensor | None = None,
-        minimum_move: Sequence[int] = (),
+        minimum_move: Iterable[int] = (),
         J_min: float = 0.0,
         economic_weight: float = 1.0,
     ) -> None:
@@ -168,26 +220,24 @@ class MultiPriorityTarget:
         self.model, self.ny, self.nu = model, ny, nu
         self.G = model.steady_gain("u").detach().cpu().double().numpy()
         inf = float("inf")
-        self.u_min = _vec(u_min, nu, "u_min", -inf)
-        self.u_max = _vec(u_max, nu, "u_max", inf)
-        if bool((self.u_min > self.u_max).any()):
-            raise InputError(f"u_min must not exceed u_max (got {self.u_min} > {self.u_max})")
+        self.u_min, self.u_max = _bounds(u_min, u_max, nu, "u")
         self.du_max = _vec(du_ss_max, nu, "du_ss_max", inf)
         if bool((self.du_max < 0).any()):
-            raise InputError("du_ss_max must be non-negative")
-        self.y_min = _vec(y_min, ny, "y_min", -inf)
-        self.y_max = _vec(y_max, ny, "y_max", inf)
-        if bool((self.y_min > self.y_max).any()):
-            raise InputError(f"y_min must not exceed y_max (got {self.y_min} > {self.y_max})")
+            raise InputError(f"du_ss_max must be non-negative, got {self.du_max.tolist()}")
+        self.y_min, self.y_max = _bounds(y_min, y_max, ny, "y")
         self.h = _vec(cost, nu, "cost", 0.0)
-        self.mm = sorted({int(i) for i in minimum_move})
-        if any(not 0 <= i < nu for i in self.mm):
-            raise InputError(f"minimum_move: MV indices must lie in 0..{nu - 1}, got {self.mm}")
-        if not economic_weight >= 0:
-            raise InputError(f"economic_weight must be non-negative, got {economic_weight}")
-        self.J_min, self.w_J = float(J_min), float(economic_weight)
-        if not rows:
-            raise InputError("rows: give at least one soft row")
+        if not np.isfinite(self.h).all():
+            raise InputError(f"cost must be finite, got {self.h.tolist()}")
+        self.mm = _indices(minimum_move, nu)
+        self.J_min = _real(J_min, "J_min")
+        self.w_J = _real(economic_weight, "economic_weight")
+        if not math.isfinite(self.J_min):
+            raise InputError(f"J_min must be finite, got {self.J_min}")
+        if not (math.isfinite(self.w_J) and self.w_J >= 0):
+            raise InputError(f"economic_weight must be finite and non-negative, got {self.w_J}")
+        if isinstance(rows, str | bytes) or not isinstance(rows, Sequence) or not rows:
+            raise InputError(f"rows: give a non-empty list of soft rows (TargetRow), got {rows!r}")
+        rows = [_check_row(r, f"rows[{k}]") for k, r in enumerate(rows)]
         a, kinds, values, concern, prio, names = [], [], [], [], [], []
         for k, r in enumerate(rows):
             name, idx = r.variable
@@ -356,17 +406,8 @@ class MultiPriorityTarget:
             InfeasibleError: the hard constraints admit no steady state.
             ShapeError: wrong input shapes.
         """
-        ny, nu = self.ny, self.nu
-        y_t = torch.as_tensor(y_ss)
-        u_t = torch.as_tensor(u_prev)
-        if y_t.shape != (ny,):
-            raise ShapeError(f"y_ss: expected shape ({ny},), got {tuple(y_t.shape)}")
-        if u_t.shape != (nu,):
-            raise ShapeError(f"u_prev: expected shape ({nu},), got {tuple(u_t.shape)}")
-        y0 = y_t.detach().cpu().double().numpy()
-        up = u_t.detach().cpu().double().numpy()
-        if not (np.isfinite(y0).all() and np.isfinite(up).all()):
-            raise InputError("y_ss and u_prev must be finite")
+        nu = self.nu
+        y0, up = _finite_vector(y_ss, self.ny, "y_ss"), _finite_vector(u_prev, nu, "u_prev")
         lo, hi = self._box(up)
         self._check_hard(y0, up, lo, hi)
         F, g = self._affine(y0, up)

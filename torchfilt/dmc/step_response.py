@@ -30,8 +30,8 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
-from torchfilt.dmc.transfer import TransferEntry, as_entry
-from torchfilt.exceptions import ShapeError
+from torchfilt.dmc.transfer import TransferEntry, _positive_int, as_entry
+from torchfilt.exceptions import InputError, InputTypeError, ModelError, ShapeError
 from torchfilt.models import LinearModel, StateSpaceModel
 
 __all__ = ["DiscreteModel", "StepResponseModel"]
@@ -75,8 +75,8 @@ class _StateSpaceAdapter:
     def __init__(self, model: StateSpaceModel) -> None:
         meas = model.measurement
         if isinstance(meas, LinearModel) and meas.D is not None:
-            raise ValueError(
-                "the model's measurement has a feed-through matrix D (y_k depends on u_k); a "
+            raise ModelError(
+                "model: the measurement has a feed-through matrix D (y_k depends on u_k); a "
                 "step-response model needs strictly proper channels (S_0 = 0)"
             )
         self.model = model
@@ -96,7 +96,7 @@ def _as_discrete_model(model: Any) -> DiscreteModel:
         return _FunctionPair(model[0], model[1])
     if isinstance(model, DiscreteModel):
         return model
-    raise TypeError(
+    raise InputTypeError(
         "model must be a torchfilt StateSpaceModel, an object with step(x, w) and output(x) "
         f"methods (DiscreteModel), or a pair (step, output) of callables; got {type(model).__name__}"
     )
@@ -161,7 +161,7 @@ class StepResponseModel:
 
         Raises:
             ShapeError: wrong ranks, or ``Sv``/``integrating`` inconsistent with ``Su``.
-            ValueError: non-finite coefficients or a horizon below 1.
+            InputError: non-finite coefficients or a horizon below 1.
         """
         Su_t = torch.as_tensor(Su, dtype=dtype)
         if Su_t.dim() != 3:
@@ -182,7 +182,7 @@ class StepResponseModel:
                 )
         for name, S in (("Su", Su_t), ("Sv", Sv_t)):
             if not bool(torch.isfinite(S).all()):
-                raise ValueError(f"{name} contains non-finite coefficients")
+                raise InputError(f"{name} contains non-finite coefficients")
         if integrating is None:
             integ = torch.zeros(ny, dtype=torch.bool)
         else:
@@ -193,10 +193,9 @@ class StepResponseModel:
                 )
         if horizon is None:
             horizon = L - 1 if bool(integ.any()) and L >= 2 else L
-        if int(horizon) != horizon or horizon < 1:
-            raise ValueError(f"horizon must be a positive integer, got {horizon}")
+        horizon = _positive_int(horizon, "horizon")
         if dt is not None and not dt > 0:
-            raise ValueError(f"dt (sampling period) must be positive, got {dt}")
+            raise InputError(f"dt (sampling period) must be positive, got {dt}")
         return cls(Su_t, Sv_t, integ, int(horizon), None if dt is None else float(dt))
 
     @classmethod
@@ -231,9 +230,8 @@ class StepResponseModel:
             The model, with ``L = horizon + 1`` coefficients.
         """
         if not dt > 0:
-            raise ValueError(f"dt (sampling period) must be positive, got {dt}")
-        if int(horizon) != horizon or horizon < 1:
-            raise ValueError(f"horizon must be a positive integer, got {horizon}")
+            raise InputError(f"dt (sampling period) must be positive, got {dt}")
+        horizon = _positive_int(horizon, "horizon")
         ent_u = _entries(Gu, "Gu")
         ny = len(ent_u)
         ent_v = _entries(Gv, "Gv") if Gv is not None else [[] for _ in range(ny)]
@@ -261,7 +259,7 @@ class StepResponseModel:
                 raise ShapeError(f"integrating: expected {ny} flags (one per CV), got {len(integ)}")
             wrong = [i for i in range(ny) if natural[i] and not integ[i]]
             if wrong:
-                raise ValueError(
+                raise InputError(
                     f"integrating: CV(s) {wrong} have integrating (IPDT) entries and cannot use the "
                     "stable layout"
                 )
@@ -312,7 +310,7 @@ class StepResponseModel:
 
         Raises:
             ShapeError: ``x0``/``w0``/``nu`` inconsistent, or the model returns wrong shapes.
-            ValueError: a linear measurement with a feed-through matrix ``D`` (not strictly proper).
+            ModelError: a linear measurement with a feed-through matrix ``D`` (not strictly proper).
         """
         dm = _as_discrete_model(model)
         x0 = torch.as_tensor(x0)
@@ -327,11 +325,10 @@ class StepResponseModel:
         nw = w0.shape[0]
         if not 1 <= nu <= nw:
             raise ShapeError(f"nu = {nu} must lie in 1..{nw} (the length of w0)")
-        if int(horizon) != horizon or horizon < 1:
-            raise ValueError(f"horizon must be a positive integer, got {horizon}")
+        horizon = _positive_int(horizon, "horizon")
         amp = torch.as_tensor(amplitude, dtype=x0.dtype).expand(nw)
         if not bool((amp != 0).all() & torch.isfinite(amp).all()):
-            raise ValueError("amplitude must be finite and non-zero for every input")
+            raise InputError("amplitude must be finite and non-zero for every input")
         w = w0.expand(nw + 1, nw).clone()
         w[1:] += torch.diag(amp)
         x = x0.expand(nw + 1, -1).clone()
@@ -396,9 +393,9 @@ class StepResponseModel:
             Coefficients, shape ``(count, ny, nu)`` or ``(count, ny, nv)``.
         """
         if channel not in ("u", "v"):
-            raise ValueError(f"channel must be 'u' or 'v', got {channel!r}")
+            raise InputError(f"channel must be 'u' or 'v', got {channel!r}")
         if count < 1:
-            raise ValueError(f"count must be >= 1, got {count}")
+            raise InputError(f"count must be >= 1, got {count}")
         N = self.horizon
         S = _extend(self.Su if channel == "u" else self.Sv, N + 1, self.integrating)[: N + 1]
         stable = torch.cat([S[:N], S[N - 1 : N]], dim=0)  # S_{N+1} := S_N
@@ -428,12 +425,12 @@ class StepResponseModel:
 
 def _entries(G: Any, name: str) -> list[list[TransferEntry | None]]:
     if isinstance(G, str | bytes) or not isinstance(G, Sequence):
-        raise TypeError(f"{name} must be a list of rows (one per CV), got {type(G).__name__}")
+        raise InputTypeError(f"{name} must be a list of rows (one per CV), got {type(G).__name__}")
     rows: list[list[TransferEntry | None]] = []
     width = None
     for i, row in enumerate(G):
         if isinstance(row, str | bytes) or not isinstance(row, Sequence):
-            raise TypeError(
+            raise InputTypeError(
                 f"{name}[{i}] must be a row (list) of entries, got {type(row).__name__}"
             )
         if width is None:

@@ -25,15 +25,17 @@ stable CVs are supported (an integrating CV has no steady-state level to target)
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any, Literal, NamedTuple, Protocol
 
 import torch
 from torch import Tensor
 
+from torchfilt.dmc.controller import _real_tensor, _vector
 from torchfilt.dmc.qp import solve_qp
 from torchfilt.dmc.step_response import StepResponseModel
-from torchfilt.exceptions import ShapeError
+from torchfilt.exceptions import InfeasibleError, InputError, InputTypeError, ShapeError
 
 __all__ = ["FixedTarget", "SteadyStateTarget", "Target", "TargetRow", "WeightedTarget"]
 
@@ -71,7 +73,85 @@ class FixedTarget:
         return Target(y.clone(), u.clone())
 
 
-class TargetRow(NamedTuple):
+class _TargetRowFields(NamedTuple):
+    variable: tuple[str, Any]
+    kind: Literal["ideal", "lower", "upper", "hold"]
+    value: float
+    concern: float
+    priority: int
+
+
+#: The kinds a :class:`TargetRow` may have.
+_ROW_KINDS = ("ideal", "lower", "upper", "hold")
+
+
+def _real(value: Any, name: str) -> float:
+    """``value`` as a float; an InputTypeError naming ``name`` unless it is a real scalar."""
+    bad = isinstance(value, str | bytes | bool) or getattr(value, "ndim", 0) != 0
+    if not bad:
+        try:
+            return float(value)
+        except (TypeError, ValueError, RuntimeError):
+            pass
+    raise InputTypeError(f"{name} must be a real number, got {value!r}")
+
+
+def _check_row(row: Any, where: str) -> TargetRow:
+    """Validate a target row (a :class:`TargetRow` or a 5-tuple of its fields).
+
+    Checks what no model makes valid: the variable's form, the kind, and that ``value`` (unless
+    the row is a ``"hold"`` row, whose value is ignored), ``concern`` and ``priority`` are finite
+    real numbers. What depends on the target (index ranges, the weights' length, ``concern > 0``,
+    an integer ``priority >= 1``) is checked by the target.
+
+    Args:
+        row: the row.
+        where: how the message names the row (``"TargetRow"``, ``"rows[2]"``).
+
+    Returns:
+        The row as a :class:`TargetRow` (its fields unchanged).
+
+    Raises:
+        InputError: a non-finite number or an unknown kind or variable (naming the field).
+        InputTypeError: a field of the wrong type.
+    """
+    if isinstance(row, str | bytes) or not isinstance(row, Sequence) or len(row) != 5:
+        raise InputTypeError(
+            f"{where} must be a TargetRow(variable, kind, value, concern, priority), got {row!r}"
+        )
+    variable, kind, value, concern, priority = row
+    if isinstance(variable, str | bytes) or not isinstance(variable, Sequence):
+        raise InputTypeError(f"{where}.variable must be a pair (name, index), got {variable!r}")
+    if len(variable) != 2 or variable[0] not in ("y", "u", "lin"):
+        raise InputError(
+            f"{where}.variable must be ('y', j), ('u', i) or ('lin', weights); got {variable!r}"
+        )
+    name, idx = variable
+    if name in ("y", "u") and (isinstance(idx, bool) or not isinstance(idx, int) or idx < 0):
+        raise InputError(
+            f"{where}.variable: the index of {name!r} must be an int >= 0, got {idx!r}"
+        )
+    if name == "lin":
+        try:
+            w = torch.as_tensor(idx, dtype=torch.float64)
+        except (TypeError, ValueError, RuntimeError):
+            raise InputTypeError(
+                f"{where}.variable: the linear weights must be a vector of numbers, got {idx!r}"
+            ) from None
+        if w.dim() != 1 or not bool(torch.isfinite(w).all()):
+            raise InputError(
+                f"{where}.variable: the linear weights must be a finite vector, got {idx!r}"
+            )
+    if not isinstance(kind, str) or kind not in _ROW_KINDS:
+        raise InputError(f"{where}.kind must be ideal/lower/upper/hold, got {kind!r}")
+    for field, v in (("value", value), ("concern", concern), ("priority", priority)):
+        x = _real(v, f"{where}.{field}")
+        if not math.isfinite(x) and not (field == "value" and kind == "hold"):
+            raise InputError(f"{where}.{field} must be finite, got {x}")
+    return row if isinstance(row, TargetRow) else tuple.__new__(TargetRow, tuple(row))
+
+
+class TargetRow(_TargetRowFields):
     """One row of a target specification.
 
     Attributes:
@@ -82,13 +162,26 @@ class TargetRow(NamedTuple):
         value: the ideal value or bound (ignored for ``"hold"``).
         concern: equal-concern error (the violation that costs one unit at this priority), ``> 0``.
         priority: 1 is the highest; larger numbers are less important.
+
+    Raises:
+        InputError: at construction, a non-finite ``value`` (except for ``"hold"``), ``concern``
+            or ``priority``, an unknown ``kind`` or a malformed ``variable`` (naming the field).
+        InputTypeError: a field of the wrong type.
     """
 
-    variable: tuple[str, Any]
-    kind: Literal["ideal", "lower", "upper", "hold"]
-    value: float
-    concern: float
-    priority: int
+    __slots__ = ()
+
+    def __new__(
+        cls,
+        variable: tuple[str, Any],
+        kind: Literal["ideal", "lower", "upper", "hold"],
+        value: float,
+        concern: float,
+        priority: int,
+    ) -> TargetRow:
+        fields = (variable, kind, value, concern, priority)
+        _check_row(fields, "TargetRow")
+        return super().__new__(cls, *fields)
 
 
 class WeightedTarget:
@@ -111,23 +204,26 @@ class WeightedTarget:
         u_max: float | Tensor,
         du_ss_max: float | Tensor | None = None,
     ) -> None:
+        if not isinstance(model, StepResponseModel):
+            raise InputTypeError(f"model must be a StepResponseModel, got {type(model).__name__}")
         if bool(model.integrating.any()):
-            raise ValueError(
-                "WeightedTarget supports stable CVs only; CVs "
+            raise InputError(
+                "model: WeightedTarget supports stable CVs only; CVs "
                 f"{model.integrating.nonzero().squeeze(-1).tolist()} are integrating"
             )
         self.model = model
         ny, nu, dt = model.ny, model.nu, model.dtype
         self.G = model.steady_gain("u")
-        self.u_min = torch.as_tensor(u_min, dtype=dt).expand(nu).clone()
-        self.u_max = torch.as_tensor(u_max, dtype=dt).expand(nu).clone()
+        self.u_min = _vector(u_min, nu, "u_min", dt)
+        self.u_max = _vector(u_max, nu, "u_max", dt)
         if bool((self.u_min > self.u_max).any()):
-            raise ValueError("u_min must not exceed u_max")
-        self.du_ss_max = (
-            None if du_ss_max is None else torch.as_tensor(du_ss_max, dtype=dt).expand(nu).clone()
-        )
-        if not rows:
-            raise ValueError("rows: give at least one target row")
+            raise InputError(f"u_min must not exceed u_max (got {self.u_min} > {self.u_max})")
+        self.du_ss_max = None if du_ss_max is None else _vector(du_ss_max, nu, "du_ss_max", dt)
+        if self.du_ss_max is not None and bool((self.du_ss_max < 0).any()):
+            raise InputError(f"du_ss_max must be non-negative, got {self.du_ss_max.tolist()}")
+        if isinstance(rows, str | bytes) or not isinstance(rows, Sequence) or not rows:
+            raise InputError(f"rows: give a non-empty list of TargetRow, got {rows!r}")
+        rows = [_check_row(r, f"rows[{k}]") for k, r in enumerate(rows)]
         pmax = max(r.priority for r in rows)
         self.rows = list(rows)
         a, kinds, values, weights = [], [], [], []
@@ -146,16 +242,16 @@ class WeightedTarget:
                     )
                 vec = w
             else:
-                raise ValueError(
+                raise InputError(
                     f"rows[{k}].variable must be ('y', 0..{ny - 1}), ('u', 0..{nu - 1}) or "
                     f"('lin', weights); got {r.variable!r}"
                 )
             if r.kind not in ("ideal", "lower", "upper", "hold"):
-                raise ValueError(f"rows[{k}].kind must be ideal/lower/upper/hold, got {r.kind!r}")
+                raise InputError(f"rows[{k}].kind must be ideal/lower/upper/hold, got {r.kind!r}")
             if not r.concern > 0:
-                raise ValueError(f"rows[{k}].concern must be positive, got {r.concern}")
+                raise InputError(f"rows[{k}].concern must be positive, got {r.concern}")
             if int(r.priority) != r.priority or r.priority < 1:
-                raise ValueError(f"rows[{k}].priority must be a positive integer, got {r.priority}")
+                raise InputError(f"rows[{k}].priority must be a positive integer, got {r.priority}")
             a.append(vec)
             kinds.append(r.kind)
             values.append(float(r.value))
@@ -170,12 +266,15 @@ class WeightedTarget:
     def __call__(self, y_ss: Tensor, u_prev: Tensor) -> Target:
         """Target from the steady-state open-loop prediction ``(ny,)`` and ``u(k-1)`` ``(nu,)``."""
         ny, nu, dt = self.model.ny, self.model.nu, self.model.dtype
-        y_ss = torch.as_tensor(y_ss, dtype=dt)
-        u_prev = torch.as_tensor(u_prev, dtype=dt)
+        y_ss = _real_tensor(y_ss, "y_ss", dt)
+        u_prev = _real_tensor(u_prev, "u_prev", dt)
         if y_ss.shape != (ny,):
             raise ShapeError(f"y_ss: expected shape ({ny},), got {tuple(y_ss.shape)}")
         if u_prev.shape != (nu,):
             raise ShapeError(f"u_prev: expected shape ({nu},), got {tuple(u_prev.shape)}")
+        for name, t in (("y_ss", y_ss), ("u_prev", u_prev)):
+            if not bool(torch.isfinite(t).all()):
+                raise InputError(f"{name} must be finite, got {t.tolist()}")
         # every row is affine in u_ss: a^T [y; u] = a^T [d + G u; u] = (a_y^T G + a_u^T) u + a_y^T d
         d = y_ss - self.G @ u_prev
         a_y, a_u = self._a[:, :ny], self._a[:, ny:]
@@ -221,7 +320,7 @@ class WeightedTarget:
         b = torch.stack(rhs) if rhs else None
         res = solve_qp(Hq, f, A, b, lb=lb, ub=ub)
         if not bool(res.converged):
-            raise RuntimeError(
+            raise InfeasibleError(
                 "the steady-state target QP did not converge; check that u(k-1) lies within "
                 "[u_min, u_max]"
             )

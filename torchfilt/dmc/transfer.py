@@ -27,6 +27,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchfilt.exceptions import InputError, InputTypeError
+
 __all__ = ["FOPDT", "IPDT", "TransferEntry", "as_entry"]
 
 
@@ -34,12 +36,29 @@ def _check_number(value: float, name: str, *, nonneg: bool) -> float:
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise TypeError(f"{name} must be a real number, got {type(value).__name__}") from None
+        raise InputTypeError(f"{name} must be a real number, got {type(value).__name__}") from None
     if not math.isfinite(v):
-        raise ValueError(f"{name} must be finite, got {v}")
+        raise InputError(f"{name} must be finite, got {v}")
     if nonneg and v < 0:
-        raise ValueError(f"{name} must be non-negative, got {v}")
+        raise InputError(f"{name} must be non-negative, got {v}")
     return v
+
+
+def _positive_int(value: object, name: str) -> int:
+    """``value`` as an ``int >= 1`` (an integral float or a 0-d tensor is accepted).
+
+    Raises:
+        InputError: naming ``name``, for anything else (a fraction, NaN, a string, ``< 1``).
+    """
+    v = math.nan
+    if not isinstance(value, str | bytes | bool):
+        try:
+            v = float(value)  # type: ignore[arg-type]
+        except (TypeError, ValueError, RuntimeError):
+            pass
+    if not (math.isfinite(v) and v.is_integer() and v >= 1):
+        raise InputError(f"{name} must be a positive integer, got {value!r}")
+    return int(v)
 
 
 @dataclass(frozen=True)
@@ -65,8 +84,8 @@ class FOPDT:
             self, "theta", _check_number(self.theta, "theta (dead time)", nonneg=True)
         )
         if self.tau == 0.0 and self.theta == 0.0 and self.K != 0.0:
-            raise ValueError(
-                "FOPDT with tau = 0 and theta = 0 is a direct feed-through K; a step-response "
+            raise InputError(
+                "FOPDT: tau = 0 with theta = 0 is a direct feed-through K; a step-response "
                 "(DMC) model needs every channel to be strictly proper (S_0 = 0)"
             )
 
@@ -113,11 +132,13 @@ TransferEntry = FOPDT | IPDT
 
 
 def as_entry(value: object, name: str) -> TransferEntry | None:
-    """Accept an entry, ``None`` or ``0`` (no coupling); anything else is a clear ``TypeError``."""
+    """Accept an entry, ``None`` or ``0`` (no coupling); anything else is an :class:`~torchfilt.exceptions.InputTypeError`."""
     if value is None:
         return None
     if isinstance(value, FOPDT | IPDT):
         return value
     if isinstance(value, int | float) and not isinstance(value, bool) and value == 0:
         return None
-    raise TypeError(f"{name} must be an FOPDT, an IPDT, or None/0 for no coupling; got {value!r}")
+    raise InputTypeError(
+        f"{name} must be an FOPDT, an IPDT, or None/0 for no coupling; got {value!r}"
+    )

@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from torchfilt.exceptions import InputError
 from torchfilt.io.atomic import sha256_file
 from torchfilt.io.errors import DataError
 from torchfilt.io.manifest import SPLITS, Manifest
@@ -45,7 +46,7 @@ class Dataset:
     def split(self, name: str) -> list[Recording]:
         """The recordings of one split (``"train"``, ``"validation"`` or ``"test"``)."""
         if name not in SPLITS:
-            raise ValueError(f"split must be one of {SPLITS}, got {name!r}")
+            raise InputError(f"split must be one of {SPLITS}, got {name!r}")
         return [r for r, s in zip(self.recordings, self.splits, strict=True) if s == name]
 
     @property

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from torchfilt.exceptions import InputError
 from torchfilt.io.atomic import atomic_write_text
 from torchfilt.io.errors import DataError
 
@@ -70,7 +72,7 @@ class Manifest:
     def names(self, role: str) -> list[str]:
         """Names of the channels with ``role``, in order."""
         if role not in ROLES:
-            raise ValueError(f"role must be one of {ROLES}, got {role!r}")
+            raise InputError(f"role must be one of {ROLES}, got {role!r}")
         return [c.name for c in self.channels if c.role == role]
 
     def units(self, role: str) -> list[str]:
@@ -85,7 +87,15 @@ class Manifest:
     # ------------------------------------------------------------------ (de)serialisation
     @classmethod
     def from_dict(cls, d: Any, *, path: str | Path | None = None) -> Manifest:
-        """Build and validate a manifest from parsed JSON."""
+        """Build and validate a manifest from parsed JSON.
+
+        Every value must have its JSON type (a number is not read as a name, a list not as a file
+        name): what is given is what the :class:`Manifest` holds. Unknown top-level keys are kept
+        in :attr:`extra`; unknown keys inside ``time``, a channel or a recording are refused.
+
+        Raises:
+            DataError: naming the file (``path``) and the key that is missing or invalid.
+        """
 
         def fail(msg: str) -> DataError:
             return DataError(msg, path=path)
@@ -98,54 +108,36 @@ class Manifest:
         for key in ("name", "sample_time", "channels"):
             if key not in d:
                 raise fail(f"missing key {key!r}")
-        try:
-            dt = float(d["sample_time"])
-        except (TypeError, ValueError):
-            raise fail(f"sample_time must be a number, got {d['sample_time']!r}") from None
+        st = d["sample_time"]
+        if isinstance(st, bool) or not isinstance(st, int | float):
+            raise fail(f"sample_time must be a number, got {st!r}")
+        dt = float(st)
         if not (math.isfinite(dt) and dt > 0):
             raise fail(f"sample_time must be a finite positive number, got {dt}")
         time = d.get("time", {})
-        time_column = str(time.get("name", "time")) if isinstance(time, dict) else "time"
-        time_unit = str(time.get("unit", "s")) if isinstance(time, dict) else "s"
-        if not isinstance(d["channels"], list) or not d["channels"]:
-            raise fail("channels must be a non-empty list")
-        channels = []
-        for i, c in enumerate(d["channels"]):
-            if not isinstance(c, dict) or "name" not in c or "role" not in c:
-                raise fail(f"channels[{i}] must be an object with 'name' and 'role'")
-            if c["role"] not in ROLES:
-                raise fail(
-                    f"channels[{i}] ({c['name']!r}): role must be one of {ROLES}, got {c['role']!r}"
-                )
-            channels.append(Channel(str(c["name"]), str(c["role"]), str(c.get("unit", ""))))
+        if not isinstance(time, dict):
+            raise fail(f"time must be an object with 'name' and 'unit', got {time!r}")
+        _known_keys(time, ("name", "unit"), "time", fail)
+        time_column = _text(time.get("name", "time"), "time.name", fail, empty=False)
+        time_unit = _text(time.get("unit", "s"), "time.unit", fail)
+        channels = _channels(d["channels"], fail)
         names = [time_column] + [c.name for c in channels]
         dup = {n for n in names if names.count(n) > 1}
         if dup:
             raise fail(f"duplicate column names {sorted(dup)}")
-        recs = []
-        for i, r in enumerate(d.get("recordings", [])):
-            if isinstance(r, str):
-                r = {"file": r}
-            if not isinstance(r, dict) or "file" not in r:
-                raise fail(f"recordings[{i}] must be a file name or an object with 'file'")
-            split = str(r.get("split", "train"))
-            if split not in SPLITS:
-                raise fail(
-                    f"recordings[{i}] ({r['file']!r}): split must be one of {SPLITS}, got {split!r}"
-                )
-            recs.append(RecordingEntry(str(r["file"]), split))
+        recs = _recordings(d.get("recordings", []), fail)
         files = [r.file for r in recs]
         if len(set(files)) != len(files):
             raise fail("a recording is listed twice")
         known = {"schema", "name", "sample_time", "time", "channels", "recordings", "description"}
         return cls(
-            name=str(d["name"]),
+            name=_text(d["name"], "name", fail),
             sample_time=dt,
             channels=tuple(channels),
             recordings=tuple(recs),
             time_column=time_column,
             time_unit=time_unit,
-            description=str(d.get("description", "")),
+            description=_text(d.get("description", ""), "description", fail),
             extra={k: v for k, v in d.items() if k not in known},
         )
 
@@ -177,3 +169,54 @@ class Manifest:
     def save(self, path: str | Path) -> Path:
         """Write the manifest atomically."""
         return atomic_write_text(path, json.dumps(self.to_dict(), indent=2) + "\n")
+
+
+def _text(value: Any, key: str, fail: Callable[[str], DataError], *, empty: bool = True) -> str:
+    """``value`` if it is a string (non-empty unless ``empty``); a DataError naming ``key``."""
+    if not isinstance(value, str):
+        raise fail(f"{key} must be a string, got {value!r}")
+    if not empty and not value:
+        raise fail(f"{key} must be a non-empty string")
+    return value
+
+
+def _known_keys(
+    obj: dict[str, Any], keys: tuple[str, ...], where: str, fail: Callable[[str], DataError]
+) -> None:
+    unknown = sorted(str(k) for k in obj if k not in keys)
+    if unknown:
+        raise fail(f"{where}: unknown key(s) {unknown} (known: {', '.join(keys)})")
+
+
+def _channels(given: Any, fail: Callable[[str], DataError]) -> list[Channel]:
+    if not isinstance(given, list) or not given:
+        raise fail(f"channels must be a non-empty list, got {given!r}")
+    channels = []
+    for i, c in enumerate(given):
+        if not isinstance(c, dict) or "name" not in c or "role" not in c:
+            raise fail(f"channels[{i}] must be an object with 'name' and 'role'")
+        _known_keys(c, ("name", "role", "unit"), f"channels[{i}]", fail)
+        name = _text(c["name"], f"channels[{i}].name", fail, empty=False)
+        if c["role"] not in ROLES or not isinstance(c["role"], str):
+            raise fail(f"channels[{i}] ({name!r}): role must be one of {ROLES}, got {c['role']!r}")
+        unit = _text(c.get("unit", ""), f"channels[{i}].unit", fail)
+        channels.append(Channel(name, c["role"], unit))
+    return channels
+
+
+def _recordings(given: Any, fail: Callable[[str], DataError]) -> list[RecordingEntry]:
+    if not isinstance(given, list):
+        raise fail(f"recordings must be a list, got {given!r}")
+    recs = []
+    for i, r in enumerate(given):
+        if isinstance(r, str):
+            r = {"file": r}
+        if not isinstance(r, dict) or "file" not in r:
+            raise fail(f"recordings[{i}] must be a file name or an object with 'file'")
+        _known_keys(r, ("file", "split"), f"recordings[{i}]", fail)
+        file = _text(r["file"], f"recordings[{i}].file", fail, empty=False)
+        split = r.get("split", "train")
+        if split not in SPLITS or not isinstance(split, str):
+            raise fail(f"recordings[{i}] ({file!r}): split must be one of {SPLITS}, got {split!r}")
+        recs.append(RecordingEntry(file, split))
+    return recs

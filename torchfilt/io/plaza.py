@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from torchfilt.exceptions import InputError, MissingDependencyError, MissingFileError
 from torchfilt.io.manifest import Channel
 from torchfilt.io.recording import Recording
 
@@ -59,15 +60,17 @@ class PlazaData:
 def plaza_path(which: int = 2) -> Path:
     """Path of ``Plaza{which}_.mat`` inside the installed gtsam package."""
     if which not in (1, 2):
-        raise ValueError(f"which must be 1 or 2, got {which}")
+        raise InputError(f"which must be 1 or 2, got {which!r}")
     spec = importlib.util.find_spec("gtsam")
     if spec is None or spec.origin is None:
-        raise ImportError(
+        raise MissingDependencyError(
             "the Plaza data ships with the gtsam wheel: pip install gtsam (or torchfilt[plaza])"
         )
     path = Path(spec.origin).parent / "Data" / f"Plaza{which}_.mat"
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: not found in the installed gtsam package")
+        raise MissingFileError(
+            f"{path}: not found in the installed gtsam package (reinstall it: pip install gtsam)"
+        )
     return path
 
 
@@ -86,11 +89,11 @@ def load_plaza(which: int = 2, dt: float = 0.1) -> PlazaData:
         A :class:`PlazaData`.
     """
     if not dt > 0:
-        raise ValueError(f"dt must be positive, got {dt}")
+        raise InputError(f"dt must be positive, got {dt}")
     try:
         from scipy.io import loadmat
     except ImportError:
-        raise ImportError(
+        raise MissingDependencyError(
             "load_plaza needs scipy: pip install scipy (or torchfilt[plaza])"
         ) from None
     path = plaza_path(which)

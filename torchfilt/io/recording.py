@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchfilt.exceptions import InputError, MissingKeyError
 from torchfilt.io.atomic import atomic_write, atomic_write_text
 from torchfilt.io.errors import DataError
 from torchfilt.io.manifest import ROLES, Channel, Manifest
@@ -60,21 +61,21 @@ class Recording:
         for i, c in enumerate(self.channels):
             if c.name == name:
                 return self.data[:, i]
-        raise KeyError(
+        raise MissingKeyError(
             f"{self.name}: no channel {name!r}; channels are {[c.name for c in self.channels]}"
         )
 
     def names(self, role: str) -> list[str]:
         """Channel names with ``role``."""
         if role not in ROLES:
-            raise ValueError(f"role must be one of {ROLES}, got {role!r}")
+            raise InputError(f"role must be one of {ROLES}, got {role!r}")
         return [c.name for c in self.channels if c.role == role]
 
     def role(self, role: str) -> np.ndarray:
         """Columns with ``role``, shape ``(T, k)`` (``k`` may be 0)."""
         idx = [i for i, c in enumerate(self.channels) if c.role == role]
         if role not in ROLES:
-            raise ValueError(f"role must be one of {ROLES}, got {role!r}")
+            raise InputError(f"role must be one of {ROLES}, got {role!r}")
         return self.data[:, idx]
 
     def tensor(self, role: str, dtype: torch.dtype = torch.float64) -> Tensor:

@@ -57,7 +57,7 @@ class CovarianceParameter(nn.Module):
     dim: int
 
     def forward(self) -> Tensor:  # pragma: no cover - abstract
-        raise NotImplementedError
+        raise NotImplementedError  # internal: not a user error (each subclass defines forward)
 
     @property
     def value(self) -> Tensor:

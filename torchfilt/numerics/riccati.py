@@ -16,7 +16,8 @@ rank test on every eigenvalue of ``A`` on or outside the unit circle. A failure 
 :class:`~torchfilt.exceptions.NotDetectableError` naming the mode; garbage is never returned.
 
 The equation is solved by ``scipy.linalg.solve_discrete_are`` (Laub's generalised Schur method) on
-the dual pair ``(A^T, C^T)``, one problem at a time over a batch. Its only caller in the library
+the dual pair ``(A^T, C^T)``, one problem at a time over a batch, followed by one Newton (Kleinman)
+refinement step (kept only where it lowers the residual). Its only caller in the library
 computes one gain per predictor on small float64 CPU problems, so a batched hand-written solver bought
 nothing there; the result is detached (not differentiable). Around it this module keeps what scipy
 does not do: the PBH checks that turn a non-detectable or non-stabilisable pair into a clear error
@@ -203,11 +204,13 @@ def solve_dare(
     *,
     check: bool = True,
 ) -> Tensor:
-    """Stabilising solution of the filter-form DARE (by ``scipy.linalg.solve_discrete_are``).
+    """Stabilising solution of the filter-form DARE (by ``scipy.linalg.solve_discrete_are`` and one
+    Newton refinement step).
 
         Sigma = A [Sigma - Sigma C^T (C Sigma C^T + R)^{-1} C Sigma] A^T + Q
 
-    (equal to ``scipy.linalg.solve_discrete_are(A.T, C.T, Q, R)``).
+    (equal to ``scipy.linalg.solve_discrete_are(A.T, C.T, Q, R)``, refined to a residual at
+    rounding level).
 
     Args:
         A: transition matrices, shape ``(..., n, n)``.
@@ -252,8 +255,44 @@ def _scipy_dare(A: Tensor, C: Tensor, Q: Tensor, R: Tensor) -> Tensor:
                 "unit circle is undetectable or receives no process noise, within numerical "
                 "precision)"
             ) from None
-        out.append(0.5 * (X + X.T))
+        out.append(_newton_refine(As[i], Cs[i], Qs[i], Rs[i], 0.5 * (X + X.T)))
     return torch.as_tensor(np.stack(out), dtype=A.dtype, device=A.device).reshape(*batch, n, n)
+
+
+def _dare_residual(
+    A: np.ndarray, C: np.ndarray, Q: np.ndarray, R: np.ndarray, X: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``F(X) = A X A^T - L S L^T + Q - X`` (``S = C X C^T + R``, ``L = A X C^T S^{-1}``, the
+    predictor gain) and the closed loop ``A - L C``."""
+    S = C @ X @ C.T + R
+    L = np.linalg.solve(S, C @ X @ A.T).T
+    F = A @ X @ A.T - L @ S @ L.T + Q - X
+    return 0.5 * (F + F.T), A - L @ C
+
+
+def _newton_refine(
+    A: np.ndarray, C: np.ndarray, Q: np.ndarray, R: np.ndarray, X: np.ndarray
+) -> np.ndarray:
+    """One Newton (Kleinman) step on a DARE solution, kept only if it lowers the residual.
+
+    The Newton correction ``D`` solves the Stein equation ``Acl D Acl^T - D + F(X) = 0`` with the
+    closed loop ``Acl = A - L C`` (stable at the stabilising solution); in this correction form the
+    Stein solver's error scales with ``F(X)``, not with ``X``. scipy's generalised-Schur solution
+    loses accuracy with the condition of the problem (relative residual 1e-10 and gain error
+    ~1e-8 on 300-state step-response realisations); one step brings the residual to rounding.
+    """
+    F, Acl = _dare_residual(A, C, Q, R, X)
+    if not (np.isfinite(F).all() and np.isfinite(Acl).all()):
+        return X
+    try:
+        D = scipy.linalg.solve_discrete_lyapunov(Acl, F)
+    except (np.linalg.LinAlgError, ValueError):
+        return X  # a singular Stein equation: keep the solver's answer (_verify judges it)
+    X1 = X + 0.5 * (D + D.T)
+    F1, _ = _dare_residual(A, C, Q, R, X1)
+    if np.isfinite(F1).all() and np.linalg.norm(F1) < np.linalg.norm(F):
+        return X1
+    return X
 
 
 def _gain(Sigma: Tensor, C: Tensor, R: Tensor) -> tuple[Tensor, Tensor]:

@@ -9,6 +9,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from torch import Tensor
 
+from torchfilt.exceptions import ShapeError
 from torchfilt.plots._util import label, names, to_numpy
 from torchfilt.plots.style import PALETTE, style
 
@@ -49,10 +50,10 @@ def plot_errors(
     arrays = {k: (v[None] if v.ndim == 2 else v) for k, v in arrays.items()}
     shapes = {v.shape[1:] for v in arrays.values()}
     if len(shapes) != 1:
-        raise ValueError(f"all error arrays must share (T, n); got {shapes}")
+        raise ShapeError(f"errors: all error arrays must share (T, n); got {shapes}")
     T, n = next(iter(shapes))
     t = np.arange(T, dtype=float) if times is None else to_numpy(times)
-    sn = names("x", n, state_names)
+    sn = names("x", n, state_names, "state_names")
     un = list(units) if units is not None else [None] * n
     with style():
         fig = Figure(figsize=(8.0, 2.2 * n + 0.5))

@@ -10,6 +10,7 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from torch import Tensor
 
+from torchfilt.exceptions import ShapeError
 from torchfilt.filters import FilterResult, SmootherResult, nis
 from torchfilt.numerics import chi2_quantile
 from torchfilt.plots._util import label, names, to_numpy
@@ -60,11 +61,11 @@ def plot_estimates(
     mean = to_numpy(result.mean)
     cov = to_numpy(result.cov)
     if mean.ndim != 2:
-        raise ValueError(f"plot_estimates takes one sequence: mean (T, n), got {mean.shape}")
+        raise ShapeError(f"result: plot_estimates takes one sequence (T, n), got {mean.shape}")
     T, n = mean.shape
     t = np.arange(T, dtype=float) if times is None else to_numpy(times)
     sd = np.sqrt(np.clip(np.diagonal(cov, axis1=-2, axis2=-1), 0.0, None))
-    sn = names("x", n, state_names)
+    sn = names("x", n, state_names, "state_names")
     un = list(units) if units is not None else [None] * n
     x_true = None if truth is None else to_numpy(truth)
     y = None if measurements is None else to_numpy(measurements)
@@ -137,7 +138,7 @@ def nis_panel(ax: Axes, result: FilterResult, t: np.ndarray, level: float = 0.95
     value, dof = nis(result)
     v, k = to_numpy(value), to_numpy(dof)
     if v.ndim != 1:
-        raise ValueError(f"plot_nis takes one sequence, got NIS of shape {v.shape}")
+        raise ShapeError(f"result: plot_nis takes one sequence, got NIS of shape {v.shape}")
     seen = k > 0
     lo = np.full_like(v, np.nan)
     hi = np.full_like(v, np.nan)

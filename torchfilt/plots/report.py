@@ -9,6 +9,7 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from torch import Tensor
 
+from torchfilt.exceptions import ShapeError
 from torchfilt.filters import FilterResult, SmootherResult
 from torchfilt.plots._util import label, names, to_numpy
 from torchfilt.plots.estimates import Z95, nis_panel
@@ -52,11 +53,16 @@ def plot_recording(
     """
     mean = to_numpy(filtered.mean)
     if mean.ndim != 2:
-        raise ValueError(f"plot_recording takes one sequence: mean (T, n), got {mean.shape}")
+        raise ShapeError(
+            f"filtered: plot_recording takes one sequence, mean (T, n); got {mean.shape}"
+        )
     T, n = mean.shape
     m = filtered.innovation.shape[-1]
     t = np.arange(T, dtype=float) if times is None else to_numpy(times)
-    sn, mn = names("x", n, state_names), names("y", m, measurement_names)
+    sn, mn = (
+        names("x", n, state_names, "state_names"),
+        names("y", m, measurement_names, "measurement_names"),
+    )
     su = list(state_units) if state_units is not None else [None] * n
     mu = list(measurement_units) if measurement_units is not None else [None] * m
     x_true = None if truth is None else to_numpy(truth)
