@@ -9,7 +9,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import DivergenceWarning
+from torchfilt.exceptions import DivergenceWarning, ExecutionError
 from torchfilt.settings import NumericsPath
 
 __all__ = [
@@ -172,7 +172,7 @@ class RecordSink:
     def result(self, observed: Tensor, numerics: NumericsPath | None = None) -> FilterResult:
         """The :class:`FilterResult` of all ``T`` steps (fields not kept are empty)."""
         if self.count != self.steps:
-            raise RuntimeError(f"RecordSink: {self.count} of {self.steps} steps recorded")
+            raise ExecutionError(f"RecordSink: {self.count} of {self.steps} steps recorded")
         if self.graph:
             res = stack_records(self.records, observed, numerics)
             empty = res.mean.new_empty(0)
