@@ -110,7 +110,7 @@ class GaussianFilter(nn.Module):
             step (the step is traced once; on the CPU the loop runs in the generated C++, so one
             or a few sequences pay no Python per step; one compile per recording shape and set of
             ``outputs``). Where the while-loop cannot run (autograd records, or the step does not
-            trace into one graph: :attr:`loop_fallback` says why) it compiles chunks of ``chunk``
+            trace into one graph: ``numerics.fallback`` says why) it compiles chunks of ``chunk``
             steps unrolled into one graph each instead (long first compile), and the result's
             ``numerics.execution`` says ``"compiled-chunks"``. ``"step"`` compiles the per-step
             function only (one compiled call per step); ``True`` (``"auto"``) takes ``"step"``,
