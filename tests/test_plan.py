@@ -202,3 +202,23 @@ def test_constrained_compiled_equals_eager_tightly():
     assert got.numerics.execution == "compiled-step"
     torch.testing.assert_close(got.mean, eager.mean, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(got.cov, eager.cov, rtol=1e-12, atol=1e-12)
+
+
+def test_constrained_filter_keeps_the_parents_contract():
+    """ConstrainedCKF.filter / smooth take the CKF's arguments: ``outputs=`` selects fields,
+    ``path="kalman"`` and ``parallel=True`` are refused (no exact path for a boxed step), and
+    ``path="auto"`` runs the constrained step even for a linear model."""
+    y, kw = _constrained_problem()
+    filt = ConstrainedCKF(reaction.model(), [0.0, 0.0], [100.0, 100.0])
+    full = filt.filter(y, **kw)
+    part = filt.filter(y, **kw, outputs=("mean", "log_likelihood"))
+    assert torch.equal(part.mean, full.mean) and part.cov.numel() == 0
+    for bad in (dict(path="kalman"), dict(parallel=True)):
+        with pytest.raises(ModelError, match="no closed-form Kalman counterpart"):
+            filt.filter(y, **kw, **bad)
+        with pytest.raises(ModelError, match="no closed-form Kalman counterpart"):
+            filt.smooth(y, **kw, **bad)
+    p = make_problem(5, missing=0.0)
+    lin = ConstrainedCKF(_linear(p), -1e6, 1e6)
+    res = lin.filter(t64(p["y"]), t64(p["u"]), x0=t64(p["m0"]), P0=t64(p["P0"]))
+    assert res.numerics.execution == "eager" and res.path == "cubature"

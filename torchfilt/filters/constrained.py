@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from typing import Literal, NamedTuple
 
 import torch
@@ -42,7 +42,7 @@ from torchfilt.cubature.constrained import ThetaReading
 from torchfilt.exceptions import ConvergenceWarning, InputError, ModelError, ShapeError
 from torchfilt.filters.gaussian import FilterState, GaussianFilter
 from torchfilt.filters.inputs import FilterInputs, model_noise
-from torchfilt.filters.plan import PlanOptions
+from torchfilt.filters.plan import Path, PlanOptions
 from torchfilt.filters.results import (
     FilterResult,
     SmootherResult,
@@ -345,6 +345,10 @@ _HOST_DECISIONS = (
 )
 
 
+#: why the constrained step has no exact Kalman path (the plan reads it)
+_NO_EXACT = "ConstrainedCKF: the box constraints have no closed-form Kalman counterpart"
+
+
 class ConstrainedStep:
     """The CCKF step, :func:`constrained_predict` then :func:`constrained_update` with fixed
     options: the :class:`~torchfilt.filters.engine.Step` of :class:`ConstrainedCKF` (the
@@ -491,6 +495,14 @@ class ConstrainedCKF(GaussianFilter):
     step solves all ``(..., 2n)`` reconciliation problems at once with
     :func:`~torchfilt.numerics.bounded_least_squares`.
 
+    :meth:`filter`, :meth:`smooth` and the online :meth:`init` / :meth:`predict` /
+    :meth:`update` are the CKF's, run through the same plan and engines with the constrained step
+    (:class:`ConstrainedStep`): ``predicted_mean`` is the projected prediction,
+    ``measurement_mean`` and ``innovation_cov`` come from the constrained update points, and
+    ``log_likelihood`` is the Gaussian approximation ``sum_k log N(z_k; z-_k, P_zz)`` built from
+    them. There is no exact Kalman path (``path="kalman"`` and ``parallel=True`` are refused) and
+    no CUDA graph (``graphed`` is refused; the plan says why).
+
     Behaviour at the edges:
 
     * The prior mean ``x0`` must lie in the box (:class:`~torchfilt.exceptions.InputError` otherwise; project it yourself with
@@ -582,6 +594,7 @@ class ConstrainedCKF(GaussianFilter):
             state_dim=model.state_dim,
             obs_dim=model.obs_dim,
             host_decisions=_HOST_DECISIONS,
+            no_exact=_NO_EXACT,
         )
         self._setup(step, options)
 
@@ -602,28 +615,16 @@ class ConstrainedCKF(GaussianFilter):
         inp = super()._prepare(y, u, x0=x0, P0=P0, mask=mask)
         return self._with_box(inp, self._box_for(inp.x0))
 
+    def _run(self, inputs: FilterInputs, keep: Collection[str] | None = None) -> FilterResult:
+        """The constrained run of the prepared ``inputs`` (for :meth:`filter`, which is the
+        CKF's: ``predicted_mean`` is the projected prediction, ``measurement_mean`` and
+        ``innovation_cov`` come from the constrained update points, and ``log_likelihood`` is
+        the Gaussian approximation ``sum_k log N(z_k; z-_k, P_zz)`` built from them; ``x0`` must
+        lie in the box). A reconciliation that did not converge is reported by one
+        :class:`~torchfilt.exceptions.ConvergenceWarning`."""
+        return self._result_with_info(inputs, stacklevel=4)[0]
+
     # ------------------------------------------------------------------ public API
-    # no exact Kalman path here (path=, parallel=, outputs= of GaussianFilter.filter)
-    def filter(  # type: ignore[override]
-        self,
-        y: Tensor,
-        u: Tensor | None = None,
-        *,
-        x0: Tensor,
-        P0: Tensor,
-        mask: Tensor | None = None,
-    ) -> FilterResult:
-        """Filter measurement sequences under the box constraints.
-
-        Same interface and result as :meth:`GaussianFilter.filter
-        <torchfilt.filters.GaussianFilter.filter>`: ``y (..., T, m)``, ``u (..., T, nu)``,
-        ``x0 (..., n)`` inside the box, ``P0 (..., n, n)``; NaN (or ``mask=False``) marks missing
-        components. ``predicted_mean`` is the projected prediction, ``measurement_mean`` and
-        ``innovation_cov`` come from the constrained update points, and ``log_likelihood`` is the
-        Gaussian approximation ``sum_k log N(z_k; z-_k, P_zz)`` built from them.
-        """
-        return self._run_with_info(y, u, x0, P0, mask, stacklevel=3)[0]
-
     def filter_with_info(
         self,
         y: Tensor,
@@ -634,9 +635,12 @@ class ConstrainedCKF(GaussianFilter):
         mask: Tensor | None = None,
     ) -> tuple[FilterResult, ConstrainedInfo]:
         """:meth:`filter`, plus the solver's iterations and status per step and point."""
-        return self._run_with_info(y, u, x0, P0, mask, stacklevel=3)
+        inputs = self._prepare(y, u, x0=x0, P0=P0, mask=mask)
+        res, info = self._result_with_info(inputs, stacklevel=3)
+        warn_nonfinite(res, stacklevel=3)
+        return res, info
 
-    def smooth(  # type: ignore[override]
+    def smooth(
         self,
         y: Tensor,
         u: Tensor | None = None,
@@ -644,6 +648,8 @@ class ConstrainedCKF(GaussianFilter):
         x0: Tensor,
         P0: Tensor,
         mask: Tensor | None = None,
+        path: Path = "auto",
+        parallel: bool = False,
     ) -> SmootherResult:
         """Filter under the bounds, then the cubature RTS smoother, projected onto the box.
 
@@ -653,10 +659,12 @@ class ConstrainedCKF(GaussianFilter):
         covariances are left as the RTS pass gives them). For a linear model with no bound in
         reach and ``covariance="corrected"`` this is the CKF's smoother exactly.
 
-        Arguments as in :meth:`filter`.
+        Arguments as in :meth:`filter` (there is no exact path: ``path="kalman"`` and
+        ``parallel=True`` are refused).
         """
         from torchfilt.filters.smoother import rts_smooth
 
+        self._exact(path, parallel)  # refuses the exact path
         sm = rts_smooth(self.filter(y, u, x0=x0, P0=P0, mask=mask))
         box = self._box_for(sm.mean)
         return sm._replace(mean=box.project(sm.mean.movedim(-2, 0)).movedim(0, -2))
@@ -667,22 +675,14 @@ class ConstrainedCKF(GaussianFilter):
         self._check_in_box(state.mean, self._box_for(state.mean))
 
     # ------------------------------------------------------------------ internals
-    def _run_with_info(
-        self,
-        y: Tensor,
-        u: Tensor | None,
-        x0: Tensor,
-        P0: Tensor,
-        mask: Tensor | None,
-        *,
-        stacklevel: int,
+    def _result_with_info(
+        self, inputs: FilterInputs, *, stacklevel: int
     ) -> tuple[FilterResult, ConstrainedInfo]:
-        """``stacklevel`` counts from this method (as in :func:`warnings.warn`)."""
-        inp = self._prepare(y, u, x0=x0, P0=P0, mask=mask)
-        plan, records, extras = self._scan(inp)
-        observed_all = inp.obs.expand(*inp.batch, *inp.obs.shape[-2:])
+        """The run of ``inputs`` and its solver diagnostics; ``stacklevel`` counts from this
+        method (as in :func:`warnings.warn`)."""
+        plan, records, extras = self._scan(inputs)
+        observed_all = inputs.obs.expand(*inputs.batch, *inputs.obs.shape[-2:])
         res = stack_records(records, observed_all, plan.numerics)
-        warn_nonfinite(res, stacklevel=stacklevel + 1)
         info = ConstrainedInfo(
             solver_iterations=torch.stack([e[0] for e in extras], dim=-2),
             solver_status=torch.stack([e[1] for e in extras], dim=-2),

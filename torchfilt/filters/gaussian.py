@@ -220,6 +220,17 @@ class GaussianFilter(nn.Module):
             fallbacks=fallbacks,
         )
 
+    def _exact(self, path: Path, parallel: bool) -> bool:
+        """Whether a run with these options takes the exact Kalman path (the plan's
+        :func:`~torchfilt.filters.plan.exact_path`)."""
+        return exact_path(
+            self.model,
+            path=path,
+            parallel=parallel,
+            redraw=self.redraw,
+            no_exact=self._options.no_exact,
+        )
+
     def _prepare(
         self,
         y: Tensor,
@@ -305,7 +316,7 @@ class GaussianFilter(nn.Module):
             unaffected. ``numerics`` says which path ran (the plan of
             :func:`~torchfilt.filters.plan.plan`).
         """
-        if exact_path(self.model, path=path, parallel=parallel, redraw=self.redraw):
+        if self._exact(path, parallel):
             return kalman_filter(
                 self.model, y, u, x0=x0, P0=P0, mask=mask, sqrt=self.sqrt, parallel=parallel,
                 outputs=outputs,
@@ -364,7 +375,7 @@ class GaussianFilter(nn.Module):
         """
         from torchfilt.filters.smoother import rts_smooth
 
-        if exact_path(self.model, path=path, parallel=parallel, redraw=self.redraw):
+        if self._exact(path, parallel):
             return kalman_smoother(
                 self.model, y, u, x0=x0, P0=P0, mask=mask, sqrt=self.sqrt, parallel=parallel
             )

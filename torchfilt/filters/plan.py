@@ -64,6 +64,9 @@ class PlanOptions:
         host_decisions: why the filter's step decides on the host every step (then it runs
             eager or one compiled call per step only, and cannot be captured into a CUDA
             graph), or None.
+        no_exact: why the filter's step has no closed-form Kalman counterpart (then
+            ``path="auto"`` runs the step and ``path="kalman"`` or ``parallel=True`` is
+            refused), or None.
     """
 
     compile: CompileMode = None
@@ -72,6 +75,7 @@ class PlanOptions:
     state_dim: int = 1
     obs_dim: int = 1
     host_decisions: str | None = None
+    no_exact: str | None = None
 
 
 @dataclass(frozen=True)
@@ -162,16 +166,25 @@ class ExecutionPlan:
         return NumericsPath(self.execution, self.small_kernels, self.on_failure, self.fallback)
 
 
-def exact_path(model: StateSpaceModel, *, path: Path, parallel: bool, redraw: bool = True) -> bool:
+def exact_path(
+    model: StateSpaceModel,
+    *,
+    path: Path,
+    parallel: bool,
+    redraw: bool = True,
+    no_exact: str | None = None,
+) -> bool:
     """Whether a Gaussian filter takes the exact Kalman path.
 
     ``"auto"`` takes it for every model :func:`~torchfilt.models.linear_system` recognises (a
     sigma-point filter with re-drawn update points is exact on a linear model, so only the cost
     changes); ``"kalman"`` insists on it and ``"cubature"`` refuses it. ``parallel=True`` needs it.
+    ``no_exact`` (why the filter's step has no closed-form counterpart) keeps every run off it.
 
     Raises:
         InputError: an unknown ``path``, or ``parallel=True`` with ``path="cubature"``.
-        ModelError: ``path="kalman"`` or ``parallel=True`` for a model that is not linear.
+        ModelError: ``path="kalman"`` or ``parallel=True`` for a model that is not linear, or
+            for a filter with ``no_exact``.
     """
     if path not in ("auto", "cubature", "kalman"):
         raise InputError(f"path must be 'auto', 'cubature' or 'kalman', got {path!r}")
@@ -180,6 +193,11 @@ def exact_path(model: StateSpaceModel, *, path: Path, parallel: bool, redraw: bo
             raise InputError(
                 "parallel=True runs the exact Kalman path; it cannot use path='cubature'"
             )
+        return False
+    if no_exact is not None:
+        if path == "kalman" or parallel:
+            what = "parallel=True" if parallel else "path='kalman'"
+            raise ModelError(f"{what} runs the exact Kalman path; {no_exact}")
         return False
     linear = linear_system(model) is not None
     if not linear and (path == "kalman" or parallel):
@@ -295,7 +313,9 @@ def plan(
     if model is None:
         exact = path == "kalman"
     else:
-        exact = exact_path(model, path=path, parallel=parallel, redraw=options.redraw)
+        exact = exact_path(
+            model, path=path, parallel=parallel, redraw=options.redraw, no_exact=options.no_exact
+        )
     if exact:
         runner = _exact_runner(options, parallel, records_grad, linear, failed)
         big = linear is not None and linear.result_bytes > _INPLACE_BYTES
