@@ -322,7 +322,10 @@ def plan(
         return ExecutionPlan(
             family="kalman",
             execution=runner,
-            small_kernels=_kernels(options, batch, False, settings.small_kernels),
+            # the fast and Riccati runners call the library kernels directly
+            small_kernels="library"
+            if runner in ("kalman-fast", "kalman-riccati")
+            else _kernels(options, batch, False, settings.small_kernels),
             on_failure="nan" if settings.sync_free else "jitter",
             parallel=parallel,
             sqrt=options.sqrt,

@@ -45,9 +45,11 @@ class FilterResult(NamedTuple):
         log_likelihood: ``sum_t log N(y_t; y^-_t, P_yy)`` over observed components, shape ``(...)``.
         cross_cov: ``Cov(x_{t-1}, x_t | y_{1:t-1})`` from the prediction (``x_{-1}`` is the prior),
             which the RTS smoother needs, shape ``(..., T, n, n)``.
-        numerics: which numerics path the run took (:class:`torchfilt.settings.NumericsPath`:
-            eager, compiled or graphed; small-matrix kernels; jitter or NaN on a failed
-            factorisation), or ``None`` for a result built by hand.
+        numerics: which numerics path the run took, as
+            :func:`torchfilt.filters.plan.plan` decided it (:class:`torchfilt.settings.NumericsPath`:
+            eager, compiled or graphed, or the exact runner; small-matrix kernels; jitter or NaN on
+            a failed factorisation; why a first choice was left), or ``None`` for a result built
+            by hand.
     """
 
     mean: Tensor
