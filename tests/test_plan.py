@@ -41,8 +41,12 @@ def test_plan_is_pure_and_decides_every_cubature_execution():
     failed = _plan(model, loop, fallbacks=(Fallback("compiled-loop", "Unsupported: x"),))
     assert failed.execution == "compiled-chunks"
     assert failed.numerics.fallback == "compiled-loop: Unsupported: x"
-    graphed = _plan(model, PlanOptions(), graphed=True)
+    cuda = torch.device("cuda")
+    graphed = plan(model, PlanOptions(), batch=torch.Size([3]), records_grad=False, device=cuda,
+                   settings=SETTINGS, graphed=True)  # fmt: skip
     assert graphed.execution == "graphed" and graphed.on_failure == "nan"
+    with pytest.raises(InputError, match="CUDA device"):
+        _plan(model, PlanOptions(), graphed=True)
 
 
 def test_plan_resolves_kernels_and_failure_mode_from_the_settings():

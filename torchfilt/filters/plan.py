@@ -241,7 +241,7 @@ def _exact_runner(
 
 
 def _cubature_execution(
-    options: PlanOptions, grad: bool, graphed: bool, failed: set[str]
+    options: PlanOptions, grad: bool, graphed: bool, device: torch.device, failed: set[str]
 ) -> tuple[str, str | None]:
     """The cubature execution and why the first choice was left (or None)."""
     if graphed:
@@ -249,6 +249,11 @@ def _cubature_execution(
             raise ModelError(
                 "graphed: the filter's step cannot be captured into a CUDA graph "
                 f"({options.host_decisions}); use filter(), or compile=True"
+            )
+        if device.type != "cuda":
+            raise InputError(
+                f"y: a CUDA graph needs measurements on a CUDA device, got {device}; on the CPU "
+                "use CKF(..., compile=True)"
             )
         return "graphed", None
     mode = options.compile
@@ -289,7 +294,7 @@ def plan(
         options: the filter's options (:class:`PlanOptions`).
         batch: the prepared inputs' batch shape.
         records_grad: whether autograd records the run (inputs or parameters need gradients).
-        device: where the run's data live.
+        device: where the run's data live (a CUDA graph needs a CUDA device).
         settings: the settings in force (default: those of the calling block).
         path: ``"auto"``, ``"kalman"`` or ``"cubature"`` (see :func:`exact_path`).
         parallel: the parallel-in-time exact filter.
@@ -302,7 +307,7 @@ def plan(
 
     Raises:
         InputError, ModelError: as :func:`exact_path`; ModelError also for ``graphed`` of a
-            filter whose step decides on the host.
+            filter whose step decides on the host, InputError for ``graphed`` off CUDA.
     """
     settings = settings if settings is not None else PlanSettings.current()
     failed = {f.execution for f in fallbacks}
@@ -334,10 +339,9 @@ def plan(
             fallback=why,
             refused=refused,
         )
-    execution, first = _cubature_execution(options, records_grad, graphed, failed)
+    execution, first = _cubature_execution(options, records_grad, graphed, device, failed)
     compiled = options.compile is not None
     nan = compiled or graphed or settings.sync_free
-    del device  # every execution runs on every device; graphed checks CUDA when it captures
     return ExecutionPlan(
         family="cubature",
         execution=execution,
