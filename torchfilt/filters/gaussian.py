@@ -254,17 +254,21 @@ class GaussianFilter(nn.Module):
         return self._engine.run(self._plan(inputs, fallbacks), inputs, keep)
 
     def _scan(
-        self, inputs: FilterInputs
+        self,
+        inputs: FilterInputs,
+        step_fn: StepFunction | None = None,
+        sink: RecordSink | None = None,
     ) -> tuple[ExecutionPlan, list[StepRecord], list[tuple[Tensor, ...]]]:
-        """The plan of a run of ``inputs`` and its per-step (or per-chunk) records and extras."""
+        """The plan of a run of ``inputs`` and its per-step (or per-chunk) records and extras
+        (a while-loop that cannot be traced is planned again with that fallback)."""
         fallbacks = self._engine.known_fallbacks(inputs)
         try:
             p = self._plan(inputs, fallbacks)
-            return (p, *self._engine.scan(p, inputs))
+            return (p, *self._engine.scan(p, inputs, step_fn, sink))
         except TraceFailure as failure:
             fallbacks += (failure.fallback,)
         p = self._plan(inputs, fallbacks)
-        return (p, *self._engine.scan(p, inputs))
+        return (p, *self._engine.scan(p, inputs, step_fn, sink))
 
     def _capture(
         self, y: Tensor, u: Tensor | None, *, x0: Tensor, P0: Tensor
@@ -408,8 +412,8 @@ class GaussianFilter(nn.Module):
     ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]:
         """Deprecated: the per-step records of prepared inputs; call :meth:`filter`."""
         _deprecated("scan", "call filter()")
-        p = self._plan(inputs, self._engine.known_fallbacks(inputs))
-        return self._engine.scan(p, inputs, step_fn, sink)
+        _, records, extras = self._scan(inputs, step_fn, sink)
+        return records, extras
 
     def step_function(self, device: torch.device) -> StepFunction:
         """Deprecated: the (compiled) step; :meth:`step` is the step."""
