@@ -108,25 +108,35 @@ def test_graphed_refusal_is_the_plans_and_names_the_reason():
     assert _plan(reaction.model(), compiled._options).execution == "compiled-step"
 
 
-def test_no_engine_names_on_the_filter_and_deprecated_aliases_warn():
+def test_no_engine_names_on_the_filter():
     for name in ("run_chunk", "run_loop", "numerics_path", "small_kernels"):
         assert not hasattr(GaussianFilter, name), name
+
+
+def _deprecated_calls():
     p = make_problem(2)
     filt = CKF(_linear(p))
-    kw = dict(x0=t64(p["m0"]), P0=t64(p["P0"]))
-    with pytest.deprecated_call(match="prepare"):
-        inputs = filt.prepare(t64(p["y"]), t64(p["u"]), **kw)
-    with pytest.deprecated_call(match="run"):
-        res = filt.run(inputs)
-    with pytest.deprecated_call(match="scan"):
-        records, _ = filt.scan(inputs)
-    assert len(records) == p["y"].shape[0] and res.numerics.execution == "eager"
-    with pytest.deprecated_call(match="step_function"):
-        assert filt.step_function(CPU) == filt._step.step
-    with pytest.deprecated_call(match="execution"):
-        assert filt.execution(torch.Size([4])) == "eager"
-    with pytest.deprecated_call(match="loop_fallback"):
-        assert filt.loop_fallback is None
+    y, u, kw = t64(p["y"]), t64(p["u"]), dict(x0=t64(p["m0"]), P0=t64(p["P0"]))
+    inputs = filt._prepare(y, u, **kw)
+    T = p["y"].shape[0]
+    return {
+        "prepare": (lambda: filt.prepare(y, u, **kw), lambda v: v.batch == inputs.batch),
+        "run": (lambda: filt.run(inputs), lambda v: v.numerics.execution == "eager"),
+        "scan": (lambda: filt.scan(inputs), lambda v: len(v[0]) == T),
+        "step_function": (lambda: filt.step_function(CPU), lambda v: v == filt._step.step),
+        "execution": (lambda: filt.execution(torch.Size([4])), lambda v: v == "eager"),
+        "loop_fallback": (lambda: filt.loop_fallback, lambda v: v is None),
+    }
+
+
+@pytest.mark.parametrize(
+    "name", ["prepare", "run", "scan", "step_function", "execution", "loop_fallback"]
+)
+def test_deprecated_engine_names_warn_and_still_work(name):
+    call, check = _deprecated_calls()[name]
+    with pytest.deprecated_call(match=f"GaussianFilter.{name} is deprecated"):
+        value = call()
+    assert check(value)
 
 
 def test_a_known_trace_failure_is_keyed_by_shape_and_visible():

@@ -18,6 +18,10 @@ A missing component (NaN in ``y`` or ``mask`` False) is dropped exactly as the c
 drops it: its row of ``H`` and row and column of ``S`` are left out of the gain and the
 log-likelihood. These functions are the exact path that :class:`~torchfilt.filters.GaussianFilter`
 takes for a model that :func:`~torchfilt.models.linear_system` recognises as linear.
+
+The pure steps are in :mod:`torchfilt.filters.kalman_steps`, the runners over time (sequential,
+fast, Riccati) in :mod:`torchfilt.filters.kalman_runners`; which runner serves a recording is
+decided by :func:`torchfilt.filters.plan.plan` and recorded in the result's ``numerics``.
 """
 
 from __future__ import annotations
