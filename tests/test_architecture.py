@@ -180,11 +180,6 @@ INTERNAL_MARK = "# internal: not a user error"
 #: Files (relative to the package) whose built-in raises are still being converted on other
 #: branches; empty this set as they land (the test fails on an entry that has none left).
 _NOT_YET_CONVERTED: set[str] = {
-    "filters/constrained.py",
-    "filters/gaussian.py",
-    "filters/graphed.py",
-    "filters/results.py",
-    "filters/steps.py",
     "models/gp/predictor.py",
     "pipeline/evaluate.py",
     "training/bundle.py",
@@ -222,3 +217,72 @@ def test_no_builtin_raises():
         "raise a torchfilt.exceptions.TorchfiltError subclass for a user error (or mark an "
         f"internal-bug check with {INTERNAL_MARK!r}):\n" + "\n".join(bad)
     )
+
+
+#: the execution modes whose choice belongs to torchfilt.filters.plan alone
+EXECUTION_MODES = {
+    "eager",
+    "compiled-step",
+    "compiled-loop",
+    "compiled-chunks",
+    "graphed",
+    "kalman-parallel",
+    "kalman-riccati",
+    "kalman-fast",
+    "kalman-sequential",
+}
+PLAN_MODULE = PKG / "filters" / "plan.py"
+
+
+def _strings(node: ast.AST) -> set[str]:
+    return {
+        n.value for n in ast.walk(node) if isinstance(n, ast.Constant) and isinstance(n.value, str)
+    }
+
+
+def test_one_module_owns_the_path_decision():
+    """Only filters/plan.py branches on the execution mode: no other module compares a value with
+    an execution-mode string (``==``, ``in``, ``match``) or reads ``compile_mode``. The engines
+    look the plan's answer up in tables; they do not decide."""
+    bad = []
+    for path in PKG.rglob("*.py"):
+        if path == PLAN_MODULE:
+            continue
+        rel = path.relative_to(PKG.parent)
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Compare):
+                hit = _strings(node) & EXECUTION_MODES
+                if hit:
+                    bad.append(f"{rel}:{node.lineno} compares with {sorted(hit)}")
+            elif isinstance(node, ast.match_case):
+                hit = _strings(node.pattern) & EXECUTION_MODES
+                if hit:
+                    bad.append(f"{rel}:{node.pattern.lineno} matches {sorted(hit)}")
+            elif (
+                isinstance(node, ast.Attribute)
+                and node.attr == "compile_mode"
+                and isinstance(node.ctx, ast.Load)
+            ):
+                bad.append(f"{rel}:{node.lineno} reads compile_mode")
+    assert not bad, "\n".join(bad)
+
+
+#: modules over the limit that are being split elsewhere, at their size today (they may shrink,
+#: not grow); every other module stays at MAX_LINES or under
+LONG_MODULES = {
+    "models/gp/predictor.py": 822,
+    "training/run.py": 1127,
+    "pipeline/distributed.py": 1288,
+}
+MAX_LINES = 800
+
+
+def test_no_module_over_800_lines():
+    bad = []
+    for path in PKG.rglob("*.py"):
+        rel = path.relative_to(PKG).as_posix()
+        lines = len(path.read_text().splitlines())
+        limit = LONG_MODULES.get(rel, MAX_LINES)
+        if lines > limit:
+            bad.append(f"{rel}: {lines} lines (limit {limit})")
+    assert not bad, "\n".join(bad)

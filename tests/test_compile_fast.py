@@ -38,7 +38,7 @@ def test_compiled_while_loop_equals_eager_linear():
     filt = CKF(model, compile="loop")
     with torch.no_grad():
         got = filt.filter(y, u, path="cubature", **kw)
-    assert got.numerics.execution == "compiled-loop", filt.loop_fallback
+    assert got.numerics.execution == "compiled-loop", got.numerics.fallback
     for name in ("mean", "predicted_mean", "innovation", "cross_cov"):
         torch.testing.assert_close(
             getattr(got, name), getattr(eager, name), rtol=COMPILE_RTOL, atol=1e-12, equal_nan=True

@@ -290,7 +290,7 @@ def test_result_path_survives_reconstruction():
 @pytest.mark.parametrize("grad", [False, True], ids=["no_grad", "grad"])
 def test_log_likelihood_inside_the_loop(monkeypatch, grad):
     """Large batches sum the log-likelihood inside the loop: same value (and gradient)."""
-    import torchfilt.filters.kalman as kalman
+    import torchfilt.filters.kalman_runners as kalman
 
     p = make_problem(12)
     q = torch.tensor(1.0, dtype=torch.float64, requires_grad=grad)
@@ -314,7 +314,7 @@ def test_shared_covariance_path(monkeypatch, varying, doubling):
     """All observed and one P0 for the batch: the covariance recursion runs once (and, for a
     time-invariant model, stops once converged); every field still equals the CKF's, whether
     the means' recursion runs step by step or as doubling scans."""
-    import torchfilt.filters.kalman as kalman
+    import torchfilt.filters.kalman_runners as kalman
 
     monkeypatch.setattr(kalman, "_DOUBLING_WORK", float("inf") if doubling else 0)
     p = make_problem(13, T=120, missing=0.0)
@@ -367,7 +367,7 @@ def test_per_sequence_covariances_converge(monkeypatch, tail):
     """P0 per sequence and a time-invariant model: the per-sequence Riccati recursions run until
     all have converged, then the gains repeat (shared once they agree). Every field equals the
     CKF's and the per-step recursion's, whichever way the converged tail of the means runs."""
-    import torchfilt.filters.kalman as kalman
+    import torchfilt.filters.kalman_runners as kalman
 
     model, args, kw = _per_sequence_problem()
     want = CKF(model).filter(*args, **kw, path="cubature")

@@ -37,9 +37,9 @@ def test_buffered_result_equals_stacked_records_bit_for_bit():
     model, y, x0, P0 = _problem()
     filt = torchfilt.CKF(model)
     with torch.no_grad():
-        inputs = filt.prepare(y, x0=x0, P0=P0)
-        records, _ = filt.scan(inputs)
-        want = stack_records(records, filt._observed(inputs))
+        inputs = filt._prepare(y, x0=x0, P0=P0)
+        _, records, _ = filt._scan(inputs)
+        want = stack_records(records, inputs.obs.expand(*inputs.batch, *inputs.obs.shape[-2:]))
         got = filt.filter(y, x0=x0, P0=P0)
     for name in FilterResult._fields[:-1]:
         assert _same(getattr(got, name), getattr(want, name)), name

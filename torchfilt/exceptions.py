@@ -13,6 +13,7 @@ __all__ = [
     "ConvergenceWarning",
     "DataError",
     "DivergenceWarning",
+    "ExecutionError",
     "GaugeError",
     "InfeasibleError",
     "InputError",
@@ -102,6 +103,12 @@ class RecipeError(InputError):
 
 class RunError(TorchfiltError, RuntimeError):
     """A run directory cannot be used as asked (resume without a run, a changed recipe, ...)."""
+
+
+class ExecutionError(TorchfiltError, RuntimeError):
+    """A filter run could not be carried out as planned (a CUDA-graph capture whose step
+    synchronised with the host, a record sink that did not receive every step); the message
+    names the cause."""
 
 
 class WorkerError(RunError):

@@ -69,11 +69,17 @@ class NumericsPath(NamedTuple):
         small_kernels: ``"unrolled"`` or ``"library"``: the small-matrix kernels used.
         on_failure: ``"jitter"`` (a failing Cholesky factor is retried with jitter, then NaN) or
             ``"nan"`` (sync-free: NaN at once).
+        fallback: why the run did not take its first choice (a compiled while-loop that could
+            not be traced, autograd under ``compile="loop"``, a factorisation that failed in a
+            fast exact runner), or None. The exact Kalman path's ``execution`` is
+            ``"kalman-parallel"``, ``"kalman-riccati"``, ``"kalman-fast"`` or
+            ``"kalman-sequential"``.
     """
 
     execution: str
     small_kernels: str
     on_failure: str
+    fallback: str | None = None
 
 
 @contextlib.contextmanager

@@ -3,7 +3,10 @@ Kalman filter for linear models, RTS and iterated smoothing, and metrics.
 
 The filter is a scan of two pure steps, :func:`predict` and :func:`update` (and, for the
 constrained CKF, :func:`constrained_predict` and :func:`constrained_update`), over a
-:class:`Belief`; :class:`GaussianFilter` binds a model and options to them.
+:class:`Belief`; :class:`GaussianFilter` binds a model and options to them. How a run executes
+(exact Kalman or cubature; eager, compiled or graphed; which exact runner) is decided in one place,
+:func:`torchfilt.filters.plan.plan`, and carried out by the engines of
+:mod:`torchfilt.filters.engine`, which run any step of its ``Step`` protocol.
 """
 
 from torchfilt.filters.constrained import (

@@ -31,8 +31,8 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Sequence
-from typing import Any, Literal, NamedTuple
+from collections.abc import Collection, Sequence
+from typing import Literal, NamedTuple
 
 import torch
 from torch import Tensor
@@ -41,7 +41,8 @@ from torchfilt.cubature import SphericalRadialRule, constrained_points
 from torchfilt.cubature.constrained import ThetaReading
 from torchfilt.exceptions import ConvergenceWarning, InputError, ModelError, ShapeError
 from torchfilt.filters.gaussian import FilterState, GaussianFilter
-from torchfilt.filters.inputs import FilterInputs
+from torchfilt.filters.inputs import FilterInputs, model_noise
+from torchfilt.filters.plan import Path, PlanOptions
 from torchfilt.filters.results import (
     FilterResult,
     SmootherResult,
@@ -57,6 +58,7 @@ from torchfilt.filters.steps import (
     UpdateStats,
     add,
     point_noise,
+    unit_points,
 )
 from torchfilt.models import ConditionalModel, Prediction, StateSpaceModel
 from torchfilt.numerics import (
@@ -72,6 +74,7 @@ from torchfilt.numerics import (
 __all__ = [
     "ConstrainedCKF",
     "ConstrainedInfo",
+    "ConstrainedStep",
     "SolverInfo",
     "constrained_predict",
     "constrained_update",
@@ -336,6 +339,153 @@ def constrained_update(
     )
 
 
+#: why the constrained step cannot be captured whole (the plan reads it)
+_HOST_DECISIONS = (
+    "ConstrainedCKF: the NDDR solver decides on the host when each reconciliation has converged"
+)
+
+
+#: why the constrained step has no exact Kalman path (the plan reads it)
+_NO_EXACT = "ConstrainedCKF: the box constraints have no closed-form Kalman counterpart"
+
+
+class ConstrainedStep:
+    """The CCKF step, :func:`constrained_predict` then :func:`constrained_update` with fixed
+    options: the :class:`~torchfilt.filters.engine.Step` of :class:`ConstrainedCKF` (the
+    engines run it eagerly or as one compiled call per step; online use calls its ``predict``
+    and ``update``).
+
+    Args:
+        model: the state-space model. box: the bounds.
+        covariance, theta, point_variance, tol, max_iter: as in :class:`ConstrainedCKF`.
+    """
+
+    sqrt = False
+
+    def __init__(
+        self,
+        model: StateSpaceModel,
+        box: Box,
+        *,
+        covariance: CovarianceForm,
+        theta: ThetaReading,
+        point_variance: Literal["total", "mean"],
+        tol: float | None,
+        max_iter: int,
+    ) -> None:
+        self.model = model
+        self.box = box
+        self.covariance: CovarianceForm = covariance
+        self.theta: ThetaReading = theta
+        self.point_variance: Literal["total", "mean"] = point_variance
+        self.tol = tol
+        self.max_iter = max_iter
+        self.rule = SphericalRadialRule(3)
+        self._boxes: dict[tuple[torch.dtype, torch.device], Box] = {}
+
+    def box_for(self, like: Tensor) -> Box:
+        """The bounds in ``like``'s dtype and device (cached)."""
+        key = (like.dtype, like.device)
+        box = self._boxes.get(key)
+        if box is None:
+            box = self.box.to(dtype=like.dtype, device=like.device)
+            self._boxes[key] = box
+        return box
+
+    def step(
+        self,
+        points: UnitPoints,
+        belief: Belief,
+        y: Tensor,
+        obs: Tensor,
+        u: Tensor | None,
+        Q: Noise,
+        R: Noise,
+    ) -> tuple[Belief, StepRecord, tuple[Tensor, ...]]:
+        """One CCKF step: :func:`constrained_predict` then :func:`constrained_update`.
+
+        Arguments as in :meth:`GaussianFilter.step <torchfilt.filters.GaussianFilter.step>`
+        (``points`` is unused: the constrained points are built from each belief). The extra
+        outputs are the :class:`SolverInfo` fields ``(iterations, status, projected)``.
+        """
+        box = self.box_for(belief.mean)
+        pred, cache = self.predict(belief, u, points, Q)
+        post, stats, info = self._update(pred, y, obs, u, R, box)
+        record = StepRecord(
+            mean=post.mean,
+            cov=post.cov,
+            predicted_mean=box.project(pred.mean),
+            predicted_cov=pred.cov,
+            measurement_mean=stats.measurement_mean,
+            innovation=stats.innovation,
+            innovation_cov=stats.innovation_cov,
+            log_likelihood=stats.log_likelihood,
+            cross_cov=cache.cross_cov,
+        )
+        return post, record, (info.iterations, info.status, info.projected)
+
+    def predict(
+        self, belief: Belief, u: Tensor | None, points: UnitPoints, Q: Noise
+    ) -> tuple[Belief, PredictCache]:
+        """:func:`constrained_predict` (the mean is projected onto the box by the update)."""
+        return constrained_predict(
+            belief,
+            self.model,
+            u,
+            self.box_for(belief.mean),
+            theta=self.theta,
+            point_variance=self.point_variance,
+            noise=Q,
+        )
+
+    def _update(
+        self, pred: Belief, y: Tensor, obs: Tensor, u: Tensor | None, R: Noise, box: Box
+    ) -> tuple[Belief, UpdateStats, SolverInfo]:
+        return constrained_update(
+            pred,
+            y,
+            obs,
+            self.model,
+            box,
+            u=u,
+            theta=self.theta,
+            point_variance=self.point_variance,
+            covariance=self.covariance,
+            noise=R,
+            tol=self.tol,
+            max_iter=self.max_iter,
+        )
+
+    def update(
+        self,
+        belief: Belief,
+        y: Tensor,
+        obs: Tensor,
+        u: Tensor | None,
+        points: UnitPoints,
+        R: Noise,
+        cache: PredictCache | None,
+    ) -> tuple[Belief, UpdateStats]:
+        """:func:`constrained_update` of one (online) step, ``y`` and ``obs`` broadcast to the
+        belief's batch shape."""
+        batch, m = belief.mean.shape[:-1], y.shape[-1]
+        box = self.box_for(belief.mean)
+        post, stats, _ = self._update(belief, y.expand(*batch, m), obs.expand(*batch, m), u, R, box)
+        return post, stats
+
+    def prior(self, inputs: FilterInputs) -> Belief:
+        """Fresh copies of ``x0`` and ``P0`` (no factor: the step factors the covariance)."""
+        return Belief(inputs.x0.clone(), inputs.P0.clone(), None)
+
+    def noise(self, side: torch.nn.Module, t: int, like: Tensor) -> Noise:
+        """The noise of ``side`` at step ``t``."""
+        return Noise(model_noise(side, t, like), None)
+
+    def points(self, like: Tensor) -> UnitPoints:
+        """The degree-3 rule's unit points (unused by the step, carried by the engines)."""
+        return unit_points(self.rule, self.model.state_dim, like)
+
+
 class ConstrainedCKF(GaussianFilter):
     """Cubature Kalman filter with box constraints and per-point NDDR update (CCKF).
 
@@ -345,9 +495,17 @@ class ConstrainedCKF(GaussianFilter):
     step solves all ``(..., 2n)`` reconciliation problems at once with
     :func:`~torchfilt.numerics.bounded_least_squares`.
 
+    :meth:`filter`, :meth:`smooth` and the online :meth:`init` / :meth:`predict` /
+    :meth:`update` are the CKF's, run through the same plan and engines with the constrained step
+    (:class:`ConstrainedStep`): ``predicted_mean`` is the projected prediction,
+    ``measurement_mean`` and ``innovation_cov`` come from the constrained update points, and
+    ``log_likelihood`` is the Gaussian approximation ``sum_k log N(z_k; z-_k, P_zz)`` built from
+    them. There is no exact Kalman path (``path="kalman"`` and ``parallel=True`` are refused) and
+    no CUDA graph (``graphed`` is refused; the plan says why).
+
     Behaviour at the edges:
 
-    * The prior mean ``x0`` must lie in the box (``ValueError`` otherwise; project it yourself with
+    * The prior mean ``x0`` must lie in the box (:class:`~torchfilt.exceptions.InputError` otherwise; project it yourself with
       ``filt.box.project(x0)`` if that is what you want). A predicted mean that ``f`` carries out of
       the box is projected onto it before the update (spec s.2); :class:`ConstrainedInfo` records
       when.
@@ -377,8 +535,10 @@ class ConstrainedCKF(GaussianFilter):
         max_iter: NDDR solver iteration limit.
         compile: compile the step (:func:`constrained_predict` + :func:`constrained_update`) with
             ``torch.compile``. The solver's convergence test runs on the host, so the compiled
-            step is split into several graphs; as with the CKF, a covariance that fails its
-            Cholesky factorisation then turns the sequence to NaN instead of being jittered.
+            step is split into several graphs and the plan runs one compiled call per step (a
+            compiled chunk, a while-loop or a CUDA graph cannot hold it: ``graphed`` is refused,
+            and the plan says why); as with the CKF, a covariance that fails its Cholesky
+            factorisation then turns the sequence to NaN instead of being jittered.
 
     Example:
         >>> from torchfilt.filters import ConstrainedCKF
@@ -403,8 +563,6 @@ class ConstrainedCKF(GaussianFilter):
         max_iter: int = 50,
         compile: bool = False,
     ) -> None:
-        # the solver's host-side convergence test splits a compiled step into several graphs,
-        # which a compiled chunk of unrolled steps cannot hold: always one compiled call per step
         super().__init__(
             model,
             rule=SphericalRadialRule(3),
@@ -412,81 +570,38 @@ class ConstrainedCKF(GaussianFilter):
             compile="step" if compile else False,
         )
         if covariance not in ("paper", "corrected"):
-            raise ValueError(f"covariance must be 'paper' or 'corrected', got {covariance!r}")
+            raise InputError(f"covariance must be 'paper' or 'corrected', got {covariance!r}")
         if theta not in ("paper", "std"):
-            raise ValueError(f"theta must be 'paper' or 'std', got {theta!r}")
+            raise InputError(f"theta must be 'paper' or 'std', got {theta!r}")
         if max_iter < 1:
-            raise ValueError(f"max_iter must be >= 1, got {max_iter}")
+            raise InputError(f"max_iter must be >= 1, got {max_iter}")
         self.box = Box(lower, upper, n=model.state_dim)
         self.covariance: CovarianceForm = covariance
         self.theta: ThetaReading = theta
         self.tol = tol
         self.max_iter = int(max_iter)
-        self._boxes: dict[tuple[torch.dtype, torch.device], Box] = {}
-
-    # ------------------------------------------------------------------ the step
-    def _box_for(self, like: Tensor) -> Box:
-        key = (like.dtype, like.device)
-        box = self._boxes.get(key)
-        if box is None:
-            box = self.box.to(dtype=like.dtype, device=like.device)
-            self._boxes[key] = box
-        return box
-
-    def step(
-        self,
-        points: UnitPoints,
-        belief: Belief,
-        y: Tensor,
-        obs: Tensor,
-        u: Tensor | None,
-        Q: Noise,
-        R: Noise,
-    ) -> tuple[Belief, StepRecord, tuple[Tensor, ...]]:
-        """One CCKF step: :func:`constrained_predict` then :func:`constrained_update`.
-
-        Arguments as in :meth:`GaussianFilter.step <torchfilt.filters.GaussianFilter.step>`
-        (``points`` is unused: the constrained points are built from each belief). The extra
-        outputs are the :class:`SolverInfo` fields ``(iterations, status, projected)``.
-        """
-        box = self._box_for(belief.mean)
-        pred, cache = constrained_predict(
-            belief,
-            self.model,
-            u,
-            box,
-            theta=self.theta,
-            point_variance=self.point_variance,
-            noise=Q,
-        )
-        post, stats, info = constrained_update(
-            pred,
-            y,
-            obs,
-            self.model,
-            box,
-            u=u,
-            theta=self.theta,
-            point_variance=self.point_variance,
-            covariance=self.covariance,
-            noise=R,
-            tol=self.tol,
+        step = ConstrainedStep(
+            model,
+            self.box,
+            covariance=covariance,
+            theta=theta,
+            point_variance=point_variance,
+            tol=tol,
             max_iter=self.max_iter,
         )
-        record = StepRecord(
-            mean=post.mean,
-            cov=post.cov,
-            predicted_mean=box.project(pred.mean),
-            predicted_cov=pred.cov,
-            measurement_mean=stats.measurement_mean,
-            innovation=stats.innovation,
-            innovation_cov=stats.innovation_cov,
-            log_likelihood=stats.log_likelihood,
-            cross_cov=cache.cross_cov,
+        options = PlanOptions(
+            "step" if compile else None,
+            state_dim=model.state_dim,
+            obs_dim=model.obs_dim,
+            host_decisions=_HOST_DECISIONS,
+            no_exact=_NO_EXACT,
         )
-        return post, record, (info.iterations, info.status, info.projected)
+        self._setup(step, options)
 
-    def prepare(
+    def _box_for(self, like: Tensor) -> Box:
+        return self._step.box_for(like)  # type: ignore[attr-defined,no-any-return]
+
+    def _prepare(
         self,
         y: Tensor,
         u: Tensor | None = None,
@@ -495,35 +610,21 @@ class ConstrainedCKF(GaussianFilter):
         P0: Tensor,
         mask: Tensor | None = None,
     ) -> FilterInputs:
-        """Check a recording as :meth:`GaussianFilter.prepare
-        <torchfilt.filters.GaussianFilter.prepare>` does, broadcast it against the bounds'
-        batch shape and check that ``x0`` lies in the box."""
-        inp = super().prepare(y, u, x0=x0, P0=P0, mask=mask)
-        box = self._box_for(inp.x0)
-        return self._with_box(inp, box)
+        """Check a recording as the CKF does, broadcast it against the bounds' batch shape and
+        check that ``x0`` lies in the box."""
+        inp = super()._prepare(y, u, x0=x0, P0=P0, mask=mask)
+        return self._with_box(inp, self._box_for(inp.x0))
+
+    def _run(self, inputs: FilterInputs, keep: Collection[str] | None = None) -> FilterResult:
+        """The constrained run of the prepared ``inputs`` (for :meth:`filter`, which is the
+        CKF's: ``predicted_mean`` is the projected prediction, ``measurement_mean`` and
+        ``innovation_cov`` come from the constrained update points, and ``log_likelihood`` is
+        the Gaussian approximation ``sum_k log N(z_k; z-_k, P_zz)`` built from them; ``x0`` must
+        lie in the box). A reconciliation that did not converge is reported by one
+        :class:`~torchfilt.exceptions.ConvergenceWarning`."""
+        return self._result_with_info(inputs, stacklevel=4)[0]
 
     # ------------------------------------------------------------------ public API
-    # no exact Kalman path here (path=, parallel=, outputs= of GaussianFilter.filter)
-    def filter(  # type: ignore[override]
-        self,
-        y: Tensor,
-        u: Tensor | None = None,
-        *,
-        x0: Tensor,
-        P0: Tensor,
-        mask: Tensor | None = None,
-    ) -> FilterResult:
-        """Filter measurement sequences under the box constraints.
-
-        Same interface and result as :meth:`GaussianFilter.filter
-        <torchfilt.filters.GaussianFilter.filter>`: ``y (..., T, m)``, ``u (..., T, nu)``,
-        ``x0 (..., n)`` inside the box, ``P0 (..., n, n)``; NaN (or ``mask=False``) marks missing
-        components. ``predicted_mean`` is the projected prediction, ``measurement_mean`` and
-        ``innovation_cov`` come from the constrained update points, and ``log_likelihood`` is the
-        Gaussian approximation ``sum_k log N(z_k; z-_k, P_zz)`` built from them.
-        """
-        return self._run(y, u, x0, P0, mask, stacklevel=3)[0]
-
     def filter_with_info(
         self,
         y: Tensor,
@@ -534,9 +635,12 @@ class ConstrainedCKF(GaussianFilter):
         mask: Tensor | None = None,
     ) -> tuple[FilterResult, ConstrainedInfo]:
         """:meth:`filter`, plus the solver's iterations and status per step and point."""
-        return self._run(y, u, x0, P0, mask, stacklevel=3)
+        inputs = self._prepare(y, u, x0=x0, P0=P0, mask=mask)
+        res, info = self._result_with_info(inputs, stacklevel=3)
+        warn_nonfinite(res, stacklevel=3)
+        return res, info
 
-    def smooth(  # type: ignore[override]
+    def smooth(
         self,
         y: Tensor,
         u: Tensor | None = None,
@@ -544,6 +648,8 @@ class ConstrainedCKF(GaussianFilter):
         x0: Tensor,
         P0: Tensor,
         mask: Tensor | None = None,
+        path: Path = "auto",
+        parallel: bool = False,
     ) -> SmootherResult:
         """Filter under the bounds, then the cubature RTS smoother, projected onto the box.
 
@@ -553,122 +659,30 @@ class ConstrainedCKF(GaussianFilter):
         covariances are left as the RTS pass gives them). For a linear model with no bound in
         reach and ``covariance="corrected"`` this is the CKF's smoother exactly.
 
-        Arguments as in :meth:`filter`.
+        Arguments as in :meth:`filter` (there is no exact path: ``path="kalman"`` and
+        ``parallel=True`` are refused).
         """
         from torchfilt.filters.smoother import rts_smooth
 
+        self._exact(path, parallel)  # refuses the exact path
         sm = rts_smooth(self.filter(y, u, x0=x0, P0=P0, mask=mask))
         box = self._box_for(sm.mean)
         return sm._replace(mean=box.project(sm.mean.movedim(-2, 0)).movedim(0, -2))
 
-    def graphed(
-        self,
-        y: Tensor,
-        u: Tensor | None = None,
-        *,
-        x0: Tensor,
-        P0: Tensor,
-        warmup: int = 2,
-    ) -> Any:
-        """Not available: refused, rather than capturing the plain CKF's step.
-
-        Raises:
-            ModelError: always. The NDDR solver decides on the host, every iteration, which
-                reconciliation problems have converged; a CUDA graph cannot hold that loop. Use
-                :meth:`filter` (or ``compile=True``).
-        """
-        raise ModelError(
-            "ConstrainedCKF.graphed: the constrained step cannot be captured into a CUDA graph "
-            "(the NDDR solver decides on the host when each reconciliation has converged); use "
-            "filter(), or ConstrainedCKF(..., compile=True)"
-        )
-
     # ------------------------------------------------------------------ online use
-    def init(self, x0: Tensor, P0: Tensor) -> FilterState:
-        """Start an online constrained filter; ``x0 (..., n)`` must lie in the box."""
-        state = super().init(x0, P0)
-        box = self._box_for(state.mean)
-        self._check_in_box(state.mean, box)
-        return state
-
-    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
-        """:func:`constrained_predict` of an online state (arguments as in
-        :meth:`GaussianFilter.predict <torchfilt.filters.GaussianFilter.predict>`). The predicted
-        mean is projected onto the box by the next :meth:`update`."""
-        self._check_state(state, "predict")
-        u = self._step_input("u", u, -1, state.mean)
-        t = state.t + 1
-        Q = self._noise_of(self.model.transition, t, state.mean)
-        box = self._box_for(state.mean)
-        pred, cache = constrained_predict(
-            state.belief,
-            self.model,
-            u,
-            box,
-            theta=self.theta,
-            point_variance=self.point_variance,
-            noise=Q,
-        )
-        return FilterState(pred.mean, pred.cov, None, t, True, cache)
-
-    def update(
-        self,
-        state: FilterState,
-        y: Tensor,
-        u: Tensor | None = None,
-        *,
-        mask: Tensor | None = None,
-    ) -> tuple[FilterState, UpdateStats]:
-        """:func:`constrained_update` of an online state (arguments as in
-        :meth:`GaussianFilter.update <torchfilt.filters.GaussianFilter.update>`)."""
-        self._check_state(state, "update")
-        if not state.predicted:
-            raise InputError("state: update needs a predicted state; call predict(state, u) first")
-        y, obs = self._measurement(y, mask, state.mean)
-        u = self._step_input("u", u, -1, state.mean)
-        try:
-            batch = torch.broadcast_shapes(state.mean.shape[:-1], obs.shape[:-1])
-        except RuntimeError:
-            raise ShapeError(
-                f"y: batch shape {tuple(obs.shape[:-1])} does not broadcast with the state's "
-                f"{tuple(state.mean.shape[:-1])}"
-            ) from None
-        R = self._noise_of(self.model.measurement, state.t, state.mean)
-        box = self._box_for(state.mean)
-        m = self.model.obs_dim
-        post, stats, _ = constrained_update(
-            self._expand(state, batch),
-            y.expand(*batch, m),
-            obs.expand(*batch, m),
-            self.model,
-            box,
-            u=u,
-            theta=self.theta,
-            point_variance=self.point_variance,
-            covariance=self.covariance,
-            noise=R,
-            tol=self.tol,
-            max_iter=self.max_iter,
-        )
-        return FilterState(post.mean, post.cov, None, state.t, False), stats
+    def _check_prior_state(self, state: FilterState) -> None:
+        """An online prior mean must lie in the box."""
+        self._check_in_box(state.mean, self._box_for(state.mean))
 
     # ------------------------------------------------------------------ internals
-    def _run(
-        self,
-        y: Tensor,
-        u: Tensor | None,
-        x0: Tensor,
-        P0: Tensor,
-        mask: Tensor | None,
-        *,
-        stacklevel: int,
+    def _result_with_info(
+        self, inputs: FilterInputs, *, stacklevel: int
     ) -> tuple[FilterResult, ConstrainedInfo]:
-        """``stacklevel`` counts from this method (as in :func:`warnings.warn`)."""
-        inp = self.prepare(y, u, x0=x0, P0=P0, mask=mask)
-        path = self.numerics_path(inp)
-        records, extras = self.scan(inp)
-        res = stack_records(records, self._observed(inp), path)
-        warn_nonfinite(res, stacklevel=stacklevel + 1)
+        """The run of ``inputs`` and its solver diagnostics; ``stacklevel`` counts from this
+        method (as in :func:`warnings.warn`)."""
+        plan, records, extras = self._scan(inputs)
+        observed_all = inputs.obs.expand(*inputs.batch, *inputs.obs.shape[-2:])
+        res = stack_records(records, observed_all, plan.numerics)
         info = ConstrainedInfo(
             solver_iterations=torch.stack([e[0] for e in extras], dim=-2),
             solver_status=torch.stack([e[1] for e in extras], dim=-2),
@@ -710,7 +724,7 @@ class ConstrainedCKF(GaussianFilter):
         outside = ~((x0 >= box.lower) & (x0 <= box.upper))
         if bool(outside.any()):
             idx = outside.nonzero()[0].tolist()
-            raise ValueError(
+            raise InputError(
                 f"x0 lies outside the box at index {idx}: x0 = {float(x0[tuple(idx)])}, bounds "
                 f"[{float(box.lower.expand_as(x0)[tuple(idx)])}, "
                 f"{float(box.upper.expand_as(x0)[tuple(idx)])}]; project it first with "

@@ -1,88 +1,66 @@
-"""The batched cubature (sigma-point) Gaussian filter: a scan of pure predict and update steps.
+"""The batched cubature (sigma-point) Gaussian filter: a small façade over a step, a plan and an
+engine.
 
-The steps and their equations are in :mod:`torchfilt.filters.steps`. :class:`GaussianFilter` binds a
-model, a cubature rule and the options, and offers the whole-recording ``filter`` / ``smooth`` /
-``graphed`` and the online ``init`` / ``predict`` / ``update``.
+The step's equations are in :mod:`torchfilt.filters.steps` (bound to the options by
+:class:`~torchfilt.filters.cubature_step.CubatureStep`); how a run executes is decided by
+:func:`~torchfilt.filters.plan.plan` and carried out by :mod:`torchfilt.filters.engine`.
+:class:`GaussianFilter` binds a model, a cubature rule and the options, and offers the
+whole-recording ``filter`` / ``smooth`` / ``graphed`` and the online ``init`` / ``predict`` /
+``update``.
 """
 
 from __future__ import annotations
 
-import contextlib
-import math
-from collections.abc import Callable, Collection
+import warnings
+from collections.abc import Collection
 from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
 import torch
 from torch import Tensor, nn
 
 from torchfilt.cubature import CubatureRule, SphericalRadialRule
-from torchfilt.exceptions import InputError, ShapeError
-from torchfilt.filters import steps
-from torchfilt.filters.inputs import FilterInputs, check_inputs, check_prior, model_noise, observed
-from torchfilt.filters.kalman import (
+from torchfilt.exceptions import InputError, InputTypeError, ShapeError
+from torchfilt.filters.cubature_step import CubatureStep
+from torchfilt.filters.engine import Engine, OnlineStep, StepFunction, TraceFailure, records_grad
+from torchfilt.filters.inputs import FilterInputs, check_inputs, check_prior, observed
+from torchfilt.filters.kalman import _keep, kalman_filter, kalman_smoother, select_outputs
+from torchfilt.filters.plan import (
+    CompileMode,
+    ExecutionPlan,
+    Fallback,
     Path,
-    _keep,
-    kalman_filter,
-    kalman_smoother,
-    select_outputs,
-    select_path,
+    PlanOptions,
+    exact_path,
+    plan,
 )
 from torchfilt.filters.results import (
     FilterResult,
     RecordSink,
     SmootherResult,
     StepRecord,
-    concat_records,
-    stack_records,
     warn_nonfinite,
 )
 from torchfilt.filters.steps import Belief, Noise, PredictCache, UnitPoints, UpdateStats
 from torchfilt.models import StateSpaceModel
-from torchfilt.numerics import no_host_sync, safe_cholesky
-from torchfilt.numerics.small import SMALL_BATCH, SMALL_MAX
-from torchfilt.settings import (
-    NumericsPath,
-    current_skip_guard_checks,
-    current_small_matrix_kernels,
-    small_matrix_kernels,
-)
+from torchfilt.numerics import safe_cholesky
+from torchfilt.settings import small_matrix_kernels
 
 if TYPE_CHECKING:
     from torchfilt.filters.graphed import GraphedFilter
 
 __all__ = ["CKF", "FilterState", "GaussianFilter", "StepFunction"]
 
-#: Steps run with Dynamo's guard checks before a compiled step may skip them (see ``scan``).
-_GUARD_WARMUP_STEPS = 2
 #: Steps per compiled chunk of the time loop (``compile=True``): the chunk is unrolled into one
 #: graph, so the per-call overhead is paid once per chunk; longer chunks compile for longer.
 DEFAULT_CHUNK = 10
-#: Where each :class:`StepRecord` field has its time dimension in a :class:`FilterResult`.
-_TIME_DIMS = {
-    "mean": -2,
-    "cov": -3,
-    "predicted_mean": -2,
-    "predicted_cov": -3,
-    "measurement_mean": -2,
-    "innovation": -2,
-    "innovation_cov": -3,
-    "log_likelihood": -1,
-    "cross_cov": -3,
-}
-
-#: ``step(points, belief, y_t, obs_t, u_t, Q, R) -> (belief, record, aux)``: one filter step.
-StepFunction = Callable[
-    [UnitPoints, Belief, Tensor, Tensor, "Tensor | None", Noise, Noise],
-    "tuple[Belief, StepRecord, tuple[Tensor, ...]]",
-]
 
 
-def _noise_at(noise: Noise, index: Callable[[Tensor], Tensor] | None) -> Noise:
-    """``noise`` at one step: each present tensor through ``index`` (its time dimension taken
-    at that step), or ``noise`` itself for a constant noise (``index`` None)."""
-    if index is None:
-        return noise
-    return Noise(*(None if v is None else index(v) for v in noise))
+def _deprecated(old: str, new: str) -> None:
+    warnings.warn(
+        f"GaussianFilter.{old} is deprecated and will be removed in the next release; {new}",
+        DeprecationWarning,
+        stacklevel=3,
+    )
 
 
 class FilterState(NamedTuple):
@@ -132,7 +110,7 @@ class GaussianFilter(nn.Module):
             step (the step is traced once; on the CPU the loop runs in the generated C++, so one
             or a few sequences pay no Python per step; one compile per recording shape and set of
             ``outputs``). Where the while-loop cannot run (autograd records, or the step does not
-            trace into one graph: :attr:`loop_fallback` says why) it compiles chunks of ``chunk``
+            trace into one graph: ``numerics.fallback`` says why) it compiles chunks of ``chunk``
             steps unrolled into one graph each instead (long first compile), and the result's
             ``numerics.execution`` says ``"compiled-chunks"``. ``"step"`` compiles the per-step
             function only (one compiled call per step); ``True`` (``"auto"``) takes ``"step"``,
@@ -156,23 +134,23 @@ class GaussianFilter(nn.Module):
     ) -> None:
         super().__init__()
         if not isinstance(model, StateSpaceModel):
-            raise TypeError(f"model must be a StateSpaceModel, got {type(model).__name__}")
+            raise InputTypeError(f"model must be a StateSpaceModel, got {type(model).__name__}")
         if point_variance not in ("total", "mean"):
-            raise ValueError(f"point_variance must be 'total' or 'mean', got {point_variance!r}")
+            raise InputError(f"point_variance must be 'total' or 'mean', got {point_variance!r}")
         self.model = model
         self.rule = rule if rule is not None else SphericalRadialRule(3)
         if not isinstance(self.rule, CubatureRule):
-            raise TypeError(f"rule must be a CubatureRule, got {type(self.rule).__name__}")
+            raise InputTypeError(f"rule must be a CubatureRule, got {type(self.rule).__name__}")
         self.sqrt = bool(sqrt)
         self.redraw = bool(redraw)
         self.point_variance = point_variance
         n = model.state_dim
         if self.sqrt and not self.rule.weights_nonnegative(n):
-            raise ValueError(
+            raise InputError(
                 f"sqrt=True needs non-negative covariance weights; {self.rule!r} has a negative "
                 f"weight in dimension {n}"
             )
-        mode: Literal["auto", "step", "loop"] | None
+        mode: CompileMode
         if isinstance(compile, bool):
             mode = "auto" if compile else None
         elif compile in ("auto", "step", "loop"):
@@ -183,17 +161,28 @@ class GaussianFilter(nn.Module):
             )
         if int(chunk) < 1:
             raise InputError(f"chunk must be at least 1, got {chunk}")
-        #: None (eager), "step" (one compiled call per step), "loop" (compiled chunks of steps) or
-        #: "auto" (True: "step")
-        self.compile_mode = mode
         self.chunk = int(chunk)
-        self._compiled = self.compile_mode is not None
-        self._compiled_steps: dict[str, StepFunction] = {}
-        self._compiled_chunks: dict[str, Callable[..., Any]] = {}
-        self._compiled_loops: dict[str, Callable[..., Any]] = {}
-        self._loop_shapes: dict[tuple[Any, ...], list[tuple[tuple[int, ...], torch.dtype]]] = {}
-        #: why the while-loop could not be compiled for this filter (then chunks run), or None
-        self.loop_fallback: str | None = None
+        step = CubatureStep(model, self.rule, self.sqrt, self.redraw, point_variance)
+        self._setup(step, PlanOptions(mode, self.sqrt, self.redraw, n, model.obs_dim))
+
+    def _setup(self, step: OnlineStep, options: PlanOptions) -> None:
+        """Bind the step the engines run and the options the plan reads."""
+        self._step = step
+        self._options = options
+        self._engine = Engine(step, self.chunk)
+
+    @property
+    def compile_mode(self) -> CompileMode:
+        """The normalised ``compile=`` option: None (eager), ``"auto"``, ``"step"``, ``"loop"``."""
+        return self._options.compile
+
+    @property
+    def loop_fallback(self) -> str | None:
+        """Deprecated: the last reason a compiled while-loop could not be traced. Read the
+        result's ``numerics.fallback`` instead (it says why for that run)."""
+        _deprecated("loop_fallback", "read the result's numerics.fallback")
+        failures = list(self._engine.trace_failures.values())
+        return failures[-1].reason if failures else None
 
     # ------------------------------------------------------------------ the step
     def step(
@@ -206,74 +195,43 @@ class GaussianFilter(nn.Module):
         Q: Noise,
         R: Noise,
     ) -> tuple[Belief, StepRecord, tuple[Tensor, ...]]:
-        """One filter step: :func:`~torchfilt.filters.steps.predict` then
-        :func:`~torchfilt.filters.steps.update`, with this filter's options.
+        """One filter step with this filter's options: the step the engines run (see
+        :meth:`CubatureStep.step <torchfilt.filters.cubature_step.CubatureStep.step>` for the
+        arguments and results)."""
+        return self._step.step(points, belief, y, obs, u, Q, R)
 
-        This is the function that :meth:`scan` runs, ``compile=True`` compiles and
-        :class:`~torchfilt.filters.GraphedFilter` captures. A subclass with a different step
-        (:class:`~torchfilt.filters.ConstrainedCKF`) overrides it.
-
-        Args:
-            points: the rule's unit points in the run's dtype and device.
-            belief: the filtered belief about ``x_{t-1}``, ``mean (..., n)``, ``cov (..., n, n)``.
-            y: measurement ``(..., m)``, missing entries set to 0. obs: bool ``(..., m)``.
-            u: inputs ``(..., nu)`` or ``None``.
-            Q: process noise of the step. R: measurement noise of the step.
-
-        Returns:
-            The filtered belief about ``x_t``, the step's :class:`~torchfilt.filters.StepRecord`
-            and extra per-step outputs (none here).
-        """
-        pred, cache = steps.predict(
-            belief,
+    # ------------------------------------------------------------------ plan and run
+    def _plan(
+        self,
+        inputs: FilterInputs,
+        fallbacks: tuple[Fallback, ...] = (),
+        *,
+        graphed: bool = False,
+        grad: bool | None = None,
+    ) -> ExecutionPlan:
+        """The plan of a cubature run of the prepared ``inputs``."""
+        return plan(
             self.model,
-            u,
-            points,
-            sqrt=self.sqrt,
-            point_variance=self.point_variance,
-            noise=Q,
+            self._options,
+            batch=inputs.batch,
+            records_grad=records_grad(inputs, self.model) if grad is None else grad,
+            device=inputs.y.device,
+            graphed=graphed,
+            fallbacks=fallbacks,
         )
-        post, stats = steps.update(
-            pred,
-            y,
-            obs,
+
+    def _exact(self, path: Path, parallel: bool) -> bool:
+        """Whether a run with these options takes the exact Kalman path (the plan's
+        :func:`~torchfilt.filters.plan.exact_path`)."""
+        return exact_path(
             self.model,
-            points,
-            u=u,
-            sqrt=self.sqrt,
+            path=path,
+            parallel=parallel,
             redraw=self.redraw,
-            point_variance=self.point_variance,
-            noise=R,
-            cache=cache,
+            no_exact=self._options.no_exact,
         )
-        record = StepRecord(
-            mean=post.mean,
-            cov=post.cov,
-            predicted_mean=pred.mean,
-            predicted_cov=pred.cov,
-            measurement_mean=stats.measurement_mean,
-            innovation=stats.innovation,
-            innovation_cov=stats.innovation_cov,
-            log_likelihood=stats.log_likelihood,
-            cross_cov=cache.cross_cov,
-        )
-        return post, record, ()
 
-    def step_function(self, device: torch.device) -> StepFunction:
-        """The per-step function :meth:`step`, compiled (once per device type) when ``compile=True``."""
-        if not self._compiled:
-            return self.step
-        fn = self._compiled_steps.get(device.type)
-        if fn is None:
-            # On the CPU a C++ wrapper around the generated kernels removes most of the per-call
-            # Python overhead, which dominates when few sequences are filtered.
-            options: dict[str, Any] | None = {"cpp_wrapper": True} if device.type == "cpu" else None
-            fn = torch.compile(self.step, dynamic=False, options=options)
-            self._compiled_steps[device.type] = fn
-        return fn
-
-    # ------------------------------------------------------------------ whole recordings
-    def prepare(
+    def _prepare(
         self,
         y: Tensor,
         u: Tensor | None = None,
@@ -282,379 +240,45 @@ class GaussianFilter(nn.Module):
         P0: Tensor,
         mask: Tensor | None = None,
     ) -> FilterInputs:
-        """Check and broadcast a recording (arguments as in :meth:`filter`) for :meth:`scan`."""
+        """Check and broadcast a recording (arguments as in :meth:`filter`)."""
         return check_inputs(self.model, y, u, x0, P0, mask)
 
-    def small_kernels(self, batch: torch.Size) -> str:
-        """The small-matrix kernels a run of batch shape ``batch`` uses: ``"unrolled"`` or
-        ``"library"`` (``settings.small_matrix_kernels``; ``"auto"`` resolved once per run)."""
-        n, m = self.model.state_dim, self.model.obs_dim
-        if max(n, m) > SMALL_MAX:
-            return "library"
-        if self._compiled:
-            return "unrolled"  # what tracing always chooses
-        mode = current_small_matrix_kernels()
-        if mode != "auto":
-            return mode
-        return "unrolled" if math.prod(batch) >= SMALL_BATCH else "library"
+    def _run(self, inputs: FilterInputs, keep: Collection[str] | None = None) -> FilterResult:
+        """Plan a run of the prepared ``inputs`` and run it (no divergence warning); a compiled
+        while-loop that cannot be traced is planned again with that fallback."""
+        fallbacks = self._engine.known_fallbacks(inputs)
+        try:
+            return self._engine.run(self._plan(inputs, fallbacks), inputs, keep)
+        except TraceFailure as failure:
+            fallbacks += (failure.fallback,)
+        return self._engine.run(self._plan(inputs, fallbacks), inputs, keep)
 
-    def execution(self, batch: torch.Size, inputs: FilterInputs | None = None) -> str:
-        """The execution a run of batch shape ``batch`` takes: ``"eager"``, ``"compiled-step"``,
-        ``"compiled-loop"`` (one ``torch.while_loop``), or ``"compiled-chunks"`` where
-        ``compile="loop"`` cannot use the while-loop: autograd records (``inputs`` or the model's
-        parameters need gradients), or the step could not be traced into one
-        (:attr:`loop_fallback` says why)."""
-        mode = self.compile_mode
-        if mode == "auto":
-            mode = "step"
-        if mode == "loop" and (
-            self.loop_fallback is not None or (inputs is not None and self._records_grad(inputs))
-        ):
-            return "compiled-chunks"
-        return {None: "eager", "step": "compiled-step", "loop": "compiled-loop"}[mode]
-
-    def _records_grad(self, inputs: FilterInputs) -> bool:
-        """Whether autograd records a run of ``inputs`` (the while-loop has no backward here)."""
-        if not torch.is_grad_enabled():
-            return False
-        tensors = [inputs.y, inputs.x0, inputs.P0] + ([] if inputs.u is None else [inputs.u])
-        tensors += list(self.model.parameters())
-        return any(t.requires_grad for t in tensors)
-
-    def numerics_path(self, inputs: FilterInputs, execution: str | None = None) -> NumericsPath:
-        """The :class:`~torchfilt.settings.NumericsPath` a :meth:`scan` of ``inputs`` takes now."""
-        if execution is None:
-            execution = self.execution(inputs.batch, inputs)
-        nan = self._compiled or no_host_sync()
-        return NumericsPath(execution, self.small_kernels(inputs.batch), "nan" if nan else "jitter")
-
-    def scan(
+    def _scan(
         self,
         inputs: FilterInputs,
         step_fn: StepFunction | None = None,
         sink: RecordSink | None = None,
-    ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]:
-        """Run the step over time from the prior, handing it each step's data and noise.
-
-        Args:
-            inputs: from :meth:`prepare`.
-            step_fn: the step to run; default :meth:`step_function` for the data's device.
-            sink: a :class:`~torchfilt.filters.results.RecordSink` that takes the records
-                instead of the returned list (which is then empty); not with a compiled loop.
-
-        Returns:
-            One :class:`~torchfilt.filters.StepRecord` and one tuple of extra outputs per step.
-        """
-        if step_fn is None:
-            execution = self.execution(inputs.batch, inputs)
-            if execution in ("compiled-loop", "compiled-chunks"):
-                if sink is not None:
-                    raise InputError("sink: a compiled loop returns chunk records; pass no sink")
-                if execution == "compiled-loop":
-                    done = self._try_while(inputs)
-                    if done is not None:
-                        return done
-                return self._chunked(inputs)
-            step_fn = self.step_function(inputs.y.device)
-        kernels = self.small_kernels(inputs.batch)
-        with contextlib.ExitStack() as ctx:
-            if not self._compiled:
-                ctx.enter_context(small_matrix_kernels(kernels))  # type: ignore[arg-type]
-            return self._loop(inputs, step_fn, ctx, sink)
-
-    def _loop(
-        self,
-        inp: FilterInputs,
-        step_fn: StepFunction,
-        ctx: contextlib.ExitStack,
-        sink: RecordSink | None = None,
-    ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]:
-        T = inp.y.shape[-2]
-        belief = self._prior_belief(inp)
-        mean = belief.mean
-        f, h = self.model.transition, self.model.measurement
-        const_Q = None if f.time_varying_noise else self._noise_of(f, 0, mean)
-        const_R = None if h.time_varying_noise else self._noise_of(h, 0, mean)
-        pts = steps.unit_points(self.rule, mean.shape[-1], mean)
-        # A compiled step sees tensors of identical shape, dtype, device and strides at every step
-        # once the first steps have fixed the strides, so Dynamo's guard checks (~0.1 ms per call)
-        # can be skipped from then on, when settings.skip_guard_checks allows it.
-        skip = step_fn in self._compiled_steps.values() and current_skip_guard_checks()
-        records: list[StepRecord] = []
-        extras: list[tuple[Tensor, ...]] = []
-        for t in range(T):
-            if skip and t == _GUARD_WARMUP_STEPS:
-                ctx.enter_context(torch.compiler.set_stance(skip_guard_eval_unsafe=True))
-            Q = const_Q if const_Q is not None else self._noise_of(f, t, mean)
-            R = const_R if const_R is not None else self._noise_of(h, t, mean)
-            ut = None if inp.u is None else inp.u[..., t, :]
-            belief, rec, extra = step_fn(
-                pts, belief, inp.y[..., t, :], inp.obs[..., t, :], ut, Q, R
-            )
-            if sink is not None:
-                sink.append(rec)
-            else:
-                records.append(rec)
-            extras.append(extra)
-        return records, extras
-
-    def run_chunk(
-        self,
-        points: UnitPoints,
-        belief: Belief,
-        y: Tensor,
-        obs: Tensor,
-        u: Tensor | None,
-        Q: tuple[Noise, ...],
-        R: tuple[Noise, ...],
-    ) -> tuple[Belief, StepRecord, tuple[Tensor, ...]]:
-        """``K`` steps of :meth:`step` in one call: the unit ``compile=True`` compiles.
-
-        Args:
-            points, belief: as in :meth:`step`.
-            y: measurements ``(..., K, m)``, missing set to 0. obs: bool ``(..., K, m)``.
-            u: inputs ``(..., K, nu)`` or ``None``. Q, R: the ``K`` steps' noises.
-
-        Returns:
-            The belief after the ``K`` steps, a :class:`~torchfilt.filters.StepRecord` whose
-            fields carry a time dimension of length ``K`` (as in a
-            :class:`~torchfilt.filters.FilterResult`) and the stacked extra outputs.
-        """
-        records: list[StepRecord] = []
-        extras: list[tuple[Tensor, ...]] = []
-        for k in range(y.shape[-2]):
-            ut = None if u is None else u[..., k, :]
-            belief, rec, extra = self.step(
-                points, belief, y[..., k, :], obs[..., k, :], ut, Q[k], R[k]
-            )
-            records.append(rec)
-            extras.append(extra)
-        res = stack_records(records, obs)
-        stacked = StepRecord(
-            **{f: getattr(res, f) for f in StepRecord._fields if f != "log_likelihood"},
-            log_likelihood=torch.stack([r.log_likelihood for r in records], dim=-1),
-        )
-        ex = tuple(torch.stack([e[i] for e in extras], dim=-1) for i in range(len(extras[0])))
-        return belief, stacked, ex
-
-    def _chunk_function(self, device: torch.device) -> Callable[..., Any]:
-        fn = self._compiled_chunks.get(device.type)
-        if fn is None:
-            # the C++ wrapper removes the per-call Python overhead, but calls the library kernels
-            # that larger matrices need through a slow proxy (no C shim for cholesky_ex)
-            small = max(self.model.state_dim, self.model.obs_dim) <= SMALL_MAX
-            cpp = device.type == "cpu" and small
-            options: dict[str, Any] | None = {"cpp_wrapper": True} if cpp else None
-            fn = torch.compile(self.run_chunk, dynamic=False, options=options)
-            self._compiled_chunks[device.type] = fn
-        return fn
-
-    def _chunked(self, inp: FilterInputs) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]:
-        """The time loop in compiled chunks of ``self.chunk`` steps; returns one record per chunk
-        (fields with a time dimension) for :func:`~torchfilt.filters.results.concat_records`."""
-        T = inp.y.shape[-2]
-        belief = self._prior_belief(inp)
-        mean = belief.mean
-        f, h = self.model.transition, self.model.measurement
-        const_Q = None if f.time_varying_noise else self._noise_of(f, 0, mean)
-        const_R = None if h.time_varying_noise else self._noise_of(h, 0, mean)
-        pts = steps.unit_points(self.rule, mean.shape[-1], mean)
-        fn = self._chunk_function(inp.y.device)
-        records: list[StepRecord] = []
-        extras: list[tuple[Tensor, ...]] = []
-        for t0 in range(0, T, self.chunk):
-            t1 = min(T, t0 + self.chunk)
-            Q = tuple(
-                const_Q if const_Q is not None else self._noise_of(f, t, mean)
-                for t in range(t0, t1)
-            )
-            R = tuple(
-                const_R if const_R is not None else self._noise_of(h, t, mean)
-                for t in range(t0, t1)
-            )
-            u = None if inp.u is None else inp.u[..., t0:t1, :]
-            belief, rec, extra = fn(
-                pts, belief, inp.y[..., t0:t1, :], inp.obs[..., t0:t1, :], u, Q, R
-            )
-            records.append(rec)
-            extras.append(extra)
-        return records, extras
-
-    def run_loop(
-        self,
-        points: UnitPoints,
-        belief: Belief,
-        y: Tensor,
-        obs: Tensor,
-        u: Tensor | None,
-        Q: Noise,
-        R: Noise,
-        outputs: tuple[Tensor, ...],
-        varying: tuple[bool, bool],
-        select: tuple[int, ...],
-    ) -> tuple[Tensor, ...]:
-        """All ``T`` steps of :meth:`step` as one ``torch.while_loop``: the unit
-        ``compile="loop"`` compiles (the step is traced once, the loop runs inside the compiled
-        code).
-
-        Args:
-            points, belief: as in :meth:`step` (``belief.sqrt`` is carried in the square-root
-                form only).
-            y: measurements ``(..., T, m)``, missing set to 0. obs: bool ``(..., T, m)``.
-            u: inputs ``(..., T, nu)`` or ``None``.
-            Q, R: the noises; where ``varying`` says so, their tensors carry a leading time
-                dimension ``T``.
-            outputs: time-major buffers ``(T, *shape)``, one per entry of ``select``.
-            varying: whether ``Q`` and ``R`` change over time.
-            select: which of the step's outputs (the :class:`~torchfilt.filters.StepRecord`
-                fields, then the extra outputs) the buffers take.
-
-        Returns:
-            The buffers filled, in the same order.
-        """
-        T = y.shape[-2]
-        sq = self.sqrt
-        nb = len(outputs)
-        noise = (Q.cov, Q.sqrt, R.cov, R.sqrt)
-        present = tuple(v is not None for v in noise)
-        carried = tuple(v for v in noise if v is not None)
-        nn_ = len(carried)
-        # every tensor the body reads is carried (and cloned back), not captured: Dynamo would
-        # lift each view of a captured tensor as its own input, and aliased inputs are refused
-        start = 4 if sq else 3
-
-        def cond(t: Tensor, *rest: Tensor) -> Tensor:
-            return t < T
-
-        def body(t: Tensor, *rest: Tensor) -> tuple[Tensor, ...]:
-            mean, cov = rest[0], rest[1]
-            chol = rest[2] if sq else None
-            bufs = rest[start - 1 : start - 1 + nb]
-            nz = rest[start - 1 + nb : start - 1 + nb + nn_]
-            pf = rest[start - 1 + nb + nn_ :]
-            idx = t.reshape(1)
-
-            def pick(x: Tensor, dim: int) -> Tensor:
-                return x.index_select(dim, idx).squeeze(dim)
-
-            it = iter(nz)
-            Qc, Qs, Rc, Rs = (next(it) if p else None for p in present)
-            at = lambda v: pick(v, 0)  # noqa: E731
-            Qt = _noise_at(Noise(Qc, Qs), at if varying[0] else None)
-            Rt = _noise_at(Noise(Rc, Rs), at if varying[1] else None)
-            ut = None if u is None else pick(u, -2)
-            post, rec, extra = self.step(
-                UnitPoints(*pf), Belief(mean, cov, chol), pick(y, -2), pick(obs, -2), ut, Qt, Rt
-            )
-            vals = (*rec, *extra)
-            picked = (vals[i] for i in select)
-            new = tuple(
-                b.index_copy(0, idx, v.unsqueeze(0)) for b, v in zip(bufs, picked, strict=True)
-            )
-            # carried values keep the metadata (strides included) they entered with
-            head: tuple[Tensor, ...] = (t + 1, post.mean.contiguous(), post.cov.contiguous())
-            if sq:
-                assert post.sqrt is not None
-                head += (post.sqrt.contiguous(),)
-            return head + new + tuple(v.clone() for v in nz) + tuple(p.clone() for p in pf)
-
-        init: tuple[Tensor, ...] = (torch.zeros((), dtype=torch.int64, device=y.device),)
-        init += (belief.mean.contiguous(), belief.cov.contiguous())
-        if sq:
-            assert belief.sqrt is not None
-            init += (belief.sqrt.contiguous(),)
-        init += tuple(outputs) + carried + tuple(points)
-        out = torch.while_loop(cond, body, init)
-        return tuple(out[start : start + nb])
-
-    def _loop_function(self, device: torch.device) -> Callable[..., Any]:
-        fn = self._compiled_loops.get(device.type)
-        if fn is None:
-            # the C++ wrapper runs the loop itself in C++: no Python between the steps
-            options: dict[str, Any] | None = {"cpp_wrapper": True} if device.type == "cpu" else None
-            fn = torch.compile(self.run_loop, dynamic=False, fullgraph=True, options=options)
-            self._compiled_loops[device.type] = fn
-        return fn
-
-    def _try_while(
-        self, inp: FilterInputs, keep: Collection[str] | None = None
-    ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]] | None:
-        """:meth:`_while`, or ``None`` after recording in :attr:`loop_fallback` why the step
-        could not be traced into one while-loop (the caller then compiles chunks, where a
-        genuine error of the model raises again)."""
+    ) -> tuple[ExecutionPlan, list[StepRecord], list[tuple[Tensor, ...]]]:
+        """The plan of a run of ``inputs`` and its per-step (or per-chunk) records and extras
+        (a while-loop that cannot be traced is planned again with that fallback)."""
+        fallbacks = self._engine.known_fallbacks(inputs)
         try:
-            return self._while(inp, keep)
-        except RuntimeError as exc:  # Dynamo's "unsupported" errors are RuntimeErrors
-            self.loop_fallback = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
-            return None
+            p = self._plan(inputs, fallbacks)
+            return (p, *self._engine.scan(p, inputs, step_fn, sink))
+        except TraceFailure as failure:
+            fallbacks += (failure.fallback,)
+        p = self._plan(inputs, fallbacks)
+        return (p, *self._engine.scan(p, inputs, step_fn, sink))
 
-    def _while(
-        self, inp: FilterInputs, keep: Collection[str] | None = None
-    ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]:
-        """The whole time loop as one compiled ``torch.while_loop`` (:meth:`run_loop`); returns
-        one record with a time dimension (as a chunk of :meth:`_chunked`). Only the record
-        fields in ``keep`` (default all) are stored; the others are empty tensors."""
-        T = inp.y.shape[-2]
-        belief = self._prior_belief(inp)
-        mean = belief.mean
-        f, h = self.model.transition, self.model.measurement
-        pts = steps.unit_points(self.rule, mean.shape[-1], mean)
+    def _capture(
+        self, y: Tensor, u: Tensor | None, *, x0: Tensor, P0: Tensor
+    ) -> tuple[FilterInputs, ExecutionPlan, Engine]:
+        """What :class:`~torchfilt.filters.GraphedFilter` captures: the prepared inputs, the
+        graphed plan (refused where the step decides on the host) and the engine."""
+        inputs = self._prepare(y, u, x0=x0, P0=P0)
+        return inputs, self._plan(inputs, graphed=True, grad=False), self._engine
 
-        def noise(side: nn.Module) -> tuple[Noise, bool]:
-            if not side.time_varying_noise:
-                return self._noise_of(side, 0, mean), False
-            per = [self._noise_of(side, t, mean) for t in range(T)]
-
-            def stack(i: int) -> Tensor | None:
-                vals = [v for p in per if (v := p[i]) is not None]
-                return torch.stack(vals) if len(vals) == T else None
-
-            return Noise(stack(0), stack(1)), True
-
-        (Q, q_var), (R, r_var) = noise(f), noise(h)
-        key = (tuple(inp.y.shape), None if inp.u is None else tuple(inp.u.shape), mean.dtype,
-               mean.device, q_var, r_var)  # fmt: skip
-        shapes = self._loop_shapes.get(key)
-        if shapes is None:  # one eager step tells the outputs' shapes and dtypes
-            first = lambda v: v[0]  # noqa: E731
-            with torch.no_grad():
-                _, rec, extra = self.step(
-                    pts, belief, inp.y[..., 0, :], inp.obs[..., 0, :],
-                    None if inp.u is None else inp.u[..., 0, :],
-                    _noise_at(Q, first if q_var else None), _noise_at(R, first if r_var else None),
-                )  # fmt: skip
-            shapes = [(tuple(v.shape), v.dtype) for v in (*rec, *extra)]
-            self._loop_shapes[key] = shapes
-        nrec = len(StepRecord._fields)
-        select = tuple(
-            i
-            for i in range(len(shapes))
-            if i >= nrec or keep is None or StepRecord._fields[i] in keep
-        )
-        bufs = tuple(mean.new_zeros((T, *shapes[i][0]), dtype=shapes[i][1]) for i in select)
-        fn = self._loop_function(inp.y.device)
-        filled = fn(pts, belief, inp.y, inp.obs, inp.u, Q, R, bufs, (q_var, r_var), select)
-        out = dict(zip(select, filled, strict=True))
-        empty = mean.new_empty(0)
-        fields = {
-            name: out[i].movedim(0, _TIME_DIMS[name]) if i in out else empty
-            for i, name in enumerate(StepRecord._fields)
-        }
-        extra = tuple(out[i].movedim(0, -1) for i in range(nrec, len(shapes)))
-        return [StepRecord(**fields)], [extra]
-
-    def _prior_belief(self, inp: FilterInputs) -> Belief:
-        """The belief a run starts from: fresh copies of ``x0`` and ``P0`` (under
-        inference_mode they are inference tensors like every later belief, so a compiled first
-        step or chunk does not compile a variant of its own), factored in the square-root form
-        only (the plain form factors the covariance in the step)."""
-        mean, cov = inp.x0.clone(), inp.P0.clone()
-        return Belief(mean, cov, safe_cholesky(cov, name="P0") if self.sqrt else None)
-
-    def _noise_of(self, side: nn.Module, step: int, like: Tensor) -> Noise:
-        cov = model_noise(side, step, like)
-        return Noise(cov, None if cov is None or not self.sqrt else steps.noise_sqrt(cov))
-
+    # ------------------------------------------------------------------ whole recordings
     def filter(
         self,
         y: Tensor,
@@ -688,56 +312,24 @@ class GaussianFilter(nn.Module):
                 the others are empty tensors. On the exact path the others are never stored.
 
         Returns:
-            A :class:`~torchfilt.filters.FilterResult` (its ``path`` says which path ran). A step with no observed component is a
-            pure prediction (its log-likelihood term is 0). A sequence whose covariance cannot be
-            factored even with jitter (or, in the square-root form, whose factor loses
-            definiteness) becomes NaN from that step on and a
+            A :class:`~torchfilt.filters.FilterResult` (its ``path`` says which path ran). A step
+            with no observed component is a pure prediction (its log-likelihood term is 0). A
+            sequence whose covariance cannot be factored even with jitter (or, in the square-root
+            form, whose factor loses definiteness) becomes NaN from that step on and a
             :class:`~torchfilt.exceptions.DivergenceWarning` is emitted; the rest of the batch is
-            unaffected. ``numerics`` says which path ran.
+            unaffected. ``numerics`` says which path ran (the plan of
+            :func:`~torchfilt.filters.plan.plan`).
         """
-        # -- exact Kalman path for linear models (torchfilt.filters.kalman) -------------------
-        if select_path(self.model, path=path, parallel=parallel, redraw=self.redraw):
+        if self._exact(path, parallel):
             return kalman_filter(
                 self.model, y, u, x0=x0, P0=P0, mask=mask, sqrt=self.sqrt, parallel=parallel,
                 outputs=outputs,
             )  # fmt: skip
-        # -------------------------------------------------------------------------------------
         keep = _keep(outputs)
-        inputs = self.prepare(y, u, x0=x0, P0=P0, mask=mask)
-        res = self.run(inputs, keep=keep)
+        inputs = self._prepare(y, u, x0=x0, P0=P0, mask=mask)
+        res = self._run(inputs, keep=keep)
         warn_nonfinite(res, stacklevel=3)
         return select_outputs(res, outputs)
-
-    def run(self, inputs: FilterInputs, keep: Collection[str] | None = None) -> FilterResult:
-        """:meth:`scan` the prepared ``inputs`` into a result (no divergence warning).
-
-        Args:
-            inputs: from :meth:`prepare`.
-            keep: the result fields to store (default all; see :class:`RecordSink`).
-        """
-        path = self.numerics_path(inputs)
-        done = self._try_while(inputs, keep) if path.execution == "compiled-loop" else None
-        if done is not None:
-            (rec,), _ = done
-            fields = {k: v for k, v in rec._asdict().items() if k != "log_likelihood"}
-            ll = rec.log_likelihood
-            return FilterResult(
-                **fields,
-                observed=self._observed(inputs),
-                log_likelihood=ll.sum(-1) if ll.numel() else ll,
-                numerics=path,
-            )
-        if path.execution in ("compiled-loop", "compiled-chunks"):
-            records, _ = self.scan(inputs)
-            path = self.numerics_path(inputs)  # a while-loop that could not be traced fell back
-            return concat_records(records, self._observed(inputs), path)
-        sink = RecordSink(inputs.y.shape[-2], keep)
-        self.scan(inputs, sink=sink)
-        return sink.result(self._observed(inputs), path)
-
-    @staticmethod
-    def _observed(inp: FilterInputs) -> Tensor:
-        return inp.obs.expand(*inp.batch, *inp.obs.shape[-2:])
 
     def graphed(
         self,
@@ -759,6 +351,9 @@ class GaussianFilter(nn.Module):
             u: example inputs ``(..., T, nu)`` or ``None``.
             x0: prior mean ``(..., n)``. P0: prior covariance ``(..., n, n)``; both fixed.
             warmup: eager runs before the capture.
+
+        Raises:
+            ModelError: the filter's step cannot be captured (its plan says why).
         """
         from torchfilt.filters.graphed import GraphedFilter
 
@@ -784,12 +379,54 @@ class GaussianFilter(nn.Module):
         """
         from torchfilt.filters.smoother import rts_smooth
 
-        # -- exact Kalman path for linear models (torchfilt.filters.kalman) -------------------
-        if select_path(self.model, path=path, parallel=parallel, redraw=self.redraw):
+        if self._exact(path, parallel):
             return kalman_smoother(
                 self.model, y, u, x0=x0, P0=P0, mask=mask, sqrt=self.sqrt, parallel=parallel
             )
         return rts_smooth(self.filter(y, u, x0=x0, P0=P0, mask=mask, path="cubature"))
+
+    # ------------------------------------------------------------------ deprecated engine names
+    def prepare(
+        self,
+        y: Tensor,
+        u: Tensor | None = None,
+        *,
+        x0: Tensor,
+        P0: Tensor,
+        mask: Tensor | None = None,
+    ) -> FilterInputs:
+        """Deprecated: check a recording; :meth:`filter` does it."""
+        _deprecated("prepare", "call filter(); the inputs are checked there")
+        return self._prepare(y, u, x0=x0, P0=P0, mask=mask)
+
+    def run(self, inputs: FilterInputs, keep: Collection[str] | None = None) -> FilterResult:
+        """Deprecated: run prepared inputs; call :meth:`filter`."""
+        _deprecated("run", "call filter()")
+        return self._run(inputs, keep)
+
+    def scan(
+        self,
+        inputs: FilterInputs,
+        step_fn: StepFunction | None = None,
+        sink: RecordSink | None = None,
+    ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]:
+        """Deprecated: the per-step records of prepared inputs; call :meth:`filter`."""
+        _deprecated("scan", "call filter()")
+        _, records, extras = self._scan(inputs, step_fn, sink)
+        return records, extras
+
+    def step_function(self, device: torch.device) -> StepFunction:
+        """Deprecated: the (compiled) step; :meth:`step` is the step."""
+        _deprecated("step_function", "the engines compile the step; call filter()")
+        like = torch.empty(0, device=device)
+        return self._engine.step_function(self._online_plan(torch.Size(), like), like.device)
+
+    def execution(self, batch: torch.Size, inputs: FilterInputs | None = None) -> str:
+        """Deprecated: the execution a run would take; read the result's ``numerics``."""
+        _deprecated("execution", "read the result's numerics.execution")
+        if inputs is None:
+            return self._online_plan(torch.Size(batch), torch.empty(0)).execution
+        return self._plan(inputs, self._engine.known_fallbacks(inputs)).execution
 
     # ------------------------------------------------------------------ online use
     def init(self, x0: Tensor, P0: Tensor) -> FilterState:
@@ -801,11 +438,14 @@ class GaussianFilter(nn.Module):
         Returns:
             A :class:`FilterState` at ``t = -1``. Call :meth:`predict` then :meth:`update` for each
             measurement; with the same data this gives :meth:`filter`'s estimates.
+
+        Raises:
+            InputTypeError: ``x0`` or ``P0`` is not a floating-point tensor (or convertible).
         """
-        x0 = torch.as_tensor(x0)
-        P0 = torch.as_tensor(P0, device=x0.device)
+        x0 = self._as_tensor("x0", x0, None)
+        P0 = self._as_tensor("P0", P0, x0.device)
         if not x0.is_floating_point():
-            raise TypeError(f"x0 must be floating point, got {x0.dtype}")
+            raise InputTypeError(f"x0 must be floating point, got {x0.dtype}")
         dtype = torch.promote_types(x0.dtype, P0.dtype) if P0.is_floating_point() else x0.dtype
         x0, P0 = x0.to(dtype), P0.to(dtype)
         check_prior(x0, P0, self.model.state_dim)
@@ -818,7 +458,23 @@ class GaussianFilter(nn.Module):
         n = self.model.state_dim
         mean = x0.expand(*batch, n).contiguous()
         cov = P0.expand(*batch, n, n).contiguous()
-        return FilterState(mean, cov, safe_cholesky(cov, name="P0"), -1, False)
+        state = FilterState(mean, cov, safe_cholesky(cov, name="P0"), -1, False)
+        self._check_prior_state(state)
+        return state
+
+    def _check_prior_state(self, state: FilterState) -> None:
+        """A hook for a filter whose prior must satisfy more (the constrained CKF's box)."""
+
+    @staticmethod
+    def _as_tensor(name: str, v: Any, device: torch.device | None) -> Tensor:
+        if isinstance(v, Tensor):
+            return v if device is None else v.to(device)
+        try:
+            return torch.as_tensor(v, device=device)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise InputTypeError(
+                f"{name} must be a tensor (or convertible to one), got {type(v).__name__}: {exc}"
+            ) from None
 
     def _check_state(self, state: FilterState, what: str) -> None:
         if not isinstance(state, FilterState):
@@ -830,12 +486,13 @@ class GaussianFilter(nn.Module):
     def _step_input(self, name: str, v: Tensor | None, dim: int, like: Tensor) -> Tensor | None:
         if v is None:
             return None
-        v = torch.as_tensor(v, device=like.device)
+        v = self._as_tensor(name, v, like.device)
         if not v.is_floating_point():
-            raise TypeError(f"{name} must be floating point, got {v.dtype}")
+            raise InputTypeError(f"{name} must be floating point, got {v.dtype}")
         v = v.to(like.dtype)
         if v.dim() < 1 or (dim >= 0 and v.shape[-1] != dim):
-            raise ShapeError(f"{name}: expected shape (..., {dim}), got {tuple(v.shape)}")
+            want = "nu" if dim < 0 else dim
+            raise ShapeError(f"{name}: expected shape (..., {want}), got {tuple(v.shape)}")
         return v
 
     @staticmethod
@@ -851,11 +508,18 @@ class GaussianFilter(nn.Module):
         """One step's measurement ``(..., m)`` in ``like``'s dtype and which components are
         observed (finite and ``mask``)."""
         if not isinstance(y, Tensor):
-            raise TypeError(f"y must be a torch.Tensor, got {type(y).__name__}")
+            raise InputTypeError(f"y must be a torch.Tensor, got {type(y).__name__}")
         v = self._step_input("y", y, self.model.obs_dim, like)
         assert v is not None
         m = None if mask is None else torch.as_tensor(mask).unsqueeze(-2)
         return v, observed(v.unsqueeze(-2), m).squeeze(-2)
+
+    def _online_plan(self, batch: torch.Size, like: Tensor) -> ExecutionPlan:
+        """The plan of a step of batch shape ``batch`` on ``like``'s device without autograd
+        (an online step takes its small-matrix kernels from it)."""
+        empty = like.new_empty(0)
+        inputs = FilterInputs(empty, empty, None, empty, empty, batch)
+        return self._plan(inputs, grad=False)
 
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """Predict the next state: the belief about ``x_{t+1}`` from the one about ``x_t``.
@@ -867,25 +531,21 @@ class GaussianFilter(nn.Module):
 
         Returns:
             The predicted :class:`FilterState` at ``t + 1``.
+
+        Raises:
+            InputTypeError: ``u`` is not floating point. InputError: ``u`` is not finite.
         """
         self._check_state(state, "predict")
         u = self._step_input("u", u, -1, state.mean)
         if u is not None and not bool(torch.isfinite(u).all()):
-            raise ValueError("u contains non-finite entries; inputs cannot be missing")
+            raise InputError("u contains non-finite entries; inputs cannot be missing")
         t = state.t + 1
-        Q = self._noise_of(self.model.transition, t, state.mean)
-        pts = steps.unit_points(self.rule, self.model.state_dim, state.mean)
+        Q = self._step.noise(self.model.transition, t, state.mean)
+        pts = self._step.points(state.mean)
         batch = torch.broadcast_shapes(state.mean.shape[:-1], () if u is None else u.shape[:-1])
-        with small_matrix_kernels(self.small_kernels(batch)):  # type: ignore[arg-type]
-            pred, cache = steps.predict(
-                state.belief,
-                self.model,
-                u,
-                pts,
-                sqrt=self.sqrt,
-                point_variance=self.point_variance,
-                noise=Q,
-            )
+        kernels = self._online_plan(batch, state.mean).small_kernels
+        with small_matrix_kernels(kernels):  # type: ignore[arg-type]
+            pred, cache = self._step.predict(state.belief, u, pts, Q)
         return FilterState(pred.mean, pred.cov, pred.sqrt, t, True, cache)
 
     def update(
@@ -909,6 +569,9 @@ class GaussianFilter(nn.Module):
             The filtered :class:`FilterState` and the step's
             :class:`~torchfilt.filters.steps.UpdateStats` (predicted measurement, innovation
             and its covariance, log-likelihood term).
+
+        Raises:
+            InputTypeError: ``y`` is not a floating-point tensor, or ``u`` not floating point.
         """
         self._check_state(state, "update")
         if not state.predicted:
@@ -925,21 +588,12 @@ class GaussianFilter(nn.Module):
                 f"y: batch shape {tuple(obs.shape[:-1])} does not broadcast with the state's "
                 f"{tuple(state.mean.shape[:-1])}"
             ) from None
-        R = self._noise_of(self.model.measurement, state.t, state.mean)
-        pts = steps.unit_points(self.rule, self.model.state_dim, state.mean)
-        with small_matrix_kernels(self.small_kernels(batch)):  # type: ignore[arg-type]
-            post, stats = steps.update(
-                self._expand(state, batch),
-                y,
-                obs,
-                self.model,
-                pts,
-                u=u,
-                sqrt=self.sqrt,
-                redraw=self.redraw,
-                point_variance=self.point_variance,
-                noise=R,
-                cache=state.cache,
+        R = self._step.noise(self.model.measurement, state.t, state.mean)
+        pts = self._step.points(state.mean)
+        kernels = self._online_plan(batch, state.mean).small_kernels
+        with small_matrix_kernels(kernels):  # type: ignore[arg-type]
+            post, stats = self._step.update(
+                self._expand(state, batch), y, obs, u, pts, R, state.cache
             )
         return FilterState(post.mean, post.cov, post.sqrt, state.t, False), stats
 

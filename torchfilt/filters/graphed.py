@@ -19,41 +19,29 @@ Constraints of a captured run (checked where possible):
 from __future__ import annotations
 
 import warnings
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import ShapeError
+from torchfilt.exceptions import ExecutionError, InputError, InputTypeError, ShapeError
+from torchfilt.filters.engine import Engine
 from torchfilt.filters.inputs import FilterInputs, observed
-from torchfilt.filters.results import FilterResult, StepRecord, stack_records, warn_nonfinite
-from torchfilt.settings import NumericsPath, sync_free
-
-if TYPE_CHECKING:
-    from collections.abc import Callable
+from torchfilt.filters.plan import ExecutionPlan
+from torchfilt.filters.results import FilterResult, stack_records, warn_nonfinite
+from torchfilt.settings import sync_free
 
 
 class Scannable(Protocol):
-    """What :class:`GraphedFilter` needs of a filter: its public scan interface
-    (:class:`~torchfilt.filters.GaussianFilter` provides it)."""
+    """What :class:`GraphedFilter` needs of a filter
+    (:class:`~torchfilt.filters.GaussianFilter` provides it): the prepared inputs of a
+    recording, its graphed :class:`~torchfilt.filters.plan.ExecutionPlan` (the plan refuses a
+    step that decides on the host) and the :class:`~torchfilt.filters.engine.Engine` that runs
+    the step."""
 
-    def prepare(
-        self,
-        y: Tensor,
-        u: Tensor | None = None,
-        *,
-        x0: Tensor,
-        P0: Tensor,
-        mask: Tensor | None = None,
-    ) -> FilterInputs: ...
-
-    def step_function(self, device: torch.device) -> Callable[..., Any]: ...
-
-    def scan(
-        self, inputs: FilterInputs, step_fn: Callable[..., Any] | None = None
-    ) -> tuple[list[StepRecord], list[tuple[Tensor, ...]]]: ...
-
-    def numerics_path(self, inputs: FilterInputs, execution: str | None = None) -> NumericsPath: ...
+    def _capture(
+        self, y: Tensor, u: Tensor | None, *, x0: Tensor, P0: Tensor
+    ) -> tuple[FilterInputs, ExecutionPlan, Engine]: ...
 
 
 __all__ = ["GraphedFilter", "Scannable"]
@@ -75,8 +63,9 @@ class GraphedFilter:
             CUDA caching allocator settle).
 
     Raises:
-        ValueError: ``y`` is not on a CUDA device.
-        RuntimeError: the filter's step needed a host synchronisation during capture (e.g. a
+        ModelError: the filter's step cannot be captured (its plan says why).
+        InputError: ``y`` is not on a CUDA device.
+        ExecutionError: the filter's step needed a host synchronisation during capture (e.g. a
             model that reads values on the host); the message names the cause.
     """
 
@@ -90,16 +79,11 @@ class GraphedFilter:
         P0: Tensor,
         warmup: int = 2,
     ) -> None:
-        if not isinstance(y, Tensor) or y.device.type != "cuda":
-            dev = y.device if isinstance(y, Tensor) else type(y).__name__
-            raise ValueError(
-                f"y: a CUDA graph needs measurements on a CUDA device, got {dev}; on the CPU use "
-                "CKF(..., compile=True)"
-            )
+        # the plan refuses a step that cannot be captured, and data off CUDA
+        inp, plan, engine = filt._capture(y, u, x0=x0, P0=P0)
         if warmup < 1:
-            raise ValueError(f"warmup must be at least 1, got {warmup}")
+            raise InputError(f"warmup must be at least 1, got {warmup}")
         self.filter_ = filt
-        inp = filt.prepare(y, u, x0=x0, P0=P0)
         # Static buffers: later runs copy their data into these before each replay.
         shape = (*inp.batch, *y.shape[-2:])
         self._y = inp.y.expand(shape).contiguous()
@@ -111,25 +95,25 @@ class GraphedFilter:
         self.shape = shape
         self.dtype = inp.y.dtype
         self.device = inp.y.device
-        step_fn = filt.step_function(self.device)
+        self.plan = plan
+        step_fn = engine.step_function(plan, self.device)
 
         side = torch.cuda.Stream(device=self.device)
         side.wait_stream(torch.cuda.current_stream(self.device))
         with torch.cuda.stream(side), warnings.catch_warnings(), sync_free():
             warnings.simplefilter("ignore")
             for _ in range(warmup):
-                filt.scan(self._inp, step_fn)
+                engine.scan(plan, self._inp, step_fn)
         torch.cuda.current_stream(self.device).wait_stream(side)
 
         self.graph = torch.cuda.CUDAGraph()
         try:
             with torch.cuda.graph(self.graph), sync_free():
-                path = filt.numerics_path(self._inp, "graphed")
-                records, _ = filt.scan(self._inp, step_fn)
+                records, _ = engine.scan(plan, self._inp, step_fn)
                 observed_all = self._obs.expand(*inp.batch, *self._obs.shape[-2:])
-                self._out = stack_records(records, observed_all, path)
+                self._out = stack_records(records, observed_all, plan.numerics)
         except RuntimeError as e:
-            raise RuntimeError(
+            raise ExecutionError(
                 "GraphedFilter: capturing the filter into a CUDA graph failed; a step must not "
                 f"synchronise with the host (no .item(), bool(tensor) or CPU copies): {e}"
             ) from e
@@ -156,18 +140,18 @@ class GraphedFilter:
             A :class:`~torchfilt.filters.FilterResult`, as :meth:`GaussianFilter.filter` gives.
         """
         if not isinstance(y, Tensor):
-            raise TypeError(f"y must be a torch.Tensor, got {type(y).__name__}")
+            raise InputTypeError(f"y must be a torch.Tensor, got {type(y).__name__}")
         if tuple(y.shape) != tuple(self.shape):
             raise ShapeError(
                 f"y: the graph was captured for shape {tuple(self.shape)}, got {tuple(y.shape)}"
             )
         if y.dtype != self.dtype or y.device != self.device:
-            raise ValueError(
+            raise InputError(
                 f"y: the graph was captured for {self.dtype} on {self.device}, got {y.dtype} on "
                 f"{y.device}"
             )
         if (u is None) != (self._u is None):
-            raise ValueError(
+            raise InputError(
                 "u: the graph was captured "
                 + ("without" if self._u is None else "with")
                 + " inputs"
@@ -188,7 +172,7 @@ class GraphedFilter:
                     f"{tuple(u.shape)}"
                 )
             if not bool(torch.isfinite(u).all()):
-                raise ValueError("u contains non-finite entries; inputs cannot be missing")
+                raise InputError("u contains non-finite entries; inputs cannot be missing")
             self._u.copy_(u)
         self.graph.replay()
         out = self._out

@@ -9,7 +9,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import DivergenceWarning
+from torchfilt.exceptions import DivergenceWarning, ExecutionError
 from torchfilt.settings import NumericsPath
 
 __all__ = [
@@ -45,9 +45,11 @@ class FilterResult(NamedTuple):
         log_likelihood: ``sum_t log N(y_t; y^-_t, P_yy)`` over observed components, shape ``(...)``.
         cross_cov: ``Cov(x_{t-1}, x_t | y_{1:t-1})`` from the prediction (``x_{-1}`` is the prior),
             which the RTS smoother needs, shape ``(..., T, n, n)``.
-        numerics: which numerics path the run took (:class:`torchfilt.settings.NumericsPath`:
-            eager, compiled or graphed; small-matrix kernels; jitter or NaN on a failed
-            factorisation), or ``None`` for a result built by hand.
+        numerics: which numerics path the run took, as
+            :func:`torchfilt.filters.plan.plan` decided it (:class:`torchfilt.settings.NumericsPath`:
+            eager, compiled or graphed, or the exact runner; small-matrix kernels; jitter or NaN on
+            a failed factorisation; why a first choice was left), or ``None`` for a result built
+            by hand.
     """
 
     mean: Tensor
@@ -172,7 +174,7 @@ class RecordSink:
     def result(self, observed: Tensor, numerics: NumericsPath | None = None) -> FilterResult:
         """The :class:`FilterResult` of all ``T`` steps (fields not kept are empty)."""
         if self.count != self.steps:
-            raise RuntimeError(f"RecordSink: {self.count} of {self.steps} steps recorded")
+            raise ExecutionError(f"RecordSink: {self.count} of {self.steps} steps recorded")
         if self.graph:
             res = stack_records(self.records, observed, numerics)
             empty = res.mean.new_empty(0)

@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from torchfilt.cubature import CubatureRule, sigma_points
+from torchfilt.exceptions import InputError
 from torchfilt.filters.inputs import model_noise
 from torchfilt.models import Prediction, StateSpaceModel
 from torchfilt.numerics import (
@@ -322,7 +323,9 @@ def update(
         Xd = Xu - m_pred.unsqueeze(-2)
     else:
         if cache is None:
-            raise ValueError("update: redraw=False reuses the predicted points; pass cache=")
+            raise InputError(
+                "cache: update with redraw=False reuses the predicted points; pass cache="
+            )
         Xu, Xd = cache.points, cache.deviations
     uP = None if u is None else u.unsqueeze(-2).expand(*Xu.shape[:-1], u.shape[-1])
     ph = h.predict(Xu, uP)
