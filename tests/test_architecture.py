@@ -158,3 +158,38 @@ def test_no_private_imports_across_packages():
             ):
                 bad.append(f"{mod} imports {target}{'.' + name if name else ''}")
     assert not bad, "\n".join(bad)
+
+
+#: Deprecated shims that name a module of a higher layer through ``importlib`` (so that they do not
+#: import it when the package loads): each re-exports names that moved up a layer, for one release.
+DEPRECATED_SHIMS = {
+    "torchfilt.training": {"torchfilt.pipeline"},
+    "torchfilt.training.bundle": {"torchfilt.pipeline.bundle"},
+    "torchfilt.training.recipe": {"torchfilt.pipeline.recipe"},
+    "torchfilt.training.run": {
+        "torchfilt.pipeline.run",
+        "torchfilt.pipeline.run_checks",
+        "torchfilt.pipeline.run_stages",
+    },
+}
+
+
+def test_upward_references_only_in_deprecated_shims():
+    """A string naming a ``torchfilt`` module of a higher layer (an ``importlib.import_module``
+    target, which :func:`test_no_upward_imports` cannot see) appears only in the deprecated shims
+    of :data:`DEPRECATED_SHIMS`, and only for the modules they stand in for."""
+    modules = _modules()
+    bad = []
+    for mod, path in modules.items():
+        if mod == "torchfilt":
+            continue
+        own = layer_of(mod)
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not (isinstance(node, ast.Constant) and isinstance(node.value, str)):
+                continue
+            target = node.value
+            if target not in modules or target == "torchfilt" or layer_of(target) <= own:
+                continue
+            if target not in DEPRECATED_SHIMS.get(mod, set()):
+                bad.append(f"{mod} (layer {own}) names {target} (layer {layer_of(target)})")
+    assert not bad, "\n".join(bad)

@@ -19,8 +19,8 @@ import torchfilt.pipeline.distributed.data_parallel as dp_mod
 import torchfilt.pipeline.distributed.group as group_mod
 from torchfilt.cli import main as cli_main
 from torchfilt.io.synth import simulate_dataset
-from torchfilt.pipeline import train_recipe_data_parallel
-from torchfilt.training import RunError, load_bundle, train_recipe
+from torchfilt.pipeline import load_bundle, train_recipe, train_recipe_data_parallel
+from torchfilt.training import RunError
 
 #: float64 sums over two ranks instead of one process: the same arithmetic up to summation order
 ORDER_RTOL = 1e-9

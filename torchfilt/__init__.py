@@ -110,10 +110,10 @@ _LAZY = {
     "fit_em": "torchfilt.training",
     "fit_likelihood": "torchfilt.training",
     "fit_measurement_only": "torchfilt.training",
-    "load_bundle": "torchfilt.training",
-    "load_model": "torchfilt.training",
+    "load_bundle": "torchfilt.pipeline",
+    "load_model": "torchfilt.pipeline",
     "parameter_posterior": "torchfilt.training",
-    "train_recipe": "torchfilt.training",
+    "train_recipe": "torchfilt.pipeline",
 }
 _LAZY_MODULES = ("pipeline", "plots", "training")
 

@@ -11,7 +11,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import matplotlib
 import numpy as np
 import torch
 from torch import Tensor
@@ -22,7 +21,7 @@ from torchfilt.io import DataError, Recording, atomic_write_bytes, atomic_write_
 from torchfilt.io.atomic import check_new_outputs, output_dir
 from torchfilt.io.estimates import Estimates, write_estimates
 from torchfilt.io.recording import SUFFIXES
-from torchfilt.training.bundle import ModelSpec, load_model_spec
+from torchfilt.pipeline.bundle import ModelSpec, load_model_spec
 
 __all__ = [
     "INDEX_NAME",
@@ -382,6 +381,8 @@ def _write_one(
             truth[1:], sm.mean[b].cpu().double(), sm.cov[b].cpu().double()
         )
     if plot:
+        import matplotlib  # here, not at the top: the pipeline imports without matplotlib
+
         from torchfilt.plots import plot_recording
 
         matplotlib.use("Agg", force=False)

@@ -33,7 +33,7 @@ The output folder and the recordings must be visible under the same paths on eve
 machine, or a shared filesystem).
 
 **Training.** :func:`train_recipes_ray` trains several recipes, or one recipe over several
-datasets, as parallel Ray tasks, each :func:`~torchfilt.training.train_recipe` with its own run
+datasets, as parallel Ray tasks, each :func:`~torchfilt.pipeline.train_recipe` with its own run
 directory (and so its own checkpoints and ``--resume``).
 
 **Data-parallel fits.** :func:`calibrate_ray` and :func:`fit_measurement_only_ray` (likelihood or
@@ -45,7 +45,7 @@ actors' checkpoints. With ``callback_on="driver"`` the per-iteration callback ru
 process (rank 0's state, rank 0 waiting for it), so it need not pickle and may write local files.
 
 **One recipe, data-parallel.** :func:`train_recipe_data_parallel` (``torchfilt train RECIPE
---ray --data-parallel N``) is :func:`~torchfilt.training.train_recipe` whose calibration stage and
+--ray --data-parallel N``) is :func:`~torchfilt.pipeline.train_recipe` whose calibration stage and
 ``states = "none"`` transition stage are these data-parallel fits on ``N`` actors (the other
 stages run in this process): the same run directory, dataset log and bundle as a local run (the
 calibrated and learned parameters equal up to the order of the sums), each stage's checkpoint a

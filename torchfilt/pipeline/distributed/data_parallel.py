@@ -14,8 +14,8 @@ from torchfilt.exceptions import InputError, WorkerError
 from torchfilt.pipeline.distributed.fits import calibrate_ray, fit_measurement_only_ray
 from torchfilt.pipeline.distributed.group import GROUP_TIMEOUT, _check_timeout
 from torchfilt.pipeline.distributed.session import import_ray, ray_session
-from torchfilt.training.recipe import Recipe, load_recipe
-from torchfilt.training.run import StageFitters
+from torchfilt.pipeline.recipe import Recipe, load_recipe
+from torchfilt.pipeline.run import StageFitters, train_recipe
 
 __all__ = ["data_parallel_fitters", "train_recipe_data_parallel"]
 
@@ -77,7 +77,7 @@ def _measurement_only_stage_ray(
 
 
 def data_parallel_fitters(workers: int, *, timeout: float = GROUP_TIMEOUT) -> StageFitters:
-    """The :class:`~torchfilt.training.run.StageFitters` of :func:`train_recipe_data_parallel`:
+    """The :class:`~torchfilt.pipeline.run.StageFitters` of :func:`train_recipe_data_parallel`:
     :func:`calibrate_ray` and :func:`fit_measurement_only_ray` on ``workers`` actors of the Ray
     session open when a stage runs, the stage's callback on the driver, the stage's checkpoint
     path the folder of the actors' checkpoints.
@@ -109,7 +109,7 @@ def train_recipe_data_parallel(
     progress: bool = True,
     stream: TextIO | None = None,
 ) -> Path:
-    """:func:`~torchfilt.training.train_recipe` with its likelihood stages data-parallel on Ray.
+    """:func:`~torchfilt.pipeline.train_recipe` with its likelihood stages data-parallel on Ray.
 
     The calibration stage runs :func:`calibrate_ray` and a ``states = "none"`` recipe's
     transition stage :func:`fit_measurement_only_ray`, each on ``workers`` actors (one CPU each)
@@ -126,11 +126,11 @@ def train_recipe_data_parallel(
     started: ``resume=True`` with the same ``workers`` continues it from its checkpoints to the
     bundle of an uninterrupted run (a lost actor is a
     :class:`~torchfilt.exceptions.WorkerError`, and resuming continues from the checkpoints all
-    actors saved); :func:`~torchfilt.training.train_recipe` (local) or other ``workers`` refuse
+    actors saved); :func:`~torchfilt.pipeline.train_recipe` (local) or other ``workers`` refuse
     it with a :class:`~torchfilt.exceptions.RunError`.
 
     Args:
-        recipe: a recipe file or a :class:`~torchfilt.training.Recipe`.
+        recipe: a recipe file or a :class:`~torchfilt.pipeline.Recipe`.
         out: run directory (visible under the same path to every actor: one machine or a shared
             filesystem).
         workers: Ray actors per data-parallel stage (``--data-parallel N``); at most the training
@@ -151,13 +151,11 @@ def train_recipe_data_parallel(
         MissingDependencyError: Ray is not installed.
         InputError: ``workers`` not a positive integer or more than the training recordings or
             the cluster's CPUs, ``resume`` with ``force``, an unreachable cluster.
-        RecipeError, DataError: as :func:`~torchfilt.training.train_recipe` (before Ray starts).
-        RunError: as :func:`~torchfilt.training.train_recipe`, and a run started with other
+        RecipeError, DataError: as :func:`~torchfilt.pipeline.train_recipe` (before Ray starts).
+        RunError: as :func:`~torchfilt.pipeline.train_recipe`, and a run started with other
             fitters.
         WorkerError: an actor was lost; ``resume=True`` continues.
     """
-    from torchfilt.training import train_recipe
-
     import_ray()
     fitters = data_parallel_fitters(workers, timeout=timeout)
     if resume and force:

@@ -14,14 +14,13 @@ from typing import Any, TextIO
 from torchfilt.exceptions import InputError, RunError
 from torchfilt.io.atomic import output_dir
 from torchfilt.pipeline.distributed.session import _one_line, import_ray, ray_session
-from torchfilt.training.recipe import Recipe, load_recipe
+from torchfilt.pipeline.recipe import Recipe, load_recipe
+from torchfilt.pipeline.run import train_recipe
 
 __all__ = ["train_recipes_ray"]
 
 
 def _train_one(recipe: Recipe, out: str, resume: bool, force: bool) -> dict[str, Any]:
-    from torchfilt.training import train_recipe
-
     t0 = time.perf_counter()
     bundle = train_recipe(recipe, out, resume=resume, force=force, progress=False)
     return {"bundle": str(bundle), "seconds": time.perf_counter() - t0}
@@ -43,7 +42,7 @@ def train_recipes_ray(
 
     Either several recipes (run directory ``out/{recipe name}``), or one recipe over several
     ``datasets`` (one model per unit: ``out/{dataset folder name}``, the recipe with its
-    ``[dataset] path`` replaced). Each task is :func:`~torchfilt.training.train_recipe`, so each
+    ``[dataset] path`` replaced). Each task is :func:`~torchfilt.pipeline.train_recipe`, so each
     run has its own checkpoints; ``resume`` continues every run from its checkpoint (a run
     already finished is not retrained).
 
@@ -69,7 +68,7 @@ def train_recipes_ray(
         RecipeError: an invalid recipe (checked here, before any task starts).
         RunError: some runs failed, including on an invalid dataset or a run directory that
             already holds a run (each task checks its own before it trains, as
-            :func:`~torchfilt.training.train_recipe` does); the message gives the first failure's
+            :func:`~torchfilt.pipeline.train_recipe` does); the message gives the first failure's
             own message. The other runs are kept; ``resume`` continues them.
     """
     import_ray()
