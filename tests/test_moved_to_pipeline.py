@@ -72,3 +72,12 @@ def test_top_level_names_come_from_the_pipeline():
 def test_unknown_training_name_is_an_attribute_error():
     with pytest.raises(AttributeError, match="no attribute 'nothing'"):
         _ = torchfilt.training.nothing
+
+
+def test_progress_bar_moved_to_io():
+    """``torchfilt.training.progress`` still imports (without a warning until the package's own
+    callers move) and is ``torchfilt.io.progress``'s bar."""
+    from torchfilt.io.progress import ProgressBar
+    from torchfilt.training.progress import ProgressBar as Old
+
+    assert Old is ProgressBar

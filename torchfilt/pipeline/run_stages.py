@@ -20,6 +20,7 @@ from torchfilt.exceptions import RunError
 from torchfilt.filters import CKF
 from torchfilt.io import Dataset, atomic_write_bytes
 from torchfilt.io.atomic import output_error
+from torchfilt.io.progress import ProgressBar
 from torchfilt.io.recording import Recording
 from torchfilt.models import CholeskyCovariance, InducingTransition, StateSpaceModel
 from torchfilt.pipeline.bundle import inducing_state, nominal_model
@@ -27,7 +28,6 @@ from torchfilt.pipeline.recipe import Recipe
 from torchfilt.pipeline.run_checks import STAGES, _feature_indices, _known_channels
 from torchfilt.training.calibrate import CalibrationResult, calibrate
 from torchfilt.training.measurement_only import MeasurementOnlyFit, fit_measurement_only
-from torchfilt.training.progress import ProgressBar
 
 __all__ = [
     "CALIBRATE_CHECKPOINT",
