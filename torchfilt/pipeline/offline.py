@@ -218,19 +218,7 @@ def filter_recordings(
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out}: the output folder is a file; choose a folder")
     spec = resolve_model(model)
-    recs: list[Recording] = []
-    for p in recordings:
-        recs.append(
-            read_recording(
-                p,
-                spec.channels,
-                time_column=spec.time_column,
-                sample_time=spec.sample_time,
-                optional=("state",),
-            )
-        )
-        if len(recs[-1]) < 2:
-            raise DataError("needs at least 2 rows (the first row is the prior's time)", path=p)
+    recs = _read_recordings(spec, recordings)
     output_dir(out)
     filt = CKF(spec.model.to(device=dev, dtype=dtype), sqrt=sqrt)
     m0 = (spec.prior_mean if x0 is None else torch.as_tensor(x0)).to(dev, dtype)
@@ -258,6 +246,24 @@ def filter_recordings(
     summary["recordings"] = [entries[i] for i in range(len(recs))]
     atomic_write_text(out / INDEX_NAME, json.dumps(summary, indent=2, default=float) + "\n")
     return summary
+
+
+def _read_recordings(spec: ModelSpec, recordings: Sequence[str | Path]) -> list[Recording]:
+    """Read and validate every recording with the model's channels (at least 2 rows each)."""
+    recs: list[Recording] = []
+    for p in recordings:
+        recs.append(
+            read_recording(
+                p,
+                spec.channels,
+                time_column=spec.time_column,
+                sample_time=spec.sample_time,
+                optional=("state",),
+            )
+        )
+        if len(recs[-1]) < 2:
+            raise DataError("needs at least 2 rows (the first row is the prior's time)", path=p)
+    return recs
 
 
 def shard_plan(lengths: Sequence[int], batch_size: int | None = None) -> list[list[int]]:

@@ -697,7 +697,19 @@ def check_states(r: Recipe) -> None:
             'sides; the states = "none" transition is an InducingTransition fitted by '
             '[measurement_only]: use gp = "none"'
         )
-    mo = _check_keys(r.measurement_only, _allowed("measurement_only"), "measurement_only", None)
+    out = _measurement_only_options(r.measurement_only)
+    r.measurement_only.clear()
+    r.measurement_only.update(out)
+
+
+def _measurement_only_options(table: dict[str, Any]) -> dict[str, Any]:
+    """``[measurement_only]`` checked (keys, values, the options of its method) and completed
+    with its defaults.
+
+    Raises:
+        RecipeError: naming the key.
+    """
+    mo = _check_keys(table, _allowed("measurement_only"), "measurement_only", None)
     _check_values({k: v for k, v in mo.items() if v is not None}, "measurement_only", None)
     out = {**MEASUREMENT_ONLY_DEFAULTS, **mo}
     if out["method"] == "em":
@@ -749,8 +761,7 @@ def check_states(r: Recipe) -> None:
         )
     if out["lr"] is not None:
         out["lr"] = float(out["lr"])
-    r.measurement_only.clear()
-    r.measurement_only.update(out)
+    return out
 
 
 def _calibrate(table: Any, path: Path | None) -> dict[str, Any]:

@@ -55,6 +55,7 @@ from torchfilt._version import __version__
 from torchfilt.exceptions import InputError, RecipeError, RunError
 from torchfilt.io import Dataset, atomic_write_text, load_dataset
 from torchfilt.io.atomic import output_dir
+from torchfilt.io.recording import Recording
 from torchfilt.models import StateSpaceModel
 from torchfilt.pipeline.bundle import BUNDLE_SCHEMA, apply_calibration, build_side, save_bundle
 from torchfilt.pipeline.recipe import Recipe, check_calibrate, check_states, load_recipe
@@ -177,6 +178,35 @@ def train_recipe(
         raise RunError(f"{out}: no run to resume (config.json missing)")
     created_dir = not out.exists()
     output_dir(out)
+    _check_run_dir(out, r, fitters, resume, force)
+    before = {f for f in RUN_FILES if (out / f).exists()}
+    log: _Log | None = None
+    try:
+        if not resume:
+            atomic_write_text(cfg_path, json.dumps(_config(r, fitters), indent=2) + "\n")
+        log = _Log(out / "train.log", None if progress else stream)
+        return _run(r, ds, prior, out, resume, progress, stream, log, fitters)
+    except Exception:
+        if not resume and not any((out / f).exists() for f in _RUN_MARKERS[1:]):
+            # nothing trained yet (an invalid option, a full disk): remove what this attempt
+            # wrote, so it blocks no other. A kill (no exception) leaves the run to --resume.
+            if log is not None:
+                log.close()
+            for f in RUN_FILES:
+                if f not in before and (out / f).is_file():
+                    (out / f).unlink()
+            if created_dir and not any(out.iterdir()):
+                out.rmdir()
+        raise
+    finally:
+        if log is not None:
+            log.close()
+
+
+def _check_run_dir(out: Path, r: Recipe, fitters: StageFitters, resume: bool, force: bool) -> None:
+    """A run to resume must have started with this recipe and these fitters; a new run needs a
+    directory without one (``force`` removes it)."""
+    cfg_path = out / "config.json"
     if resume:
         try:
             old = json.loads(cfg_path.read_text(encoding="utf-8"))
@@ -204,28 +234,6 @@ def train_recipe(
                 f"{out}: already holds a run; pass --resume to continue it, --force to discard "
                 "it, or choose another --out"
             )
-    before = {f for f in RUN_FILES if (out / f).exists()}
-    log: _Log | None = None
-    try:
-        if not resume:
-            atomic_write_text(cfg_path, json.dumps(_config(r, fitters), indent=2) + "\n")
-        log = _Log(out / "train.log", None if progress else stream)
-        return _run(r, ds, prior, out, resume, progress, stream, log, fitters)
-    except Exception:
-        if not resume and not any((out / f).exists() for f in _RUN_MARKERS[1:]):
-            # nothing trained yet (an invalid option, a full disk): remove what this attempt
-            # wrote, so it blocks no other. A kill (no exception) leaves the run to --resume.
-            if log is not None:
-                log.close()
-            for f in RUN_FILES:
-                if f not in before and (out / f).is_file():
-                    (out / f).unlink()
-            if created_dir and not any(out.iterdir()):
-                out.rmdir()
-        raise
-    finally:
-        if log is not None:
-            log.close()
 
 
 def _fitters_text(name: Any) -> str:
@@ -283,6 +291,61 @@ def _run_recipe(
     fitters: StageFitters,
 ) -> Path:
     dtype = torch.float64 if r.dtype == "float64" else torch.float32
+    dlog = _dataset_log(r, ds, out, resume, log)
+    train, val = ds.split("train"), ds.split("validation")
+    ckpt_path = out / "checkpoint.pt"
+    ckpt = _load_checkpoint(ckpt_path) if resume and ckpt_path.is_file() else None
+    _trim_metrics(out / "metrics.jsonl", ckpt if resume else None, fresh=not resume)
+    m0, P0, how = prior
+    entries = _train_sides(
+        r, ds, train, m0, P0, dtype, out, resume, ckpt, progress, stream, log, fitters
+    )  # fmt: skip
+    f = build_side(entries["transition"], "transition")
+    h = build_side(entries["measurement"], "measurement")
+    calibration = _calibrate_stage(
+        r, entries, StateSpaceModel(f, h), train, val, m0, P0, dtype, out, resume, progress,
+        stream, log, fitters,
+    )  # fmt: skip
+    uncal = StateSpaceModel(f, h)
+    if calibration is not None and calibration.get("models"):
+        # GPs refitted by the calibration: the bundle and the validation take them
+        for stage, state in calibration.pop("models").items():
+            entries[stage] = {**entries[stage], "state": state}
+        f = build_side(entries["transition"], "transition")
+        h = build_side(entries["measurement"], "measurement")
+    validation = _validate(f, h, uncal, calibration, val, m0, P0, out, log)
+    bundle = {
+        "name": r.name,
+        "transition": entries["transition"],
+        "measurement": entries["measurement"],
+        "channels": {
+            "states": [[c.name, c.unit] for c in ds.manifest.channels if c.role == "state"],
+            "inputs": [[c.name, c.unit] for c in ds.manifest.channels if c.role == "input"],
+            "measurements": [
+                [c.name, c.unit] for c in ds.manifest.channels if c.role == "measurement"
+            ],
+        },
+        "sample_time": ds.manifest.sample_time,
+        "time_column": ds.manifest.time_column,
+        "time_unit": ds.manifest.time_unit,
+        "prior": {"mean": m0, "cov": P0, "source": how},
+        "calibration": calibration,
+        "dataset": dlog["fingerprint"],
+        "recipe": r.resolved(),
+        "validation": validation,
+        "created": _now(),
+        "versions": {"torchfilt": __version__, "torch": str(torch.__version__)},
+    }
+    path = save_bundle(out / "model.pt", bundle)
+    if ckpt_path.exists():
+        ckpt_path.unlink()
+    log(f"wrote {path} ({BUNDLE_SCHEMA})")
+    return path
+
+
+def _dataset_log(r: Recipe, ds: Dataset, out: Path, resume: bool, log: _Log) -> dict[str, Any]:
+    """Write the dataset log ``dataset.json`` (a resumed run first checks that the dataset is
+    the one it started on) and log the run's first line; returns the log."""
     dlog = ds.log()
     ds_path = out / "dataset.json"
     if resume and ds_path.is_file():
@@ -298,19 +361,32 @@ def _run_recipe(
             )
     atomic_write_text(ds_path, json.dumps(dlog, indent=2, default=float) + "\n")
     train, val = ds.split("train"), ds.split("validation")
-    states = ds.manifest.names("state")
-    inputs = ds.manifest.names("input")
     log(
         f"run {r.name}: dataset {ds.manifest.name} ({len(train)} train / {len(val)} validation recordings, "
         f"fingerprint {dlog['fingerprint']['dataset_sha256'][:12]})"
     )
+    return dlog
 
-    ckpt_path = out / "checkpoint.pt"
-    ckpt = _load_checkpoint(ckpt_path) if resume and ckpt_path.is_file() else None
-    metrics_path = out / "metrics.jsonl"
-    _trim_metrics(metrics_path, ckpt if resume else None, fresh=not resume)
 
-    m0, P0, how = prior
+def _train_sides(
+    r: Recipe,
+    ds: Dataset,
+    train: list[Recording],
+    m0: Tensor,
+    P0: Tensor,
+    dtype: torch.dtype,
+    out: Path,
+    resume: bool,
+    ckpt: dict[str, Any] | None,
+    progress: bool,
+    stream: TextIO,
+    log: _Log,
+    fitters: StageFitters,
+) -> dict[str, dict[str, Any]]:
+    """The bundle entry of each side: a built-in model, a stage trained before (resumed), or
+    the side trained now (a GP, or the ``states = "none"`` transition) and saved."""
+    states = ds.manifest.names("state")
+    inputs = ds.manifest.names("input")
     entries: dict[str, dict[str, Any]] = {}
     for stage in STAGES:
         opts = dict(getattr(r, stage))
@@ -342,32 +418,22 @@ def _run_recipe(
             r, stage, opts, train, states, inputs, dtype, out, ckpt, progress, stream, log
         )
         _save(done, entries[stage])
+    return entries
 
-    f = build_side(entries["transition"], "transition")
-    h = build_side(entries["measurement"], "measurement")
-    calibration = _calibrate_stage(
-        r,
-        entries,
-        StateSpaceModel(f, h),
-        train,
-        val,
-        m0,
-        P0,
-        dtype,
-        out,
-        resume,
-        progress,
-        stream,
-        log,
-        fitters,
-    )
-    uncal = StateSpaceModel(f, h)
-    if calibration is not None and calibration.get("models"):
-        # GPs refitted by the calibration: the bundle and the validation take them
-        for stage, state in calibration.pop("models").items():
-            entries[stage] = {**entries[stage], "state": state}
-        f = build_side(entries["transition"], "transition")
-        h = build_side(entries["measurement"], "measurement")
+
+def _validate(
+    f: Any,
+    h: Any,
+    uncal: StateSpaceModel,
+    calibration: dict[str, Any] | None,
+    val: list[Recording],
+    m0: Tensor,
+    P0: Tensor,
+    out: Path,
+    log: _Log,
+) -> dict[str, Any]:
+    """``validation.json``: one-step metrics of the sides ``f``, ``h`` and the filter's
+    consistency before (``uncal``) and after calibration, on the validation recordings."""
     # one-step metrics need logged states: computed where every validation recording has them
     # (with states = "none" they are evaluation only, in the learned state coordinates)
     with_states = bool(val) and all(bool(torch.isfinite(rec.states).all()) for rec in val)
@@ -396,33 +462,7 @@ def _run_recipe(
             f"measurement {_fmt(validation['measurement']['rmse'])}; 95% coverage: transition "
             f"{_fmt(validation['transition']['coverage95'])}, measurement {_fmt(validation['measurement']['coverage95'])}"
         )
-    bundle = {
-        "name": r.name,
-        "transition": entries["transition"],
-        "measurement": entries["measurement"],
-        "channels": {
-            "states": [[c.name, c.unit] for c in ds.manifest.channels if c.role == "state"],
-            "inputs": [[c.name, c.unit] for c in ds.manifest.channels if c.role == "input"],
-            "measurements": [
-                [c.name, c.unit] for c in ds.manifest.channels if c.role == "measurement"
-            ],
-        },
-        "sample_time": ds.manifest.sample_time,
-        "time_column": ds.manifest.time_column,
-        "time_unit": ds.manifest.time_unit,
-        "prior": {"mean": m0, "cov": P0, "source": how},
-        "calibration": calibration,
-        "dataset": dlog["fingerprint"],
-        "recipe": r.resolved(),
-        "validation": validation,
-        "created": _now(),
-        "versions": {"torchfilt": __version__, "torch": str(torch.__version__)},
-    }
-    path = save_bundle(out / "model.pt", bundle)
-    if ckpt_path.exists():
-        ckpt_path.unlink()
-    log(f"wrote {path} ({BUNDLE_SCHEMA})")
-    return path
+    return validation
 
 
 def _trim_metrics(path: Path, ckpt: dict[str, Any] | None, fresh: bool) -> None:

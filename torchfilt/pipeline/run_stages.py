@@ -394,7 +394,19 @@ def _fit_measurement_only_stage(
         )
     finally:
         metrics.close()
-    names = ds.manifest.names("measurement")
+    entry = _measurement_only_entry(fit, o, ds.manifest.names("measurement"))
+    log(
+        f"transition: {fit.stopped} after {fit.iterations} iterations; log-likelihood "
+        f"{entry['fit']['initial_log_likelihood']:.6g} -> {fit.log_likelihood:.6g}"
+    )
+    return entry
+
+
+def _measurement_only_entry(
+    fit: MeasurementOnlyFit, o: dict[str, Any], names: list[str]
+) -> dict[str, Any]:
+    """The ``"inducing"`` bundle entry of a ``states = "none"`` fit: the learned transition and
+    the fit's record and options ``o`` (``names``: the measurement channels)."""
     info = {
         "method": fit.method,
         "known_channels": [names[i] for i in fit.known_channels],
@@ -405,10 +417,6 @@ def _fit_measurement_only_stage(
         "per_measurement": fit.per_measurement,
         "options": dict(o),
     }
-    log(
-        f"transition: {fit.stopped} after {fit.iterations} iterations; log-likelihood "
-        f"{info['initial_log_likelihood']:.6g} -> {fit.log_likelihood:.6g}"
-    )
     return {
         "kind": "inducing",
         "nominal": o["nominal"],
@@ -514,6 +522,24 @@ def _calibrate_stage(
             dtype=dtype,
         )
     fit = res.fit
+    entry = _calibration_entry(res, c)
+    _save(done, entry)
+    _remove(ckpt)
+    log(
+        f"calibrate: {fit.stopped} after {fit.iterations} iterations; log-likelihood "
+        f"{fit.initial_log_likelihood:.6g} -> {fit.log_likelihood:.6g}; "
+        + "; ".join(
+            f"{k} scale {_fmt(v['scale'])} floor {_fmt(v['floor'])}"
+            for k, v in res.parameters.items()
+        )
+    )
+    return entry
+
+
+def _calibration_entry(res: CalibrationResult, c: dict[str, Any]) -> dict[str, Any]:
+    """The bundle's ``calibration`` entry: the scales and floors, the fit's record and options
+    ``c``, and the GPs the calibration refitted (with their hyperparameters), if any."""
+    fit = res.fit
     entry: dict[str, Any] = {
         **res.parameters,
         "fit": {
@@ -536,14 +562,4 @@ def _calibrate_stage(
             name: {k: v.tolist() for k, v in g.hyperparameters().items()}
             for name, g in res.refit.items()
         }
-    _save(done, entry)
-    _remove(ckpt)
-    log(
-        f"calibrate: {fit.stopped} after {fit.iterations} iterations; log-likelihood "
-        f"{fit.initial_log_likelihood:.6g} -> {fit.log_likelihood:.6g}; "
-        + "; ".join(
-            f"{k} scale {_fmt(v['scale'])} floor {_fmt(v['floor'])}"
-            for k, v in res.parameters.items()
-        )
-    )
     return entry

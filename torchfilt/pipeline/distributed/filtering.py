@@ -158,6 +158,49 @@ def filter_recordings_ray(
     """
     import_ray()  # fail fast, before any file is read
     t_start = time.perf_counter()
+    out, names = _check_arguments(recordings, out, device, batch_size, max_retries, dtype)
+    spec = resolve_model(model)
+    opts = {
+        "smooth": bool(smooth), "plot": bool(plot), "dtype": str(dtype).removeprefix("torch."),
+        "sqrt": bool(sqrt), "batch_size": batch_size, "device": device,
+        "x0": None if x0 is None else torch.as_tensor(x0, dtype=torch.float64).tolist(),
+        "P0": None if P0 is None else torch.as_tensor(P0, dtype=torch.float64).tolist(),
+    }  # fmt: skip
+    job, identity, lengths, fresh = _prepare_job(spec, model, recordings, names, out, opts, force)
+    pending, found = _pending_shards(job, out, shard_plan(lengths, batch_size), fresh)
+    stats: dict[str, Any] = {"filtered": 0, "complete_before": found, "tasks": len(pending)}
+    stats["prepare_s"] = time.perf_counter() - t_start
+    failures: list[str] = []
+    task_times: list[dict[str, float]] = []  # per task: size, compute_s, wall_s
+    with contextlib.ExitStack() as stack:
+        # Ray first: an unreachable cluster is reported before anything is written
+        ray = stack.enter_context(ray_session(address, workers=workers)) if pending else None
+        output_dir(out)
+        if fresh:
+            _start_job(out, identity, job["paths"], lengths)
+        if ray is not None:
+            show = _Progress(progress, stream if stream is not None else sys.stderr, len(names))
+            task_times = _run_shards(
+                ray, job, spec, pending, found, show, stats, failures,
+                gpus_per_task=gpus_per_task, max_retries=max_retries,
+            )  # fmt: skip
+    stats["task_times"] = task_times
+    stats["failed_tasks"] = len(failures)
+    summary = _summary(out, spec, smooth, job["names"], failures, len(pending))
+    stats["total_s"] = time.perf_counter() - t_start
+    return {**summary, "distributed": stats}
+
+
+def _check_arguments(
+    recordings: Sequence[str | Path],
+    out: str | Path,
+    device: str,
+    batch_size: int,
+    max_retries: int,
+    dtype: torch.dtype,
+) -> tuple[Path, list[str]]:
+    """The options, then the recording files and the output folder, checked before anything is
+    read; ``out`` as a path and the recordings' output names."""
     if device != "auto":
         check_device(device)
     shard_plan([], batch_size)
@@ -169,24 +212,26 @@ def filter_recordings_ray(
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out}: the output folder is a file; choose a folder")
-    stream = stream if stream is not None else sys.stderr
+    return out, output_names(recordings)
+
+
+def _prepare_job(
+    spec: ModelSpec,
+    model: str | Path | ModelSpec,
+    recordings: Sequence[str | Path],
+    names: list[str],
+    out: Path,
+    opts: dict[str, Any],
+    force: bool,
+) -> tuple[dict[str, Any], dict[str, Any], list[int], bool]:
+    """The job to run in ``out`` (its recordings in the first run's order), its identity, the
+    recordings' lengths, and whether it is a new job. A new job checks that it overwrites
+    nothing and validates every recording before anything is written; a job resumed in ``out``
+    takes the order and lengths of its job file."""
     given = [str(Path(p)) for p in recordings]
-    names_given = output_names(recordings)
-    paths_given = [os.path.abspath(p) for p in recordings]
-    spec = resolve_model(model)
-    opts = {
-        "smooth": bool(smooth),
-        "plot": bool(plot),
-        "dtype": str(dtype).removeprefix("torch."),
-        "sqrt": bool(sqrt),
-        "batch_size": batch_size,
-        "device": device,
-        "x0": None if x0 is None else torch.as_tensor(x0, dtype=torch.float64).tolist(),
-        "P0": None if P0 is None else torch.as_tensor(P0, dtype=torch.float64).tolist(),
-    }
-    identity = _job_identity(spec, model, sorted(paths_given), opts)
-    job_path = out / JOB_FILE
-    old = _read_job(job_path)
+    paths = [os.path.abspath(p) for p in recordings]
+    identity = _job_identity(spec, model, sorted(paths), opts)
+    old = _read_job(out / JOB_FILE)
     if old is not None and not force and old.get("identity") != identity:
         raise OutputError(
             f"{out}: holds the outputs of another filter job (other recordings, model or "
@@ -194,126 +239,145 @@ def filter_recordings_ray(
         )
     if old is not None and not force:
         # resuming: the first run's order fixes the plan and the summary's order
-        order = {p: i for i, p in enumerate(paths_given)}
+        order = {p: i for i, p in enumerate(paths)}
         perm = [order[p] for p in old["paths"]]
         lengths = list(old["lengths"])
     else:
-        perm = list(range(len(paths_given)))
+        perm = list(range(len(paths)))
         planned = [out / INDEX_NAME]
-        for nm in names_given:
-            planned.extend(out / f for f in recording_outputs(nm, smooth=smooth, plot=plot))
+        for nm in names:
+            planned.extend(
+                out / f for f in recording_outputs(nm, smooth=opts["smooth"], plot=opts["plot"])
+            )
         check_new_outputs(planned, force=force)
-        lengths = []
-        first_row_seen = False
-        for p in recordings:  # validate every recording before anything is written
-            rec = read_recording(
-                p,
-                spec.channels,
-                time_column=spec.time_column,
-                sample_time=spec.sample_time,
-                optional=("state",),
-            )
-            if len(rec) < 2:
-                raise DataError("needs at least 2 rows (the first row is the prior's time)", path=p)
-            lengths.append(len(rec))
-            first_row_seen = first_row_seen or bool(rec.measurements[0].isfinite().any())
-        if first_row_seen:
-            warnings.warn(
-                "the first row of a recording is the prior's time; its measurements are not used",
-                stacklevel=2,
-            )
+        lengths = _recording_lengths(spec, recordings)
     job: dict[str, Any] = {
         "out": os.path.abspath(out),
         "recordings": [given[i] for i in perm],
-        "names": [names_given[i] for i in perm],
-        "paths": [paths_given[i] for i in perm],
+        "names": [names[i] for i in perm],
+        "paths": [paths[i] for i in perm],
         **{k: opts[k] for k in ("smooth", "plot", "dtype", "sqrt", "device", "x0", "P0")},
     }
-    plan = shard_plan(lengths, batch_size)
-    total = len(job["names"])
-    fresh = old is None or force  # a new job: its markers (if any, of a forced one) go
+    # a new job: its markers (if any, of a forced one) go
+    return job, identity, lengths, old is None or force
+
+
+def _recording_lengths(spec: ModelSpec, recordings: Sequence[str | Path]) -> list[int]:
+    """Validate every recording (before anything is written); their lengths."""
+    lengths = []
+    first_row_seen = False
+    for p in recordings:
+        rec = read_recording(
+            p,
+            spec.channels,
+            time_column=spec.time_column,
+            sample_time=spec.sample_time,
+            optional=("state",),
+        )
+        if len(rec) < 2:
+            raise DataError("needs at least 2 rows (the first row is the prior's time)", path=p)
+        lengths.append(len(rec))
+        first_row_seen = first_row_seen or bool(rec.measurements[0].isfinite().any())
+    if first_row_seen:
+        warnings.warn(
+            "the first row of a recording is the prior's time; its measurements are not used",
+            stacklevel=4,  # the caller of filter_recordings_ray
+        )
+    return lengths
+
+
+def _pending_shards(
+    job: dict[str, Any], out: Path, plan: list[list[int]], fresh: bool
+) -> tuple[list[list[int]], int]:
+    """The batches with an incomplete recording (every batch of a new job), and the number of
+    recordings found complete."""
 
     def incomplete(i: int) -> bool:
         return fresh or _complete_entry(out, job["names"][i]) is None
 
     pending = [sh for sh in plan if any(incomplete(i) for i in sh)]
-    found = total - sum(incomplete(i) for sh in pending for i in sh)
-    stats: dict[str, Any] = {"filtered": 0, "complete_before": found, "tasks": len(pending)}
-    stats["prepare_s"] = time.perf_counter() - t_start
-    failures: list[str] = []
+    found = len(job["names"]) - sum(incomplete(i) for sh in pending for i in sh)
+    return pending, found
+
+
+def _start_job(out: Path, identity: dict[str, Any], paths: list[str], lengths: list[int]) -> None:
+    """Write a new job's file (removing the bookkeeping of a job it replaces)."""
+    if (out / ".torchfilt").is_dir():
+        shutil.rmtree(out / ".torchfilt")
+    atomic_write_text(
+        out / JOB_FILE,
+        json.dumps(
+            {"schema": _JOB_SCHEMA, "identity": identity, "paths": paths, "lengths": lengths},
+            indent=1,
+        )
+        + "\n",
+    )
+
+
+def _run_shards(
+    ray: Any,
+    job: dict[str, Any],
+    spec: ModelSpec,
+    pending: list[list[int]],
+    found: int,
+    show: _Progress,
+    stats: dict[str, Any],
+    failures: list[str],
+    *,
+    gpus_per_task: float | None,
+    max_retries: int,
+) -> list[dict[str, float]]:
+    """One task per pending batch; wait for them in the order they finish, counting what each
+    wrote into ``stats`` and each failure's line into ``failures``. Returns the tasks' times."""
+    gpus = gpus_per_task
+    if gpus is None:
+        gpus = 1.0 if job["device"] != "cpu" and ray.cluster_resources().get("GPU", 0) > 0 else 0.0
+    remote = ray.remote(_filter_shard).options(num_cpus=1, num_gpus=gpus, max_retries=max_retries)
     task_times: list[dict[str, float]] = []
-    with contextlib.ExitStack() as stack:
-        # Ray first: an unreachable cluster is reported before anything is written
-        ray = stack.enter_context(ray_session(address, workers=workers)) if pending else None
-        output_dir(out)
-        if fresh:
-            if (out / ".torchfilt").is_dir():
-                shutil.rmtree(out / ".torchfilt")
-            atomic_write_text(
-                job_path,
-                json.dumps(
-                    {
-                        "schema": _JOB_SCHEMA,
-                        "identity": identity,
-                        "paths": job["paths"],
-                        "lengths": lengths,
-                    },
-                    indent=1,
-                )
-                + "\n",
-            )
-        if ray is not None:
-            gpus = gpus_per_task
-            if gpus is None:
-                gpus = 1.0 if device != "cpu" and ray.cluster_resources().get("GPU", 0) > 0 else 0.0
-            remote = ray.remote(_filter_shard).options(
-                num_cpus=1, num_gpus=gpus, max_retries=max_retries
-            )
-            job_ref, spec_ref = ray.put(job), ray.put(spec)
-            started: dict[Any, tuple[float, int]] = {}
-            for s in pending:
-                started[remote.remote(job_ref, spec_ref, s)] = (time.perf_counter(), len(s))
-            done_count = found
-            left = list(started)
-            show = _Progress(progress, stream, total)
-            show(done_count)
-            while left:
-                ready, left = ray.wait(left, num_returns=1)
-                ref = ready[0]
-                t_sub, size = started[ref]
-                try:
-                    res = ray.get(ref)
-                except Exception as e:  # a task error or a worker lost for good
-                    failures.append(_one_line(e))
-                    continue
-                stats["filtered"] += res["written"]
-                task_times.append(
-                    {
-                        "size": size,
-                        "compute_s": res["compute_s"],
-                        "wall_s": time.perf_counter() - t_sub,
-                    }
-                )
-                done_count += size
-                show(done_count)
-    stats["task_times"] = task_times
-    stats["failed_tasks"] = len(failures)
-    if failures and any(_complete_entry(out, nm) is None for nm in job["names"]):
+    job_ref, spec_ref = ray.put(job), ray.put(spec)
+    started: dict[Any, tuple[float, int]] = {}
+    for s in pending:
+        started[remote.remote(job_ref, spec_ref, s)] = (time.perf_counter(), len(s))
+    done_count = found
+    left = list(started)
+    show(done_count)
+    while left:
+        ready, left = ray.wait(left, num_returns=1)
+        ref = ready[0]
+        t_sub, size = started[ref]
+        try:
+            res = ray.get(ref)
+        except Exception as e:  # a task error or a worker lost for good
+            failures.append(_one_line(e))
+            continue
+        stats["filtered"] += res["written"]
+        task_times.append(
+            {"size": size, "compute_s": res["compute_s"], "wall_s": time.perf_counter() - t_sub}
+        )
+        done_count += size
+        show(done_count)
+    return task_times
+
+
+def _summary(
+    out: Path, spec: ModelSpec, smooth: bool, names: list[str], failures: list[str], tasks: int
+) -> dict[str, Any]:
+    """The job's summary, written to ``filter_summary.json`` once every recording is complete."""
+    if failures and any(_complete_entry(out, nm) is None for nm in names):
         raise RunError(
-            f"{len(failures)} of {len(pending)} filter tasks failed (first: {failures[0]}); the "
+            f"{len(failures)} of {tasks} filter tasks failed (first: {failures[0]}); the "
             "recordings finished are kept in "
             f"{out}: run the same command again to do the rest"
         )
     entries = []
-    for name in job["names"]:
+    for name in names:
         entry = _complete_entry(out, name)
         if entry is None:  # pragma: no cover - every task returned without error
             raise RunError(f"{out}: {name} has no complete output after the job; run it again")
         entries.append(entry)
     summary: dict[str, Any] = {"model": spec.source, "smooth": smooth, "recordings": entries}
     atomic_write_text(out / INDEX_NAME, json.dumps(summary, indent=2, default=float) + "\n")
-    stats["total_s"] = time.perf_counter() - t_start
-    return {**summary, "distributed": stats}
+    return summary
 
 
 class _Progress:
