@@ -35,7 +35,7 @@ from _common import environment, table, timeit, write_json
 
 from torchfilt.io.synth import simulate_dataset
 from torchfilt.models.gp import GPMeasurement, GPTransition
-from torchfilt.training import load_bundle, load_model, train_recipe
+from torchfilt.pipeline import load_bundle, load_model, train_recipe
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Recipe of the 5000-point bundle (the quick-start recipe's options on another system).
@@ -57,7 +57,7 @@ checkpoint_every = 60
 
 COLD = (
     "import sys, time, torch\n"
-    "from torchfilt.training import load_model\n"
+    "from torchfilt.pipeline import load_model\n"
     "if sys.argv[2] == '1':\n"
     "    torch.broadcast_shapes((2, 1), (1, 3))\n"
     "torch.set_num_threads(int(sys.argv[3]))\n"

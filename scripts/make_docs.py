@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from torchfilt.io import atomic_write_text
-from torchfilt.training.recipe import recipe_reference
+from torchfilt.pipeline.recipe import recipe_reference
 
 ROOT = Path(__file__).resolve().parents[1]
 

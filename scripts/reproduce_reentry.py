@@ -62,11 +62,11 @@ from _common import environment, table, write_json
 import torchfilt
 from torchfilt.filters import FilterResult
 from torchfilt.models import StateSpaceModel
+from torchfilt.pipeline import load_bundle, load_model, save_bundle
 from torchfilt.plots import PALETTE, plot_errors, style
 from torchfilt.plots.style import MEASUREMENT_COLOR, TRUTH_COLOR
 from torchfilt.systems import reentry
 from torchfilt.systems.registry import get_system
-from torchfilt.training import load_bundle, load_model, save_bundle
 
 STATE_NAMES = ["altitude", "velocity", "ballistic coeff."]
 UNITS = ["ft", "ft/s", None]

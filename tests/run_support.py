@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from torchfilt.io.synth import simulate_dataset
-from torchfilt.training import train_recipe
+from torchfilt.pipeline import train_recipe
 
 RECIPE = """
 name = "tiny"

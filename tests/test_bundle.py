@@ -17,7 +17,7 @@ from torchfilt import GPMeasurement, GPTransition
 from torchfilt.cli import main
 from torchfilt.exceptions import BundleError, OutputError
 from torchfilt.models.gp.model import GPModel
-from torchfilt.training import (
+from torchfilt.pipeline import (
     BUNDLE_SCHEMA,
     load_bundle,
     load_model,
@@ -25,7 +25,7 @@ from torchfilt.training import (
     train_recipe,
     upgrade_bundle,
 )
-from torchfilt.training.bundle import LEGACY_SCHEMA, UnverifiedBundleWarning
+from torchfilt.pipeline.bundle import LEGACY_SCHEMA, UnverifiedBundleWarning
 
 #: a model rebuilt from its stored cache predicts what the trained model predicts; the exact
 #: form's Cholesky factor is recomputed from the same numbers, so they agree to round-off

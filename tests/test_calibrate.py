@@ -238,7 +238,7 @@ def test_fit_likelihood_input_errors():
 
 
 def test_recipe_calibrate_section(tmp_path):
-    from torchfilt.training import load_recipe
+    from torchfilt.pipeline import load_recipe
 
     base = '[dataset]\npath = "d"\n[transition]\nmodel = "system:reaction"\n[measurement]\nmodel = "system:reaction"\n'
     p = tmp_path / "r.toml"

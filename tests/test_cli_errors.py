@@ -13,7 +13,7 @@ import torch
 from run_support import tiny_bundle, write_recipe
 
 from torchfilt.cli import main
-from torchfilt.training import load_bundle, load_recipe, save_bundle
+from torchfilt.pipeline import load_bundle, load_recipe, save_bundle
 
 #: ``--device cuda`` on a CPU build must fail before anything is loaded: well under this.
 FAIL_FAST_S = 5.0

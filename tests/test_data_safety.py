@@ -18,8 +18,7 @@ from torchfilt.io import atomic_write_text, sha256_file
 from torchfilt.io.atomic import clean_stale_temps
 from torchfilt.io.estimates import read_estimates
 from torchfilt.io.synth import simulate_dataset
-from torchfilt.pipeline import evaluate_outputs, filter_recordings
-from torchfilt.training import train_recipe
+from torchfilt.pipeline import evaluate_outputs, filter_recordings, train_recipe
 
 
 @pytest.fixture(scope="module")

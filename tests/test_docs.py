@@ -11,8 +11,9 @@ import matplotlib
 import pytest
 
 from torchfilt.cli import main
-from torchfilt.training import RecipeError, load_recipe
-from torchfilt.training.recipe import RECIPE_SCHEMA, Recipe, recipe_reference
+from torchfilt.pipeline import load_recipe
+from torchfilt.pipeline.recipe import RECIPE_SCHEMA, Recipe, recipe_reference
+from torchfilt.training import RecipeError
 
 matplotlib.use("Agg")
 

@@ -4,7 +4,7 @@ import torch
 from test_training import write_recipe
 
 from torchfilt.io.synth import simulate_dataset
-from torchfilt.training import train_recipe
+from torchfilt.pipeline import train_recipe
 
 
 def test_train_recipe_restores_the_thread_count(tmp_path):

@@ -15,11 +15,12 @@ import pytest
 import run_support
 import torch
 
-import torchfilt.pipeline.distributed as dist_mod
+import torchfilt.pipeline.distributed.data_parallel as dp_mod
+import torchfilt.pipeline.distributed.group as group_mod
 from torchfilt.cli import main as cli_main
 from torchfilt.io.synth import simulate_dataset
-from torchfilt.pipeline import train_recipe_data_parallel
-from torchfilt.training import RunError, load_bundle, train_recipe
+from torchfilt.pipeline import load_bundle, train_recipe, train_recipe_data_parallel
+from torchfilt.training import RunError
 
 #: float64 sums over two ranks instead of one process: the same arithmetic up to summation order
 ORDER_RTOL = 1e-9
@@ -109,7 +110,7 @@ def test_interrupted_data_parallel_run_resumes_to_the_same_bundle(gp_runs, monke
     Ctrl-C would): the actors are stopped and their checkpoints kept; a local resume is refused;
     resuming with ``--data-parallel 2`` gives the uninterrupted run's bundle."""
     recipe, _, dp = gp_runs
-    real = dist_mod.calibrate_ray
+    real = dp_mod.calibrate_ray
 
     def interrupted_at_5(*args, **kwargs):
         inner = kwargs["callback"]
@@ -122,10 +123,10 @@ def test_interrupted_data_parallel_run_resumes_to_the_same_bundle(gp_runs, monke
         return real(*args, **{**kwargs, "callback": cb})
 
     run = recipe.parent / "killed"
-    monkeypatch.setattr(dist_mod, "calibrate_ray", interrupted_at_5)
+    monkeypatch.setattr(dp_mod, "calibrate_ray", interrupted_at_5)
     with pytest.raises(KeyboardInterrupt):
         train_recipe_data_parallel(recipe, run, workers=2, progress=False)
-    monkeypatch.setattr(dist_mod, "calibrate_ray", real)
+    monkeypatch.setattr(dp_mod, "calibrate_ray", real)
     ck = run / "calibrate.ckpt"
     assert sorted(p.name for p in ck.iterdir()) == ["rank0.ckpt", "rank1.ckpt"]
     assert [torch.load(ck / f"rank{r}.ckpt")["iteration"] for r in (0, 1)] == [3, 3]
@@ -144,7 +145,7 @@ def test_interrupted_data_parallel_run_resumes_to_the_same_bundle(gp_runs, monke
     assert "calibrate: resuming from iteration 3" in (run / "train.log").read_text()
 
 
-class _LosesRank1At4(dist_mod._DriverCallback):
+class _LosesRank1At4(group_mod._DriverCallback):
     """The actors' callback, except that rank 1's process exits (a lost machine) at iteration 4."""
 
     def __call__(self, state):
@@ -169,7 +170,7 @@ def test_lost_actor_is_a_worker_error_and_the_run_resumes(gp_runs, tmp_path, mon
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
     recipe, _, dp = gp_runs
     run = tmp_path / "lost"
-    monkeypatch.setattr(dist_mod, "_DriverCallback", _LosesRank1At4)
+    monkeypatch.setattr(group_mod, "_DriverCallback", _LosesRank1At4)
     args = ["train", str(recipe), "--out", str(run), "--ray", "--data-parallel", "2", "--quiet"]
     capsys.readouterr()
     assert cli_main(args) == 2
@@ -245,7 +246,7 @@ def test_data_parallel_measurement_only_stage_gives_the_local_bundle(measonly_ru
 @pytest.mark.slow
 def test_interrupted_measurement_only_stage_resumes_to_the_same_bundle(measonly_runs, monkeypatch):
     recipe, _, dp = measonly_runs
-    real = dist_mod.fit_measurement_only_ray
+    real = dp_mod.fit_measurement_only_ray
 
     def interrupted_at_3(*args, **kwargs):
         inner = kwargs["callback"]
@@ -258,10 +259,10 @@ def test_interrupted_measurement_only_stage_resumes_to_the_same_bundle(measonly_
         return real(*args, **{**kwargs, "callback": cb})
 
     run = recipe.parent / "killed"
-    monkeypatch.setattr(dist_mod, "fit_measurement_only_ray", interrupted_at_3)
+    monkeypatch.setattr(dp_mod, "fit_measurement_only_ray", interrupted_at_3)
     with pytest.raises(KeyboardInterrupt):
         train_recipe_data_parallel(recipe, run, workers=2, progress=False)
-    monkeypatch.setattr(dist_mod, "fit_measurement_only_ray", real)
+    monkeypatch.setattr(dp_mod, "fit_measurement_only_ray", real)
     ck = run / "transition.ckpt"
     assert [torch.load(ck / f"rank{r}.ckpt")["iteration"] for r in (0, 1)] == [2, 2]
     assert not (run / "transition.pt").exists()

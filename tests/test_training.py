@@ -15,16 +15,8 @@ import torch
 import torchfilt
 from torchfilt.cli import main as cli_main
 from torchfilt.io.synth import simulate_dataset
-from torchfilt.training import (
-    BUNDLE_SCHEMA,
-    BundleError,
-    RecipeError,
-    RunError,
-    load_bundle,
-    load_model,
-    load_recipe,
-    train_recipe,
-)
+from torchfilt.pipeline import BUNDLE_SCHEMA, load_bundle, load_model, load_recipe, train_recipe
+from torchfilt.training import BundleError, RecipeError, RunError
 
 ROOT = Path(__file__).resolve().parents[1]
 #: resumed and uninterrupted runs execute the same float64 arithmetic: they agree to round-off
@@ -148,7 +140,7 @@ def test_resume_after_kill_during_calibration_equals_uninterrupted(
     tmp_path, tiny_data, monkeypatch
 ):
     """A run killed in the calibration stage resumes from its checkpoint to the same bundle."""
-    import torchfilt.training.run as run_mod
+    import torchfilt.pipeline.run_stages as run_mod
 
     recipe = write_recipe(tmp_path / "tiny.toml", tiny_data, iters=10, every=3)
     fresh = tmp_path / "fresh"
@@ -271,7 +263,7 @@ def test_recipe_errors_name_the_key(tmp_path, text, message):
 
 def test_recipe_kernels_are_the_gp_kernels():
     from torchfilt.models.gp.kernels import KERNELS
-    from torchfilt.training.recipe import KERNELS as RECIPE_KERNELS
+    from torchfilt.pipeline.recipe import KERNELS as RECIPE_KERNELS
 
     assert set(RECIPE_KERNELS) == set(KERNELS)
 

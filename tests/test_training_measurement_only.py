@@ -30,18 +30,11 @@ from torchfilt.cli import main as cli_main
 from torchfilt.exceptions import DataError
 from torchfilt.io.synth import simulate_dataset
 from torchfilt.models import CholeskyCovariance, InducingTransition, StateSpaceModel
+from torchfilt.pipeline import load_bundle, load_model, load_recipe, train_recipe
+from torchfilt.pipeline.bundle import build_side, check_bundle
+from torchfilt.pipeline.recipe import Recipe
 from torchfilt.systems import get_system
-from torchfilt.training import (
-    BundleError,
-    RecipeError,
-    fit_measurement_only,
-    load_bundle,
-    load_model,
-    load_recipe,
-    train_recipe,
-)
-from torchfilt.training.bundle import build_side, check_bundle
-from torchfilt.training.recipe import Recipe
+from torchfilt.training import BundleError, RecipeError, fit_measurement_only
 
 DT = torch.float64
 #: the pipeline and the direct call run the same float64 arithmetic
@@ -226,7 +219,7 @@ def _assert_same_learned_model(a: dict, b: dict) -> None:
 
 
 def test_killed_run_resumes_to_the_identical_bundle(fresh, data, tmp_path, monkeypatch):
-    import torchfilt.training.run as run_mod
+    import torchfilt.pipeline.run_stages as run_mod
 
     real = run_mod.fit_measurement_only
 

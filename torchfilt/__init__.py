@@ -55,15 +55,13 @@ if TYPE_CHECKING:
     from torchfilt import plots as plots
     from torchfilt import training as training
     from torchfilt.models.gp import GPMeasurement, GPModel, GPTransition
+    from torchfilt.pipeline import load_bundle, load_model, train_recipe
     from torchfilt.training import (
         calibrate,
         fit_em,
         fit_likelihood,
         fit_measurement_only,
-        load_bundle,
-        load_model,
         parameter_posterior,
-        train_recipe,
     )
 
 #: Names whose modules need gpytorch or matplotlib: imported on first access (PEP 562).
@@ -75,10 +73,10 @@ _LAZY = {
     "fit_em": "torchfilt.training",
     "fit_likelihood": "torchfilt.training",
     "fit_measurement_only": "torchfilt.training",
-    "load_bundle": "torchfilt.training",
-    "load_model": "torchfilt.training",
+    "load_bundle": "torchfilt.pipeline",
+    "load_model": "torchfilt.pipeline",
     "parameter_posterior": "torchfilt.training",
-    "train_recipe": "torchfilt.training",
+    "train_recipe": "torchfilt.pipeline",
 }
 #: Sub-packages imported on first access (heavy dependencies, or outside the estimation core).
 _LAZY_MODULES = ("dmc", "pipeline", "plots", "training")

@@ -126,7 +126,7 @@ def _train(args: argparse.Namespace) -> int:
             )
         if args.workers is not None:
             raise InputError("--workers sets the CPUs of a local Ray instance: use it with --ray")
-        from torchfilt.training import train_recipe
+        from torchfilt.pipeline import train_recipe
 
         bundle = train_recipe(
             args.recipe[0], args.out, resume=args.resume, force=args.force, progress=not args.quiet

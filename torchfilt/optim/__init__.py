@@ -6,7 +6,7 @@ and EM fits in :mod:`torchfilt.training` (layer 7). A layer may import only from
 left, so the loop sits below both and knows nothing of models, filters, files or terminals: it
 needs only ``torch``. What depends on higher layers is passed in: the atomic file write of the
 checkpoints (:func:`torchfilt.io.atomic_write`), the progress reporter
-(:class:`torchfilt.training.progress.ProgressBar`, or the GP's light progress line) and the
+(:class:`torchfilt.io.progress.ProgressBar`, or the GP's light progress line) and the
 ``all_reduce`` of a data-parallel fit. Moving the GP training up into ``training`` instead would
 have made ``GPModel.fit`` depend on the layer that uses the models.
 

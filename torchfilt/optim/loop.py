@@ -49,7 +49,7 @@ __all__ = [
 
 
 class Reporter(Protocol):
-    """Shows progress (e.g. :class:`torchfilt.training.progress.ProgressBar`)."""
+    """Shows progress (e.g. :class:`torchfilt.io.progress.ProgressBar`)."""
 
     def update(self, done: int, info: str = "") -> None: ...
 

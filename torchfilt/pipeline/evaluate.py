@@ -51,13 +51,14 @@ def evaluate_outputs(
         )
     target = out / f"evaluation_{which}.json"
     check_new_outputs([target], force=force)
+    not_summary = "not a filter summary written by torchfilt filter"
     try:
         summary = json.loads(index.read_text(encoding="utf-8"))
         entries = list(summary["recordings"])
-        if not all(isinstance(e, dict) and "recording" in e for e in entries):
-            raise TypeError
     except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError):
-        raise DataError("not a filter summary written by torchfilt filter", path=index) from None
+        raise DataError(not_summary, path=index) from None
+    if not all(isinstance(e, dict) and "recording" in e for e in entries):
+        raise DataError(not_summary, path=index)
     per, errs, nees_all, inside = [], [], [], []
     names: list[str] = []
     for entry in entries:

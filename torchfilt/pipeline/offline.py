@@ -11,7 +11,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import matplotlib
 import numpy as np
 import torch
 from torch import Tensor
@@ -22,7 +21,7 @@ from torchfilt.io import DataError, Recording, atomic_write_bytes, atomic_write_
 from torchfilt.io.atomic import check_new_outputs, output_dir
 from torchfilt.io.estimates import Estimates, write_estimates
 from torchfilt.io.recording import SUFFIXES
-from torchfilt.training.bundle import ModelSpec, load_model_spec
+from torchfilt.pipeline.bundle import ModelSpec, load_model_spec
 
 __all__ = [
     "INDEX_NAME",
@@ -219,19 +218,7 @@ def filter_recordings(
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out}: the output folder is a file; choose a folder")
     spec = resolve_model(model)
-    recs: list[Recording] = []
-    for p in recordings:
-        recs.append(
-            read_recording(
-                p,
-                spec.channels,
-                time_column=spec.time_column,
-                sample_time=spec.sample_time,
-                optional=("state",),
-            )
-        )
-        if len(recs[-1]) < 2:
-            raise DataError("needs at least 2 rows (the first row is the prior's time)", path=p)
+    recs = _read_recordings(spec, recordings)
     output_dir(out)
     filt = CKF(spec.model.to(device=dev, dtype=dtype), sqrt=sqrt)
     m0 = (spec.prior_mean if x0 is None else torch.as_tensor(x0)).to(dev, dtype)
@@ -259,6 +246,24 @@ def filter_recordings(
     summary["recordings"] = [entries[i] for i in range(len(recs))]
     atomic_write_text(out / INDEX_NAME, json.dumps(summary, indent=2, default=float) + "\n")
     return summary
+
+
+def _read_recordings(spec: ModelSpec, recordings: Sequence[str | Path]) -> list[Recording]:
+    """Read and validate every recording with the model's channels (at least 2 rows each)."""
+    recs: list[Recording] = []
+    for p in recordings:
+        recs.append(
+            read_recording(
+                p,
+                spec.channels,
+                time_column=spec.time_column,
+                sample_time=spec.sample_time,
+                optional=("state",),
+            )
+        )
+        if len(recs[-1]) < 2:
+            raise DataError("needs at least 2 rows (the first row is the prior's time)", path=p)
+    return recs
 
 
 def shard_plan(lengths: Sequence[int], batch_size: int | None = None) -> list[list[int]]:
@@ -382,6 +387,8 @@ def _write_one(
             truth[1:], sm.mean[b].cpu().double(), sm.cov[b].cpu().double()
         )
     if plot:
+        import matplotlib  # here, not at the top: the pipeline imports without matplotlib
+
         from torchfilt.plots import plot_recording
 
         matplotlib.use("Agg", force=False)

@@ -42,6 +42,7 @@ from torchfilt.cubature import CubatureRule
 from torchfilt.exceptions import DivergenceWarning, InputError, ShapeError
 from torchfilt.filters import CKF, FilterResult, rts_smooth
 from torchfilt.io import atomic_write
+from torchfilt.io.progress import ProgressBar
 from torchfilt.models import StateSpaceModel
 from torchfilt.numerics import gaussian_log_prob, safe_cholesky
 from torchfilt.optim import (
@@ -59,7 +60,6 @@ from torchfilt.optim import (
     restore,
     snapshot,
 )
-from torchfilt.training.progress import ProgressBar
 
 __all__ = [
     "LikelihoodFit",

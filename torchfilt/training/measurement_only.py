@@ -63,6 +63,7 @@ from torch import Tensor, nn
 from torchfilt.cubature import CubatureRule, SphericalRadialRule
 from torchfilt.exceptions import GaugeError, InputError, ModelError
 from torchfilt.io import atomic_write
+from torchfilt.io.progress import ProgressBar
 from torchfilt.models import (
     CovarianceParameter,
     StateSpaceModel,
@@ -84,7 +85,6 @@ from torchfilt.training.likelihood import (
     _recordings,
     fit_likelihood,
 )
-from torchfilt.training.progress import ProgressBar
 
 __all__ = [
     "EMFit",

@@ -1,0 +1,790 @@
+"""Training recipes: TOML files in ``trainers/`` that say what to train on and how.
+
+A recipe names the dataset, the model of each side (a GP with its options, or a built-in analytic
+model), the optimiser and iterations, checkpointing, and the seed::
+
+    name = "reentry"
+    seed = 0
+
+    [dataset]
+    path = "../data/reentry"           # relative to the recipe file
+
+    [transition]                       # GPTransition.fit options
+    increment = true
+    inputs = ["altitude", "velocity", "ballistic"]
+    iterations = 150
+
+    [measurement]                      # GPMeasurement.fit options
+    inputs = ["altitude"]              # input selection by channel name
+    iterations = 150
+
+    [train]
+    checkpoint_every = 25
+
+A side may instead be a built-in model: ``[measurement] model = "system:reentry"``. A GP's
+``prior_mean`` is a built-in nominal model: ``prior_mean = {system = "reentry", gamma = 4e-5}``.
+Unknown keys are errors (a typo must not silently train a different model).
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from torchfilt.exceptions import RecipeError
+
+__all__ = [
+    "CALIBRATE_DEFAULTS",
+    "GP_OPTIONS",
+    "MEASUREMENT_ONLY_DEFAULTS",
+    "RECIPE_SCHEMA",
+    "Key",
+    "Recipe",
+    "RecipeError",
+    "check_calibrate",
+    "check_states",
+    "load_recipe",
+    "recipe_reference",
+]
+
+#: Kernels of the GP models (``torchfilt.models.gp.kernels.KERNELS``; a test keeps them equal).
+KERNELS = ("rbf", "matern52", "matern32", "matern12")
+#: Marks a key without a default (it must be given).
+REQUIRED = "(required)"
+#: Values of the top-level ``states`` key.
+STATES = ("logged", "none")
+
+
+@dataclass(frozen=True)
+class Key:
+    """One recipe key: its name, its default as written in the reference, what it means, and the
+    values it takes (checked when the recipe is loaded, before any training).
+
+    Attributes:
+        name: the key.
+        default: the default, as the reference shows it.
+        meaning: what it does.
+        kind: ``"any"`` (checked later, against the dataset or by the fit), ``"bool"``,
+            ``"int"``, ``"posint"`` (an integer >= 1), ``"nonnegint"`` (an integer >= 0),
+            ``"posfloat"`` (a finite number > 0) or
+            ``"choice"`` (one of ``choices``).
+        choices: the allowed strings of a ``"choice"`` key.
+    """
+
+    name: str
+    default: str
+    meaning: str
+    kind: str = "any"
+    choices: tuple[str, ...] = ()
+
+    @property
+    def allowed(self) -> str:
+        """The allowed values, as the reference shows them."""
+        return {
+            "bool": "`true`, `false`",
+            "int": "an integer",
+            "posint": "an integer >= 1",
+            "nonnegint": "an integer >= 0",
+            "posfloat": "a number > 0",
+            "choice": ", ".join(f'`"{c}"`' for c in self.choices),
+        }.get(self.kind, "")
+
+    def check(self, value: Any, where: str, path: Path | None) -> None:
+        """Raise :class:`RecipeError` naming the file, the table and the key if ``value`` is not
+        one of the allowed values."""
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        ok = {
+            "bool": isinstance(value, bool),
+            "int": isinstance(value, int) and not isinstance(value, bool),
+            "posint": isinstance(value, int) and not isinstance(value, bool) and value >= 1,
+            "nonnegint": isinstance(value, int) and not isinstance(value, bool) and value >= 0,
+            "posfloat": number and math.isfinite(value) and value > 0,
+            "choice": value in self.choices,
+        }.get(self.kind, True)
+        if not ok:
+            raise RecipeError(
+                f"{_file(path)}[{where}] {self.name} must be {self.allowed.replace('`', '')}, "
+                f"got {value!r}"
+            )
+
+
+def _file(path: Path | None) -> str:
+    """The ``"FILE: "`` prefix of a message (none for a recipe built in code)."""
+    return "" if path is None else f"{path}: "
+
+
+def _gp_keys() -> tuple[Key, ...]:
+    return (
+        Key(
+            "model",
+            "(a GP)",
+            '`"system:NAME"`: use a built-in analytic model instead of a GP; '
+            "no other key is then allowed",
+        ),
+        Key(
+            "kernel",
+            '`"rbf"`',
+            '`"rbf"` (ARD), `"matern52"`, `"matern32"` or `"matern12"`',
+            kind="choice",
+            choices=KERNELS,
+        ),
+        Key(
+            "structure",
+            '`"independent"`',
+            '`"independent"` (one GP per output, batched), '
+            '`"multitask"` (LMC, correlated outputs) or `"sparse"` (SVGP, minibatches)',
+            kind="choice",
+            choices=("independent", "multitask", "sparse"),
+        ),
+        Key(
+            "increment",
+            "`false`",
+            "learn `x_{k+1} - x_k` instead of `x_{k+1}` (transition)",
+            kind="bool",
+        ),
+        Key(
+            "prior_mean",
+            "(none)",
+            "a built-in nominal model whose residual the GP learns: "
+            '`{system = "NAME", parameter = value, ...}`',
+        ),
+        Key(
+            "inputs",
+            "(all)",
+            "input selection by channel name (states, then inputs for the "
+            "transition; states for the measurement), shared by all outputs or one list per "
+            "output; integers index the same features",
+        ),
+        Key("noise", "(learned)", "fix the noise variance (scalar or one per output)"),
+        Key(
+            "noise_floor",
+            '`"auto"`',
+            "lower bound of the noise variance: from the data, or a "
+            "variance (scalar or one per output)",
+        ),
+        Key("num_latents", "`1`", "number of latent GPs of a multitask model", kind="posint"),
+        Key("task_rank", "`1`", "rank of each latent's task covariance (multitask)", kind="posint"),
+        Key("num_inducing", "`256`", "inducing points per output (sparse)", kind="posint"),
+        Key("iterations", "`200`", "Adam iterations", kind="posint"),
+        Key("lr", "`0.05`", "Adam learning rate", kind="posfloat"),
+        Key(
+            "natural_lr",
+            "`0.1`",
+            "natural-gradient step of a sparse model's `q(u)`",
+            kind="posfloat",
+        ),
+        Key(
+            "subset",
+            "`1000`",
+            "hyperparameters of an exact model are trained on at most this "
+            "many random rows, then the GP conditions on all rows",
+            kind="posint",
+        ),
+        Key("batch_size", "`1024`", "minibatch size (sparse)", kind="posint"),
+        Key(
+            "variance",
+            '`"auto"`',
+            'frozen predictive variance: `"auto"` (smallest low-rank root '
+            'within `tol` of exact, else exact), `"exact"` or `"lowrank"`',
+            kind="choice",
+            choices=("auto", "exact", "lowrank"),
+        ),
+        Key("rank", "(none)", 'rank of the low-rank root (`variance = "lowrank"`)', kind="posint"),
+        Key("tol", "`0.05`", 'relative variance tolerance of `variance = "auto"`', kind="posfloat"),
+        Key("chunk_size", "`128`", "points per kernel chunk in large batches", kind="posint"),
+    )
+
+
+#: Every recipe section and key with its default and meaning: the validator's allowed keys and
+#: the reference ``docs/recipes.md`` both come from this table (``""`` is the top level). A new
+#: section is one more entry (and one more key in the top level).
+RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
+    "": (
+        Key("name", "(the file's stem)", "run name, stored in the bundle"),
+        Key("description", '`""`', "free text, stored in the bundle"),
+        Key(
+            "seed",
+            "`0`",
+            "seed of every random choice (subsets, initial values, minibatches)",
+            kind="int",
+        ),
+        Key(
+            "states",
+            '`"logged"`',
+            '`"logged"`: learn from the recordings\' logged states; `"none"`: learn from the '
+            "measurements and inputs alone (the training recordings' state columns are never "
+            "read and may be absent or NaN; the transition is set in `[measurement_only]`, the "
+            '`[measurement]` side must be a known `model = "system:NAME"` (the gauge) and the '
+            '`[filter]` prior `"system:NAME"` or `mean`/`cov_diag`)',
+            kind="choice",
+            choices=STATES,
+        ),
+        Key("dataset", REQUIRED, "table: the training data"),
+        Key(
+            "transition",
+            REQUIRED,
+            'table: the transition model `x_{k+1} = f(x_k, u_k)` (with `states = "none"`: '
+            "absent or empty)",
+        ),
+        Key("measurement", REQUIRED, "table: the measurement model `y_k = h(x_k)`"),
+        Key(
+            "measurement_only",
+            "(defaults)",
+            'table: with `states = "none"`, the learned transition and how it is fitted',
+        ),
+        Key("train", "(defaults)", "table: checkpointing, dtype, threads"),
+        Key("filter", "(defaults)", "table: the default filter prior stored in the bundle"),
+        Key(
+            "calibrate",
+            "(defaults: on)",
+            "table: the calibration stage (variance scales and noise floors fitted by the "
+            "filter likelihood)",
+        ),
+    ),
+    "dataset": (
+        Key(
+            "path",
+            REQUIRED,
+            "the dataset's `manifest.json` or its folder, relative to the recipe file",
+        ),
+    ),
+    "transition": _gp_keys(),
+    "measurement": _gp_keys(),
+    "measurement_only": (
+        Key(
+            "method",
+            '`"em"`',
+            '`"em"` (expectation-maximisation with the cubature RTS smoother) or `"likelihood"` '
+            "(the filter's innovation likelihood maximised directly); see "
+            "`torchfilt.fit_measurement_only`",
+            kind="choice",
+            choices=("em", "likelihood"),
+        ),
+        Key("iterations", "`30`", "EM or optimiser iterations", kind="posint"),
+        Key(
+            "inducing",
+            "`16`",
+            "inducing points `M` of the `InducingTransition` (`0`: the linear part alone), "
+            "placed on the states a pilot filter with the nominal (or random-walk) model "
+            "estimates on the training recordings",
+            kind="nonnegint",
+        ),
+        Key(
+            "known_channels",
+            "(all measurement channels)",
+            "measurement channel names whose map is known (the gauge)",
+        ),
+        Key(
+            "nominal",
+            "(none: a random walk)",
+            "a built-in nominal physics model under the learned transition: "
+            '`{system = "NAME", parameter = value, ...}`',
+        ),
+        Key(
+            "process_noise",
+            "(1e-2 x the prior variances)",
+            "initial diagonal of the learned process noise `Q` (scalar or one per state); also "
+            "the initial GP output variance",
+        ),
+        Key(
+            "window",
+            "(whole recordings)",
+            'window length in steps (`"likelihood"` only)',
+            kind="posint",
+        ),
+        Key(
+            "burn_in",
+            "`0`",
+            'uncounted steps at the start of every window (`"likelihood"` only)',
+            kind="nonnegint",
+        ),
+        Key(
+            "optimizer",
+            '`"lbfgs"`',
+            '`"lbfgs"` or `"adam"` (`"likelihood"` only)',
+            kind="choice",
+            choices=("lbfgs", "adam"),
+        ),
+        Key(
+            "lr",
+            "(the optimiser's default)",
+            'learning rate (`"likelihood"` only)',
+            kind="posfloat",
+        ),
+        Key(
+            "m_step_iterations",
+            "`20`",
+            'L-BFGS iterations per M-step (`"em"` only)',
+            kind="posint",
+        ),
+    ),
+    "train": (
+        Key(
+            "checkpoint_every",
+            "`25`",
+            "iterations between checkpoints (a killed run resumes "
+            "from the last one with `--resume`)",
+            kind="posint",
+        ),
+        Key(
+            "dtype",
+            '`"float64"`',
+            'training dtype: `"float64"` or `"float32"`',
+            kind="choice",
+            choices=("float64", "float32"),
+        ),
+        Key("threads", "(unchanged)", "torch threads for training", kind="posint"),
+    ),
+    "filter": (
+        Key(
+            "prior",
+            '`"data"`',
+            '`"data"` (mean and covariance of the training recordings\' '
+            'initial states) or `"system:NAME"` (a built-in system\'s prior)',
+        ),
+        Key("mean", "(none)", "explicit prior mean, one value per state (with `cov_diag`)"),
+        Key("cov_diag", "(none)", "explicit prior variances, one per state (with `mean`)"),
+    ),
+    "calibrate": (
+        Key(
+            "enabled",
+            "`true`",
+            "after the GPs, fit per-output variance scales and diagonal noise floors of the "
+            "learned sides by the filter's innovation likelihood on the training recordings "
+            "(`torchfilt.calibrate`); `false` turns the stage off",
+            kind="bool",
+        ),
+        Key(
+            "sides",
+            '`"learned"`',
+            '`"learned"` (the GP sides) or a list of `"transition"` and/or `"measurement"`',
+        ),
+        Key("window", "`100`", "window length in steps (longer recordings are cut)", kind="posint"),
+        Key(
+            "burn_in",
+            "`20`",
+            "uncounted steps at the start of every window (an integer in [0, window))",
+            kind="int",
+        ),
+        Key("iterations", "`100`", "Adam (or L-BFGS) iterations", kind="posint"),
+        Key(
+            "lr",
+            "`0.1`",
+            "learning rate on the log scales and floors (at most 10)",
+            kind="posfloat",
+        ),
+        Key(
+            "optimizer",
+            '`"adam"`',
+            '`"adam"` or `"lbfgs"`',
+            kind="choice",
+            choices=("adam", "lbfgs"),
+        ),
+        Key(
+            "patience",
+            "`15`",
+            "early stopping: iterations without a better held-out likelihood on the validation "
+            "recordings",
+            kind="posint",
+        ),
+        Key(
+            "inflate_only",
+            "`true`",
+            "keep the variance scales >= 1: calibration only adds uncertainty",
+            kind="bool",
+        ),
+        Key(
+            "gp",
+            '`"none"`',
+            '`"none"`, `"noise"` (also refit the GP likelihood noises) or `"all"` (the noises, '
+            "lengthscales and outputscales) of the calibrated GP sides by the same likelihood, "
+            "through the frozen predictor's differentiable twin; the bundle then holds the "
+            "refitted GPs (independent exact GPs only)",
+            kind="choice",
+            choices=("none", "noise", "all"),
+        ),
+    ),
+}
+
+#: Defaults of the ``[calibrate]`` section.
+CALIBRATE_DEFAULTS: dict[str, Any] = {
+    "enabled": True,
+    "sides": "learned",
+    "window": 100,
+    "burn_in": 20,
+    "iterations": 100,
+    "lr": 0.1,
+    "optimizer": "adam",
+    "patience": 15,
+    "inflate_only": True,
+    "gp": "none",
+}
+
+#: Defaults of the ``[measurement_only]`` section (``states = "none"``); ``None``: see
+#: :data:`RECIPE_SCHEMA` (``known_channels``: all; ``process_noise``: 1e-2 x the prior variances;
+#: ``window``, ``lr``: those of :func:`~torchfilt.training.fit_measurement_only`).
+MEASUREMENT_ONLY_DEFAULTS: dict[str, Any] = {
+    "method": "em",
+    "iterations": 30,
+    "inducing": 16,
+    "known_channels": None,
+    "nominal": None,
+    "process_noise": None,
+    "window": None,
+    "burn_in": 0,
+    "optimizer": "lbfgs",
+    "lr": None,
+    "m_step_iterations": 20,
+}
+
+#: Options passed through to ``GPTransition.fit`` / ``GPMeasurement.fit``.
+GP_OPTIONS = frozenset(k.name for k in RECIPE_SCHEMA["transition"] if k.name != "model")
+
+
+def _allowed(section: str) -> set[str]:
+    return {k.name for k in RECIPE_SCHEMA[section]}
+
+
+def _check_values(table: dict[str, Any], section: str, path: Path | None) -> None:
+    keys = {k.name: k for k in RECIPE_SCHEMA[section]}
+    for name, value in table.items():
+        keys[name].check(value, section or "top level", path)
+
+
+def recipe_reference() -> str:
+    """The recipe reference (``docs/recipes.md``) as Markdown, from :data:`RECIPE_SCHEMA`."""
+    out = [
+        "# Recipe reference",
+        "",
+        "A recipe is a TOML file (see `trainers/`) that `torchfilt train` runs. Unknown keys are",
+        "errors, so a typo never trains a different model silently. Channel names (`inputs`) and",
+        "the `[filter]` prior are checked against the dataset before any training.",
+        "",
+        "This page is generated from `RECIPE_SCHEMA` in `torchfilt/pipeline/recipe.py`, the table",
+        "the validator uses (`python scripts/make_docs.py` rewrites it; a test checks that the two",
+        "agree).",
+    ]
+    for section, keys in RECIPE_SCHEMA.items():
+        out += ["", "## Top level" if not section else f"## `[{section}]`", ""]
+        out += ["| key | default | values | meaning |", "|---|---|---|---|"]
+        out += [f"| `{k.name}` | {k.default} | {k.allowed} | {k.meaning} |" for k in keys]
+    return "\n".join(out) + "\n"
+
+
+@dataclass
+class Recipe:
+    """A parsed, validated recipe.
+
+    Attributes:
+        path: the recipe file (``None`` if built in code).
+        name: run name.
+        seed: random seed for every random choice.
+        dataset: path of the dataset (manifest or folder), resolved.
+        transition: GP options, or ``{"model": "system:NAME"}``.
+        measurement: GP options, or ``{"model": "system:NAME"}``.
+        checkpoint_every: iterations between checkpoints.
+        dtype: training dtype name (``"float64"`` or ``"float32"``).
+        threads: torch threads for training (``None``: leave as is).
+        filter: default filter prior for the bundle (``prior = "data"`` (default), ``"system:NAME"``,
+            or explicit ``mean`` and ``cov_diag``).
+        description: free text.
+        calibrate: the ``[calibrate]`` section with its defaults filled in (see
+            :data:`RECIPE_SCHEMA`).
+        states: ``"logged"`` (learn from the logged states) or ``"none"`` (from measurements
+            and inputs alone; see :func:`check_states`).
+        measurement_only: with ``states = "none"``, the ``[measurement_only]`` section with its
+            defaults filled in (:data:`MEASUREMENT_ONLY_DEFAULTS`); empty otherwise.
+    """
+
+    path: Path | None
+    name: str
+    seed: int
+    dataset: Path
+    transition: dict[str, Any]
+    measurement: dict[str, Any]
+    checkpoint_every: int = 25
+    dtype: str = "float64"
+    threads: int | None = None
+    filter: dict[str, Any] = field(default_factory=dict)
+    description: str = ""
+    calibrate: dict[str, Any] = field(default_factory=lambda: dict(CALIBRATE_DEFAULTS))
+    states: str = "logged"
+    measurement_only: dict[str, Any] = field(default_factory=dict)
+
+    def resolved(self) -> dict[str, Any]:
+        """The fully resolved configuration (what a run directory records). ``states`` and
+        ``measurement_only`` appear only with ``states = "none"``, so the digests of recipes
+        written before the option existed stay the same."""
+        extra: dict[str, Any] = {}
+        if self.states != "logged":
+            extra = {
+                "states": self.states,
+                "measurement_only": copy.deepcopy(self.measurement_only),
+            }
+        return {
+            **extra,
+            "name": self.name,
+            "description": self.description,
+            "seed": self.seed,
+            "dataset": str(self.dataset),
+            "transition": copy.deepcopy(self.transition),
+            "measurement": copy.deepcopy(self.measurement),
+            "train": {
+                "checkpoint_every": self.checkpoint_every,
+                "dtype": self.dtype,
+                "threads": self.threads,
+            },
+            "filter": copy.deepcopy(self.filter),
+            "calibrate": copy.deepcopy(self.calibrate),
+        }
+
+    def digest(self) -> str:
+        """SHA-256 of the resolved configuration (identifies the recipe in a run directory)."""
+        return hashlib.sha256(json.dumps(self.resolved(), sort_keys=True).encode()).hexdigest()
+
+
+def _check_keys(
+    table: Any, allowed: set[str] | frozenset[str], where: str, path: Path | None
+) -> dict[str, Any]:
+    if not isinstance(table, dict):
+        raise RecipeError(f"{_file(path)}[{where}] must be a table")
+    unknown = sorted(set(table) - set(allowed))
+    if unknown:
+        raise RecipeError(
+            f"{_file(path)}unknown key(s) {unknown} in [{where}]; allowed: {sorted(allowed)}"
+        )
+    return dict(table)
+
+
+def _side(table: Any, where: str, path: Path | None) -> dict[str, Any]:
+    if table is None:
+        raise RecipeError(f'{path}: missing [{where}] table (GP options, or model = "system:NAME")')
+    if isinstance(table, dict) and "model" in table:
+        t = _check_keys(table, {"model"}, where, path)
+        if not str(t["model"]).startswith("system:"):
+            raise RecipeError(f'{path}: [{where}] model must be "system:NAME", got {t["model"]!r}')
+        return t
+    t = _check_keys(table, _allowed(where) - {"model"}, where, path)
+    _check_values(t, where, path)
+    pm = t.get("prior_mean")
+    if pm is not None and (not isinstance(pm, dict) or "system" not in pm):
+        raise RecipeError(
+            f"{path}: [{where}] prior_mean must be a table with 'system' (and parameters)"
+        )
+    return t
+
+
+def load_recipe(path: str | Path) -> Recipe:
+    """Read and validate a recipe TOML file."""
+    path = Path(path)
+    if not path.is_file():
+        raise RecipeError(f"{path}: recipe not found")
+    try:
+        d = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise RecipeError(f"{path}: not valid TOML ({e})") from None
+    d = _check_keys(d, _allowed(""), "top level", path)
+    ds = _check_keys(d.get("dataset", {}), _allowed("dataset"), "dataset", path)
+    if "path" not in ds:
+        raise RecipeError(f"{path}: [dataset] needs 'path'")
+    train = _check_keys(d.get("train", {}), _allowed("train"), "train", path)
+    filt = _check_keys(d.get("filter", {}), _allowed("filter"), "filter", path)
+    _check_values(d, "", path)
+    _check_values(train, "train", path)
+    dtype = str(train.get("dtype", "float64"))
+    every = int(train.get("checkpoint_every", 25))
+    threads = None if train.get("threads") is None else int(train["threads"])
+    seed = int(d.get("seed", 0))
+    states = str(d.get("states", "logged"))
+    mo = _check_keys(
+        d.get("measurement_only", {}), _allowed("measurement_only"), "measurement_only", path
+    )
+    _check_values(mo, "measurement_only", path)
+    if states == "none":
+        tr = _check_keys(d.get("transition", {}), _allowed("transition"), "transition", path)
+        transition: dict[str, Any] = tr
+    else:
+        transition = _side(d.get("transition"), "transition", path)
+    r = Recipe(
+        path=path,
+        name=str(d.get("name", path.stem)),
+        seed=seed,
+        dataset=(path.parent / str(ds["path"])).resolve(),
+        transition=transition,
+        measurement=_side(d.get("measurement"), "measurement", path),
+        checkpoint_every=every,
+        dtype=dtype,
+        threads=threads,
+        filter=filt,
+        description=str(d.get("description", "")),
+        calibrate=_calibrate(d.get("calibrate", {}), path),
+        states=states,
+        measurement_only=mo,
+    )
+    try:
+        check_states(r)
+    except RecipeError as e:
+        raise RecipeError(f"{path}: {e}") from None
+    return r
+
+
+def check_calibrate(r: Recipe) -> None:
+    """Validate a :class:`Recipe`'s ``calibrate`` table and fill in its defaults, in place (for
+    a recipe built in code; :func:`load_recipe` does it for a file): a partial table such as
+    ``{"iterations": 20}`` gets the other keys' defaults.
+
+    Raises:
+        RecipeError: naming the key (without the file; the callers add it).
+    """
+    out = _calibrate(r.calibrate, None)
+    r.calibrate.clear()
+    r.calibrate.update(out)
+
+
+def check_states(r: Recipe) -> None:
+    """Check the ``states`` option against the rest of a recipe and, with ``states = "none"``,
+    validate ``[measurement_only]`` and fill in its defaults (in place; idempotent). Runs when a
+    recipe is loaded and again when a :class:`Recipe` built in code is trained.
+
+    With ``states = "none"`` there are no logged states to fit GPs on, so: ``[transition]`` must
+    be empty (the transition is the ``InducingTransition`` of ``[measurement_only]``), the
+    ``[measurement]`` side must be a known ``model = "system:NAME"`` (the gauge: it pins the state
+    coordinates), the ``[filter]`` prior cannot be ``"data"``, and ``[calibrate] gp`` must be
+    ``"none"``.
+
+    Raises:
+        RecipeError: naming the table and key (without the file; the callers add it).
+    """
+    if r.states not in STATES:
+        raise RecipeError(f'states must be "logged" or "none", got {r.states!r}')
+    if r.states == "logged":
+        if r.measurement_only:
+            raise RecipeError(
+                '[measurement_only] applies only with states = "none" (learning from '
+                'measurements alone); remove the table or set states = "none"'
+            )
+        return
+    if r.transition:
+        raise RecipeError(
+            f'[transition] {sorted(r.transition)}: with states = "none" there are no logged '
+            "states to fit a GP transition on; the transition is the InducingTransition of "
+            "[measurement_only] (method, iterations, inducing, nominal, ...): remove these keys"
+        )
+    if "model" not in r.measurement:
+        raise RecipeError(
+            '[measurement]: with states = "none" the measurement model must be known: give '
+            '[measurement] model = "system:NAME". A learned measurement GP has no training '
+            "targets without logged states, and a known sensor model is the gauge that pins the "
+            "state coordinates (without it every change of coordinates x -> T x fits equally well)"
+        )
+    f = r.filter
+    prior = str(f.get("prior", "data"))
+    if "mean" not in f and "cov_diag" not in f and not prior.startswith("system:"):
+        raise RecipeError(
+            f'[filter] prior = "{prior}": the prior "data" is the mean and covariance of the '
+            'logged initial states, which states = "none" does not have; give prior = '
+            '"system:NAME" or an explicit mean and cov_diag'
+        )
+    if r.calibrate.get("gp", "none") != "none":
+        raise RecipeError(
+            f'[calibrate] gp = "{r.calibrate["gp"]}" refits the hyperparameters of exact GP '
+            'sides; the states = "none" transition is an InducingTransition fitted by '
+            '[measurement_only]: use gp = "none"'
+        )
+    out = _measurement_only_options(r.measurement_only)
+    r.measurement_only.clear()
+    r.measurement_only.update(out)
+
+
+def _measurement_only_options(table: dict[str, Any]) -> dict[str, Any]:
+    """``[measurement_only]`` checked (keys, values, the options of its method) and completed
+    with its defaults.
+
+    Raises:
+        RecipeError: naming the key.
+    """
+    mo = _check_keys(table, _allowed("measurement_only"), "measurement_only", None)
+    _check_values({k: v for k, v in mo.items() if v is not None}, "measurement_only", None)
+    out = {**MEASUREMENT_ONLY_DEFAULTS, **mo}
+    if out["method"] == "em":
+        wrong = [
+            k
+            for k in ("window", "burn_in", "optimizer", "lr")
+            if out[k] != MEASUREMENT_ONLY_DEFAULTS[k]
+        ]
+        other = "likelihood"
+    else:
+        wrong = [k for k in ("m_step_iterations",) if out[k] != MEASUREMENT_ONLY_DEFAULTS[k]]
+        other = "em"
+    if wrong:
+        raise RecipeError(
+            f'[measurement_only] {wrong}: not an option of method = "{out["method"]}" (they '
+            f'belong to method = "{other}"); remove them or change the method'
+        )
+    kc = out["known_channels"]
+    if kc is not None and (
+        not isinstance(kc, list)
+        or not kc
+        or not all(isinstance(c, str) and c for c in kc)
+        or len(set(kc)) != len(kc)
+    ):
+        raise RecipeError(
+            "[measurement_only] known_channels must be a non-empty list of distinct measurement "
+            f"channel names, got {kc!r}"
+        )
+    nom = out["nominal"]
+    if nom is not None and (not isinstance(nom, dict) or "system" not in nom):
+        raise RecipeError(
+            "[measurement_only] nominal must be a table with 'system' (and parameters), "
+            f"got {nom!r}"
+        )
+    pn = out["process_noise"]
+    if pn is not None:
+        vals = pn if isinstance(pn, list) else [pn]
+        if not vals or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+            for v in vals
+        ):
+            raise RecipeError(
+                "[measurement_only] process_noise must be a number > 0 or a list of them (one "
+                f"per state), got {pn!r}"
+            )
+    if out["window"] is not None and not 0 <= out["burn_in"] < out["window"]:
+        raise RecipeError(
+            f"[measurement_only] burn_in must be an integer in [0, window), got {out['burn_in']!r}"
+        )
+    if out["lr"] is not None:
+        out["lr"] = float(out["lr"])
+    return out
+
+
+def _calibrate(table: Any, path: Path | None) -> dict[str, Any]:
+    """Validate ``[calibrate]`` and fill in its defaults."""
+    t = _check_keys(table, _allowed("calibrate"), "calibrate", path)
+    _check_values(t, "calibrate", path)
+    out = {**CALIBRATE_DEFAULTS, **t}
+    sides = out["sides"]
+    ok_sides = sides == "learned" or (
+        isinstance(sides, list) and bool(sides) and set(sides) <= {"transition", "measurement"}
+    )
+    if not ok_sides:
+        raise RecipeError(
+            f'{_file(path)}[calibrate] sides must be "learned" or a list of "transition" and/or '
+            f'"measurement", got {sides!r}'
+        )
+    if not 0 <= out["burn_in"] < out["window"]:
+        raise RecipeError(
+            f"{_file(path)}[calibrate] burn_in must be an integer in [0, window), got {out['burn_in']!r}"
+        )
+    if float(out["lr"]) > 10:
+        raise RecipeError(
+            f"{_file(path)}[calibrate] lr must be a number in (0, 10], got {out['lr']!r}"
+        )
+    out["lr"] = float(out["lr"])
+    return out

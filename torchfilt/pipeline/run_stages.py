@@ -1,0 +1,565 @@
+"""The stages of a run (see :mod:`torchfilt.pipeline.run`): the GP fits, the ``states = "none"``
+transition fit, the calibration; their checkpoints, metrics lines and log, and the fitters
+(:class:`StageFitters`) that run the likelihood stages."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import io
+import json
+import shutil
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TextIO
+
+import torch
+from torch import Tensor
+
+from torchfilt.exceptions import RunError
+from torchfilt.filters import CKF
+from torchfilt.io import Dataset, atomic_write_bytes
+from torchfilt.io.atomic import output_error
+from torchfilt.io.progress import ProgressBar
+from torchfilt.io.recording import Recording
+from torchfilt.models import CholeskyCovariance, InducingTransition, StateSpaceModel
+from torchfilt.pipeline.bundle import inducing_state, nominal_model
+from torchfilt.pipeline.recipe import Recipe
+from torchfilt.pipeline.run_checks import STAGES, _feature_indices, _known_channels
+from torchfilt.training.calibrate import CalibrationResult, calibrate
+from torchfilt.training.measurement_only import MeasurementOnlyFit, fit_measurement_only
+
+__all__ = [
+    "CALIBRATE_CHECKPOINT",
+    "LOCAL_FITTERS",
+    "MEASUREMENT_ONLY_CHECKPOINT",
+    "StageFitters",
+]
+
+#: The calibration stage's checkpoint in a run directory.
+CALIBRATE_CHECKPOINT = "calibrate.ckpt"
+#: The checkpoint of a ``states = "none"`` transition fit (``fit_measurement_only``'s own).
+MEASUREMENT_ONLY_CHECKPOINT = "transition.ckpt"
+
+
+@dataclass(frozen=True)
+class StageFitters:
+    """The fits behind a run's two likelihood stages (see :mod:`torchfilt.pipeline.run`).
+
+    Each stage calls its fitter exactly as it calls the local function, and a replacement must
+    accept those arguments and keep their meaning:
+
+    - ``calibrate(model, train, *, x0, P0, validation, sides, window, burn_in, iterations, lr,
+      optimizer, patience, inflate_only, gp, callback, checkpoint, resume, checkpoint_every,
+      dtype)`` -> :class:`~torchfilt.training.calibrate.CalibrationResult`, as
+      :func:`~torchfilt.training.calibrate` (``train`` the training recordings, ``x0`` ``(n,)``,
+      ``P0`` ``(n, n)``, ``validation`` the validation recordings or ``None``);
+    - ``measurement_only(model, ys, us, *, x0, P0, known_channels, method, iterations, window,
+      burn_in, optimizer, lr, learn_measurement_noise, m_step_iterations, callback, progress,
+      dtype, checkpoint, checkpoint_every, resume)`` ->
+      :class:`~torchfilt.training.measurement_only.MeasurementOnlyFit`, as
+      :func:`~torchfilt.training.fit_measurement_only` (``ys`` a list of ``(T_i, m)``, ``us`` a
+      list of ``(T_i, nu)`` or ``None``).
+
+    ``callback`` must be called in the calling process, once per iteration in order and before
+    that iteration's checkpoint (the stage writes ``metrics.jsonl`` and the progress bar from
+    it). ``checkpoint`` is a path in the run directory that the fitter owns: one checkpoint file,
+    or a folder of files (one per process of a data-parallel fit), each a dictionary whose
+    ``"iteration"`` says how far it got (a folder resumes from the lowest); the stage removes it
+    when the stage is done.
+
+    Attributes:
+        calibrate: the calibration fit; ``None``: :func:`~torchfilt.training.calibrate`.
+        measurement_only: the ``states = "none"`` transition fit; ``None``:
+            :func:`~torchfilt.training.fit_measurement_only`.
+        name: how ``config.json`` records these fitters (``"stage_fitters"``, omitted for
+            ``"local"``); a run resumes only with fitters of the same name.
+        shards: processes the fitters deal the training recordings to: a dataset with fewer
+            training recordings is refused before anything is written.
+    """
+
+    calibrate: Callable[..., CalibrationResult] | None = None
+    measurement_only: Callable[..., MeasurementOnlyFit] | None = None
+    name: str = "local"
+    shards: int = 1
+
+
+#: The fitters of a plain run: the local functions, in this process.
+LOCAL_FITTERS = StageFitters()
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+
+
+def _tensor_list(v: Tensor) -> Any:
+    v = v.detach().cpu()
+    return v.item() if v.numel() == 1 else v.tolist()
+
+
+class _Log:
+    """Plain lines to ``train.log`` (always) and to the console when progress is off."""
+
+    def __init__(self, path: Path, echo: TextIO | None) -> None:
+        self.path = path
+        try:
+            self.fh = open(path, "a", encoding="utf-8")
+        except OSError as e:
+            raise output_error(path, e) from None
+        self.echo = echo
+
+    def __call__(self, msg: str) -> None:
+        line = f"{_now()} {msg}\n"
+        try:
+            self.fh.write(line)
+            self.fh.flush()
+        except OSError as e:
+            raise output_error(self.path, e) from None
+        if self.echo is not None:
+            self.echo.write(msg + "\n")
+            self.echo.flush()
+
+    def close(self) -> None:
+        self.fh.close()
+
+
+def _remove(path: Path) -> None:
+    """Remove a run file, or a stage checkpoint folder (of a data-parallel fit), if present."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    elif path.is_file():
+        path.unlink()
+
+
+def _load_checkpoint(path: Path) -> dict[str, Any]:
+    """Read a checkpoint written by this module (plain data only), with a clear error if unusable."""
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise RunError(
+            f"{path}: unreadable checkpoint ({type(e).__name__}); delete it to restart the stage "
+            "it belongs to"
+        ) from None
+    if not isinstance(ckpt, dict) or ckpt.get("stage") not in STAGES or "fit" not in ckpt:
+        raise RunError(
+            f"{path}: not a torchfilt training checkpoint; delete it to restart the stage"
+        )
+    return ckpt
+
+
+def _load_stage(path: Path) -> dict[str, Any]:
+    """A finished stage's entry (plain data only), with a clear error if unusable."""
+    try:
+        entry = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise RunError(
+            f"{path}: unreadable stage file ({type(e).__name__}); delete it to retrain the stage"
+        ) from None
+    if not isinstance(entry, dict) or "kind" not in entry:
+        raise RunError(f"{path}: not a torchfilt stage file; delete it to retrain the stage")
+    return entry
+
+
+def _save(path: Path, obj: dict[str, Any]) -> None:
+    """``torch.save`` into memory, then one atomic write (temporary file + rename)."""
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def _fmt(v: list[float]) -> str:
+    return "[" + ", ".join(f"{x:.4g}" for x in v) + "]"
+
+
+def _fit_stage(
+    r: Recipe,
+    stage: str,
+    opts: dict[str, Any],
+    train: list[Recording],
+    states: list[str],
+    inputs: list[str],
+    dtype: torch.dtype,
+    out: Path,
+    ckpt: dict[str, Any] | None,
+    progress: bool,
+    stream: TextIO,
+    log: _Log,
+) -> dict[str, Any]:
+    from torchfilt.models.gp import GPMeasurement, GPTransition  # heavy import (gpytorch)
+
+    features = states + inputs if stage == "transition" else states
+    pm = opts.get("prior_mean")
+    if pm is not None:
+        opts["prior_mean"] = nominal_model(pm)
+    if "inputs" in opts:
+        opts["inputs"] = _feature_indices(opts["inputs"], features, stage)
+    iterations = int(opts.get("iterations", 200))
+    bar = ProgressBar(f"train {stage}", iterations, stream, enabled=progress)
+    try:
+        metrics = open(out / "metrics.jsonl", "a", encoding="utf-8")
+    except OSError as e:
+        raise output_error(out / "metrics.jsonl", e) from None
+    every = r.checkpoint_every
+    ckpt_path = out / "checkpoint.pt"
+
+    def callback(state: Any) -> None:
+        hyper = {k: _tensor_list(v) for k, v in state.hyperparameters().items()}
+        metrics.write(  # append-only log; a torn last line is dropped on resume
+            json.dumps(
+                {
+                    "stage": stage,
+                    "iteration": state.iteration,
+                    "loss": state.loss,
+                    "elapsed": state.elapsed,
+                    "hyperparameters": hyper,
+                }
+            )
+            + "\n"
+        )
+        metrics.flush()
+        bar.update(state.iteration, f"loss {state.loss:.4g}")
+        if state.iteration % every == 0 or state.iteration == state.iterations:
+            _save(ckpt_path, {"stage": stage, "fit": state.checkpoint()})
+            log(
+                f"{stage}: iteration {state.iteration}/{state.iterations} loss {state.loss:.6g} (checkpoint)"
+            )
+
+    resume_from = ckpt["fit"] if ckpt is not None and ckpt.get("stage") == stage else None
+    if resume_from is not None:
+        log(f"{stage}: resuming from iteration {resume_from['iteration']}")
+    fit_opts = {
+        **opts,
+        "seed": r.seed,
+        "dtype": dtype,
+        "progress": False,
+        "callback": callback,
+        "resume": resume_from,
+    }
+    try:
+        if stage == "transition":
+            xs = [rec.states.to(dtype) for rec in train]
+            us = [rec.inputs[:-1].to(dtype) for rec in train] if inputs else None  # type: ignore[index]
+            model: Any = GPTransition.fit(xs, us, **fit_opts)
+        else:
+            model = GPMeasurement.fit(
+                [rec.states.to(dtype) for rec in train],
+                [rec.measurements.to(dtype) for rec in train],
+                **fit_opts,
+            )
+    finally:
+        metrics.close()
+    log(f"{stage}: trained ({type(model).__name__})")
+    return {"kind": "gp", "state": model.to_state(), "prior_mean": pm}
+
+
+def _measurement_only_model(
+    r: Recipe,
+    h: Any,
+    train: list[Recording],
+    n: int,
+    nu: int,
+    m0: Tensor,
+    P0: Tensor,
+    dtype: torch.dtype,
+) -> StateSpaceModel:
+    """The initial model of a ``states = "none"`` fit: an :class:`InducingTransition` on the
+    nominal model (or a random walk), its inducing inputs spread over the filtered states of a
+    pilot CKF with that model on the training recordings, its lengthscales their spread; a
+    learnable process noise ``Q`` (``process_noise``, default 1e-2 x the prior variances)."""
+    o = r.measurement_only
+    g = None if o["nominal"] is None else nominal_model(o["nominal"])
+    pn = o["process_noise"]
+    if pn is None:
+        q0 = 1e-2 * P0.diagonal().to(dtype)
+    else:
+        q0 = torch.as_tensor(pn, dtype=dtype).expand(n).clone()
+    pilot = StateSpaceModel(
+        InducingTransition(n, 0, input_dim=nu, nominal=g, dtype=dtype), h, Q=torch.diag(q0)
+    )
+    xs, us = [], []
+    with torch.no_grad():
+        for rec in train:
+            y = rec.measurements[1:].to(dtype)
+            u = None if not nu else rec.inputs[:-1].to(dtype)  # type: ignore[index]
+            res = CKF(pilot).filter(y, u, x0=m0.to(dtype), P0=P0.to(dtype))
+            xs.append(res.mean)
+            us.append(u)
+    X = torch.cat(xs)
+    U = torch.cat(us) if nu else None  # type: ignore[arg-type]
+    ok = torch.isfinite(X).all(-1)
+    X, U = X[ok], None if U is None else U[ok]
+    cloud = X if U is None else torch.cat([X, U], -1)
+    M = int(o["inducing"])
+    if cloud.shape[0] < max(M, 2):
+        raise RunError(
+            f"[measurement_only] inducing = {M}: the pilot filter estimated only "
+            f"{cloud.shape[0]} finite states on the training recordings; use fewer inducing "
+            "points, more data, or a [filter] prior and nominal model closer to the data"
+        )
+    spread = cloud.std(0)
+    ls = torch.where(spread > 1e-6, spread, torch.ones_like(spread))
+    f = InducingTransition(
+        n, M, input_dim=nu, nominal=g, lengthscale=ls, outputscale=q0, dtype=dtype
+    )
+    f.init_inducing(X, U)
+    return StateSpaceModel(f, h, Q=CholeskyCovariance(torch.diag(q0)))
+
+
+def _fit_measurement_only_stage(
+    r: Recipe,
+    ds: Dataset,
+    h: Any,
+    train: list[Recording],
+    m0: Tensor,
+    P0: Tensor,
+    dtype: torch.dtype,
+    out: Path,
+    resume: bool,
+    progress: bool,
+    stream: TextIO,
+    log: _Log,
+    fitters: StageFitters = LOCAL_FITTERS,
+) -> dict[str, Any]:
+    """The ``states = "none"`` transition stage: :func:`fit_measurement_only` (or
+    ``fitters.measurement_only``) on the training recordings' measurements and inputs; returns
+    the ``"inducing"`` bundle entry."""
+    o = r.measurement_only
+    n, nu = ds.state_dim, ds.input_dim
+    known = _known_channels(r, ds)
+    model = _measurement_only_model(r, h, train, n, nu, m0, P0, dtype)
+    ys = [rec.measurements[1:].to(dtype) for rec in train]
+    us = [rec.inputs[:-1].to(dtype) for rec in train] if nu else None  # type: ignore[index]
+    counted = max(1, sum(int(torch.isfinite(y).sum()) for y in ys))
+    iterations = int(o["iterations"])
+    ckpt = out / MEASUREMENT_ONLY_CHECKPOINT
+    if resume and ckpt.exists():
+        log(f"transition: resuming from iteration {_checkpoint_iteration(ckpt)}")
+    log(
+        f"transition: learning from measurements alone ({o['method']}, {model.transition.base.num_inducing} "  # type: ignore[union-attr]
+        f"inducing points, known channels {[ds.manifest.names('measurement')[i] for i in known]})"
+    )
+    bar = ProgressBar("train transition", iterations, stream, enabled=progress)
+    every = r.checkpoint_every
+    try:
+        metrics = open(out / "metrics.jsonl", "a", encoding="utf-8")
+    except OSError as e:
+        raise output_error(out / "metrics.jsonl", e) from None
+
+    def callback(state: Any) -> None:
+        ll = float(state.log_likelihood)
+        loss = float(getattr(state, "loss", -ll / counted))
+        metrics.write(
+            json.dumps(
+                {
+                    "stage": "transition",
+                    "iteration": state.iteration,
+                    "loss": loss,
+                    "log_likelihood": ll,
+                    "elapsed": state.elapsed,
+                }
+            )
+            + "\n"
+        )
+        metrics.flush()
+        bar.update(state.iteration, f"loss {loss:.4g}")
+        if state.iteration % every == 0 or state.iteration == state.iterations:
+            log(
+                f"transition: iteration {state.iteration}/{state.iterations} loss {loss:.6g} (checkpoint)"
+            )
+
+    learn_R = any(p.requires_grad for p in model.measurement.parameters())
+    fitter = fitters.measurement_only or fit_measurement_only  # looked up now: patchable
+    try:
+        fit = fitter(
+            model,
+            ys,
+            us,
+            x0=m0.to(dtype),
+            P0=P0.to(dtype),
+            known_channels=known,
+            method=o["method"],
+            iterations=iterations,
+            window=o["window"],
+            burn_in=int(o["burn_in"]),
+            optimizer=o["optimizer"],
+            lr=o["lr"],
+            learn_measurement_noise=learn_R,
+            m_step_iterations=int(o["m_step_iterations"]),
+            callback=callback,
+            progress=False,
+            dtype=dtype,
+            checkpoint=ckpt,
+            checkpoint_every=every,
+            resume=resume,
+        )
+    finally:
+        metrics.close()
+    entry = _measurement_only_entry(fit, o, ds.manifest.names("measurement"))
+    log(
+        f"transition: {fit.stopped} after {fit.iterations} iterations; log-likelihood "
+        f"{entry['fit']['initial_log_likelihood']:.6g} -> {fit.log_likelihood:.6g}"
+    )
+    return entry
+
+
+def _measurement_only_entry(
+    fit: MeasurementOnlyFit, o: dict[str, Any], names: list[str]
+) -> dict[str, Any]:
+    """The ``"inducing"`` bundle entry of a ``states = "none"`` fit: the learned transition and
+    the fit's record and options ``o`` (``names``: the measurement channels)."""
+    info = {
+        "method": fit.method,
+        "known_channels": [names[i] for i in fit.known_channels],
+        "iterations": fit.iterations,
+        "stopped": fit.stopped,
+        "log_likelihood": fit.log_likelihood,
+        "initial_log_likelihood": fit.detail.initial_log_likelihood,
+        "per_measurement": fit.per_measurement,
+        "options": dict(o),
+    }
+    return {
+        "kind": "inducing",
+        "nominal": o["nominal"],
+        "state": inducing_state(fit.model.transition),
+        "fit": info,
+    }
+
+
+def _checkpoint_iteration(path: Path) -> int:
+    """The iteration a stage checkpoint resumes from: that of its file, or the lowest of the files
+    in its folder (a data-parallel fit's processes agree on the latest iteration all of them
+    saved); 0 where unreadable."""
+    if path.is_dir():
+        its = [_checkpoint_iteration(p) for p in sorted(path.glob("*.ckpt"))]
+        return min(its, default=0)
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+        return int(ck["iteration"])
+    except Exception:
+        return 0
+
+
+def _calibrate_stage(
+    r: Recipe,
+    entries: dict[str, dict[str, Any]],
+    model: StateSpaceModel,
+    train: list[Recording],
+    val: list[Recording],
+    m0: Tensor,
+    P0: Tensor,
+    dtype: torch.dtype,
+    out: Path,
+    resume: bool,
+    progress: bool,
+    stream: TextIO,
+    log: _Log,
+    fitters: StageFitters = LOCAL_FITTERS,
+) -> dict[str, Any] | None:
+    """Fit variance scales and floors by the filter likelihood on the training recordings
+    (:func:`calibrate`, or ``fitters.calibrate``)."""
+    c = r.calibrate
+    if not c["enabled"]:
+        log("calibrate: off ([calibrate] enabled = false)")
+        return None
+    learned = [s for s in STAGES if entries[s].get("kind") in ("gp", "inducing")]
+    sides = learned if c["sides"] == "learned" else list(c["sides"])
+    if not sides:
+        log("calibrate: no learned side to calibrate; skipped")
+        return None
+    done = out / "calibration.pt"
+    if resume and done.is_file():
+        log("calibrate: already done (resumed)")
+        return dict(torch.load(done, weights_only=True))
+    ckpt = out / CALIBRATE_CHECKPOINT
+    if resume and ckpt.exists():
+        log(f"calibrate: resuming from iteration {_checkpoint_iteration(ckpt)}")
+    iterations = int(c["iterations"])
+    # short recordings: the burn-in may take at most half of the shortest one
+    shortest = min(len(rec) - 1 for rec in train)
+    burn_in = min(int(c["burn_in"]), shortest // 2)
+    if burn_in < int(c["burn_in"]):
+        log(
+            f"calibrate: burn_in {c['burn_in']} -> {burn_in} (shortest recording: {shortest} steps)"
+        )
+    bar = ProgressBar("calibrate", iterations, stream, enabled=progress)
+    every = r.checkpoint_every
+    with open(out / "metrics.jsonl", "a", encoding="utf-8") as metrics:
+
+        def callback(state: Any) -> None:
+            rec = {
+                "stage": "calibrate",
+                "iteration": state.iteration,
+                "loss": state.loss,
+                "validation": state.validation,
+                "elapsed": state.elapsed,
+            }
+            metrics.write(json.dumps(rec) + "\n")
+            metrics.flush()
+            bar.update(state.iteration, f"-loglik/meas {state.loss:.4g}")
+            if state.iteration % every == 0:
+                log(f"calibrate: iteration {state.iteration}/{iterations} loss {state.loss:.6g}")
+
+        fitter = fitters.calibrate or calibrate  # looked up now: patchable
+        res = fitter(
+            model,
+            train,
+            x0=m0,
+            P0=P0,
+            validation=val or None,
+            sides=sides,  # type: ignore[arg-type]
+            window=int(c["window"]),
+            burn_in=burn_in,
+            iterations=iterations,
+            lr=float(c["lr"]),
+            optimizer=c["optimizer"],
+            patience=int(c["patience"]),
+            inflate_only=bool(c["inflate_only"]),
+            gp=c.get("gp", "none"),
+            callback=callback,
+            checkpoint=ckpt,
+            resume=resume,
+            checkpoint_every=every,
+            dtype=dtype,
+        )
+    fit = res.fit
+    entry = _calibration_entry(res, c)
+    _save(done, entry)
+    _remove(ckpt)
+    log(
+        f"calibrate: {fit.stopped} after {fit.iterations} iterations; log-likelihood "
+        f"{fit.initial_log_likelihood:.6g} -> {fit.log_likelihood:.6g}; "
+        + "; ".join(
+            f"{k} scale {_fmt(v['scale'])} floor {_fmt(v['floor'])}"
+            for k, v in res.parameters.items()
+        )
+    )
+    return entry
+
+
+def _calibration_entry(res: CalibrationResult, c: dict[str, Any]) -> dict[str, Any]:
+    """The bundle's ``calibration`` entry: the scales and floors, the fit's record and options
+    ``c``, and the GPs the calibration refitted (with their hyperparameters), if any."""
+    fit = res.fit
+    entry: dict[str, Any] = {
+        **res.parameters,
+        "fit": {
+            "stopped": fit.stopped,
+            "iterations": fit.iterations,
+            "best_iteration": fit.best_iteration,
+            "log_likelihood": fit.log_likelihood,
+            "initial_log_likelihood": fit.initial_log_likelihood,
+            "validation_per_measurement": fit.validation,
+            "measurements": fit.measurements,
+            "windows": fit.windows,
+            "options": dict(c),
+        },
+    }
+    if res.refit:
+        # the refitted GPs replace the stage's models in the bundle; their hyperparameters are
+        # logged beside the scales
+        entry["models"] = {name: g.to_state() for name, g in res.refit.items()}
+        entry["gp_hyperparameters"] = {
+            name: {k: v.tolist() for k, v in g.hyperparameters().items()}
+            for name, g in res.refit.items()
+        }
+    return entry
