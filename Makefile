@@ -12,7 +12,7 @@ TORCH_SPEC ?= torch==2.13.0
 PIP_TORCH_ARGS ?=
 OUT ?= out
 
-.PHONY: setup demo test test-slow test-all lint bench reproduce plaza clean
+.PHONY: setup demo test test-slow test-all lint bench gpu-check reproduce plaza clean
 
 setup: $(STAMP)
 
@@ -41,6 +41,11 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python scripts/bench_filter.py --cckf --out $(OUT)/bench_filter
+
+# Every CUDA test and GPU figure in one run (scripts/gpu_check.py, whose docstring gives the
+# one-call command for the lent, offline GPU machine); GPU_CHECK_ARGS=--dry-run on a CPU.
+gpu-check: $(STAMP)
+	$(BIN)/python scripts/gpu_check.py --out $(OUT)/gpu_check $(GPU_CHECK_ARGS)
 
 reproduce: $(STAMP)
 	$(BIN)/python scripts/reproduce_reentry.py --out $(OUT)/reentry

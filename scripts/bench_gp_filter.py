@@ -55,6 +55,8 @@ VAR_TOL = 0.05
 #: The product's training recipe.
 RECIPE = {"iterations": 150, "lr": 0.05, "subset": 1000}
 LOWRANKS = (32, 128, 512)
+#: the variance forms of the GPU filter rows, in order (``--gpu-forms``)
+GPU_FORMS = ["auto", "auto-float32", "lowrank-128", "lowrank-512", "sparse"]
 
 
 # --------------------------------------------------------------------------- helpers
@@ -365,13 +367,16 @@ def gpu_filter(args: argparse.Namespace) -> dict[str, Any]:
     # loses accuracy: alpha = (K + s^2 I)^-1 y is large when the noise is small).
     every = [(False, False), (True, False), (False, True), (True, True)]
     best = [(True, True)]
-    plan = [
-        ("auto", None, torch.float64, best if args.gpu_quick else every),
-        ("auto", None, torch.float32, best),
-        ("lowrank", 128, torch.float64, best),
-        ("lowrank", 512, torch.float64, best),
-        ("sparse", 256, torch.float64, best),
-    ]
+    plans = {
+        "auto": ("auto", None, torch.float64, best if args.gpu_quick else every),
+        "auto-float32": ("auto", None, torch.float32, best),
+        "lowrank-128": ("lowrank", 128, torch.float64, best),
+        "lowrank-512": ("lowrank", 512, torch.float64, best),
+        "sparse": ("sparse", 256, torch.float64, best),
+        # not in the default set: the exact cached-Cholesky form alone (scripts/gpu_check.py)
+        "exact": ("exact", None, torch.float64, best if args.gpu_quick else every),
+    }
+    plan = [plans[name] for name in args.gpu_forms]
     sparse_models: tuple[GPModel, GPModel] | None = None
     for variance, rank, mdtype, variants in plan:
         name = f"{variance}" + (f" {rank}" if rank else "") + f", model {str(mdtype)[6:]}"
@@ -531,6 +536,13 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     p.add_argument("--gpu-batch", type=int, default=10_000)
     p.add_argument("--gpu-chunk", type=int, default=1 << 16, help="points per kernel chunk")
     p.add_argument("--gpu-quick", action="store_true", help="compiled + CUDA graph rows only")
+    p.add_argument(
+        "--gpu-forms",
+        nargs="+",
+        choices=[*GPU_FORMS, "exact"],
+        default=GPU_FORMS,
+        help="variance forms of the GPU filter rows (default: all but exact)",
+    )
     p.add_argument("--no-svgp", dest="svgp", action="store_false", help="skip the 1e6 SVGP")
     p.add_argument("--svgp-n", type=int, default=1_000_000)
     p.add_argument("--svgp-inducing", type=int, default=512)

@@ -64,6 +64,14 @@ def main(argv: list[str] | None = None) -> int:
         help="only split the local per-recording cost into filtering and file I/O, and time "
         "empty Ray tasks (the scheduling floor of a task)",
     )
+    ap.add_argument(
+        "--device", default="cpu", help="device of the filtering in --components-only (cuda)"
+    )
+    ap.add_argument(
+        "--no-empty-tasks",
+        action="store_true",
+        help="--components-only without the empty Ray tasks (where Ray is not installed)",
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     work = Path(tempfile.mkdtemp(prefix="bench_ray."))
@@ -72,7 +80,15 @@ def main(argv: list[str] | None = None) -> int:
         recs = sorted((work / "data").glob("*.csv"))
         model = f"system:{SYSTEM}"
         if args.components_only:
-            _components(recs, work, max(args.batch_sizes), args.repeats, args.out)
+            _components(
+                recs,
+                work,
+                max(args.batch_sizes),
+                args.repeats,
+                args.out,
+                device=args.device,
+                empty_tasks=not args.no_empty_tasks,
+            )
             return 0
         rows: list[dict[str, Any]] = []
         local: dict[int, float] = {}  # best local time per batch size, over both sessions
@@ -194,10 +210,19 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _components(recs: list[Path], work: Path, batch: int, repeats: int, out: Path) -> None:
+def _components(
+    recs: list[Path],
+    work: Path,
+    batch: int,
+    repeats: int,
+    out: Path,
+    *,
+    device: str = "cpu",
+    empty_tasks: bool = True,
+) -> None:
     """Per recording: the whole local path at ``batch`` against the CKF alone on the same batch
-    in memory; the difference is reading the CSV, writing the estimates (atomic, fsync) and the
-    summary."""
+    in memory, both on ``device``; the difference is reading the CSV, writing the estimates
+    (atomic, fsync) and the summary."""
     from torchfilt.filters import CKF
     from torchfilt.io import read_recording
     from torchfilt.pipeline import resolve_model
@@ -206,28 +231,32 @@ def _components(recs: list[Path], work: Path, batch: int, repeats: int, out: Pat
     recs = recs[:batch]
     n = len(recs)
     whole, _ = _time(
-        lambda o: filter_recordings(f"system:{SYSTEM}", recs, o, batch_size=batch),
+        lambda o: filter_recordings(f"system:{SYSTEM}", recs, o, batch_size=batch, device=device),
         work / "comp",
         repeats,
     )
     rs = [read_recording(p, spec.channels, optional=("state",)) for p in recs]
-    y = torch.stack([r.measurements[1:] for r in rs])
-    filt = CKF(spec.model)
+    y = torch.stack([r.measurements[1:] for r in rs]).to(device)
+    filt = CKF(spec.model.to(device))
+    x0, P0 = spec.prior_mean.to(device), spec.prior_cov.to(device)
     t = []
     for _ in range(repeats + 1):
         t0 = time.perf_counter()
-        filt.filter(y, x0=spec.prior_mean, P0=spec.prior_cov)
+        filt.filter(y, x0=x0, P0=P0)
+        if y.device.type == "cuda":
+            torch.cuda.synchronize()
         t.append(time.perf_counter() - t0)
     ckf = min(t[1:])
     payload = {
         "system": SYSTEM,
+        "device": device,
         "batch": n,
         "local_path_s_per_recording": whole / n,
         "ckf_only_s_per_recording": ckf / n,
         "io_and_bookkeeping_s_per_recording": (whole - ckf) / n,
         "environment": environment(),
     }
-    payload["empty_task"] = _empty_tasks()
+    payload["empty_task"] = _empty_tasks() if empty_tasks else "not run (--no-empty-tasks)"
     write_json(out / "bench_ray_components.json", payload)
     print(json.dumps(payload, indent=2, default=float))
 
