@@ -81,8 +81,11 @@ class OptimizerOptions:
     def __post_init__(self) -> None:
         if self.optimizer not in ("adam", "lbfgs"):
             raise InputError(f"optimizer must be 'adam' or 'lbfgs', got {self.optimizer!r}")
-        if self.iterations < 0:
-            raise InputError(f"iterations must be non-negative, got {self.iterations}")
+        if self.iterations < 1:
+            raise InputError(
+                f"iterations must be at least 1, got {self.iterations} (a fit of no iterations "
+                "would return its start unchanged)"
+            )
         _at_least_one(max_iter=self.max_iter, history_size=self.history_size)
         lr = self.learning_rate
         if not (math.isfinite(lr) and 0 < lr <= MAX_LR):
@@ -166,6 +169,11 @@ class CheckpointOptions:
 
     def __post_init__(self) -> None:
         _at_least_one(checkpoint_every=self.every)
+        if self.resume and self.path is None:
+            raise InputError(
+                "resume=True needs checkpoint= (the file to continue from); give a checkpoint "
+                "path or leave resume=False"
+            )
 
 
 @dataclass(frozen=True)

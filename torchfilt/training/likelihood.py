@@ -39,7 +39,7 @@ import torch
 from torch import Tensor, nn
 
 from torchfilt.cubature import CubatureRule
-from torchfilt.exceptions import DivergenceWarning, InputError, ShapeError
+from torchfilt.exceptions import DivergenceWarning, InputError, InputTypeError, ShapeError
 from torchfilt.filters import CKF, FilterResult, rts_smooth
 from torchfilt.io import atomic_write
 from torchfilt.models import StateSpaceModel
@@ -120,12 +120,25 @@ class _Recs(NamedTuple):
     lengths: list[int]
 
 
+def _check_float(t: Tensor, name: str) -> None:
+    if not t.is_floating_point():
+        raise InputTypeError(
+            f"{name}: expected a floating-point tensor (float32 or float64), got {t.dtype}; "
+            "convert it with .double() (an integer tensor cannot hold missing values as NaN)"
+        )
+
+
 def _stack(
     seqs: Tensor | Sequence[Tensor], name: str, fill: float, dtype: torch.dtype
 ) -> tuple[Tensor, list[int]]:
     if isinstance(seqs, Tensor):
         if seqs.dim() < 2:
             raise ShapeError(f"{name}: expected shape (..., T, d), got {tuple(seqs.shape)}")
+        _check_float(seqs, name)
+        if seqs.shape[-2] == 0 or any(int(d) == 0 for d in seqs.shape[:-2]):
+            raise InputError(
+                f"{name}: a recording has no steps (shape {tuple(seqs.shape)}); give at least one"
+            )
         t = seqs.reshape(-1, *seqs.shape[-2:])
         return t.to(dtype), [int(t.shape[-2])] * int(t.shape[0])
     seqs = list(seqs)
@@ -138,6 +151,9 @@ def _stack(
             raise ShapeError(
                 f"{name}[{i}]: has {s.shape[-1]} columns, {name}[0] has {seqs[0].shape[-1]}"
             )
+        _check_float(s, f"{name}[{i}]")
+        if s.shape[0] == 0:
+            raise InputError(f"{name}[{i}]: the recording has no steps; give at least one")
     T = max(int(s.shape[0]) for s in seqs)
     out = torch.full((len(seqs), T, int(seqs[0].shape[-1])), fill, dtype=dtype)
     for i, s in enumerate(seqs):
@@ -182,10 +198,33 @@ def _recordings(
             raise InputError(f"{prefix}u: contains non-finite entries; inputs cannot be missing")
     if not isinstance(x0, Tensor) or not isinstance(P0, Tensor):
         raise InputError(f"{prefix}x0 and {prefix}P0 must be tensors")
+    _check_float(x0, prefix + "x0")
+    _check_float(P0, prefix + "P0")
     X0 = _prior_batch(x0.to(dtype), R, (n,), prefix + "x0")
     C0 = _prior_batch(P0.to(dtype), R, (n, n), prefix + "P0")
+    _check_prior(X0, C0, prefix)
     del T
     return _Recs(Y, U, X0, C0, lengths)
+
+
+def _check_prior(X0: Tensor, C0: Tensor, prefix: str) -> None:
+    """Refuse a non-finite prior and a ``P0`` that is not symmetric positive definite, before
+    any filter pass (a filter would only fail on it after the first pass's work)."""
+    if not bool(torch.isfinite(X0.detach()).all()):
+        raise InputError(f"{prefix}x0: contains non-finite entries")
+    P = C0.detach()
+    if not bool(torch.isfinite(P).all()):
+        raise InputError(f"{prefix}P0: contains non-finite entries")
+    scale = P.abs().amax(dim=(-2, -1), keepdim=True).clamp_min(torch.finfo(P.dtype).tiny)
+    if bool(((P - P.mT).abs() > 1e-8 * scale).any()):
+        raise InputError(f"{prefix}P0: must be symmetric")
+    _, info = torch.linalg.cholesky_ex(P)
+    if bool((info > 0).any()):
+        bad = int(torch.nonzero(info.reshape(-1) > 0)[0])
+        raise InputError(
+            f"{prefix}P0: must be positive definite (recording {bad} is not: its Cholesky "
+            "factorisation fails); give a covariance such as a positive multiple of the identity"
+        )
 
 
 class _Windows(NamedTuple):

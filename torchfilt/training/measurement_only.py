@@ -68,7 +68,14 @@ from torchfilt.models import (
     StateSpaceModel,
 )
 from torchfilt.models.sensor import AffineSensor
-from torchfilt.optim import DEFAULTS, CheckpointFile, FitLoop, Outcome, fingerprint
+from torchfilt.optim import (
+    DEFAULTS,
+    CheckpointFile,
+    CheckpointOptions,
+    FitLoop,
+    Outcome,
+    fingerprint,
+)
 from torchfilt.training.em_steps import (
     SmoothedPairs,
     _EMProblem,
@@ -362,8 +369,9 @@ def fit_em(
     """
     if not isinstance(model, StateSpaceModel):
         raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
-    if iterations < 0:
-        raise InputError(f"iterations must be non-negative, got {iterations}")
+    if iterations < 1:
+        raise InputError(f"iterations must be at least 1, got {iterations}")
+    CheckpointOptions(checkpoint, checkpoint_every, resume)  # resume=True needs a checkpoint
     for name, v in (
         ("m_step_iterations", m_step_iterations),
         ("checkpoint_every", checkpoint_every),
