@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, NamedTuple
@@ -56,8 +56,10 @@ from torchfilt.optim import (
     StoppingOptions,
     WindowOptions,
     fingerprint,
+    free_parameters,
     restore,
     snapshot,
+    stopping_options,
 )
 from torchfilt.training.progress import ProgressBar
 
@@ -365,11 +367,14 @@ def fit_likelihood(
     refresh_every: int = _D.window.refresh_every,
     validation: Sequences | None = None,
     validate_every: int = _D.stopping.validate_every,
-    patience: int = _D.stopping.patience,
+    patience: int | None = None,
     optimizer: Literal["adam", "lbfgs"] = _D.optimizer.optimizer,
     lr: float | None = _D.optimizer.lr,
     iterations: int = _D.optimizer.iterations,
     tol: float | None = _D.stopping.tol,
+    rtol: float = _D.stopping.rtol,
+    rtol_window: int = _D.stopping.rtol_window,
+    fixed: Collection[str] = (),
     callback: Callable[[LikelihoodState], bool | None] | None = None,
     project: Callable[[], None] | None = None,
     prepare: Callable[[], None] | None = None,
@@ -416,6 +421,13 @@ def fit_likelihood(
         iterations: iteration budget (an L-BFGS iteration runs up to 20 inner steps).
         tol: stop when the loss changes by less than ``tol * (1 + |loss|)`` in an iteration
             (default ``1e-10`` for L-BFGS, off for Adam).
+        rtol, rtol_window: stop (``"converged"``) when the loss per measurement ``L`` moved by
+            at most ``rtol * max(1, |L_k|)`` over the last ``rtol_window`` iterations:
+            ``|L_k - L_{k-w}|`` (default ``1e-6`` over 20; 0: off; see
+            :class:`~torchfilt.optim.StoppingOptions`).
+        fixed: names of parameters held fixed, as ``model.named_parameters()`` gives them
+            (e.g. ``"transition.A"``): they are left out of the fit and end bit-identical; an
+            unknown name is an :class:`~torchfilt.exceptions.InputError`.
         callback: called after every iteration with a :class:`LikelihoodState`; return ``True``
             to stop.
         project: called after every optimiser step to project the parameters back onto their
@@ -453,15 +465,13 @@ def fit_likelihood(
         raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
     opt_o = OptimizerOptions(optimizer, lr, iterations)
     win_o = WindowOptions(window, burn_in, start, refresh_every)
-    stop_o = StoppingOptions(patience, validate_every, tol)
+    stop_o = stopping_options(_D.stopping, patience, validate_every, tol, rtol, rtol_window)
     ckpt_o = CheckpointOptions(checkpoint, checkpoint_every, resume)
     if dtype not in (torch.float32, torch.float64):
         raise InputError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
     model.to(dtype)
     recs = _recordings(model, y, u, x0, P0, dtype)
-    plist = [p for p in (model.parameters() if params is None else params) if p.requires_grad]
-    if not plist:
-        raise InputError("params: nothing to fit (no parameter with requires_grad)")
+    plist = free_parameters(model, params, fixed)
     val = None
     if validation is not None:
         vx0 = recs.x0[0] if validation.x0 is None else validation.x0
@@ -623,7 +633,8 @@ def _run(
     bar = ProgressBar("fit likelihood", iterations, enabled=progress)
     loop = FitLoop(
         iterations=iterations, progress=bar, callback=callback, all_reduce=obj.all_reduce,
-        stopping=early, tol=tol, checkpoint=ckpt, every=ckpt_o.every,
+        stopping=early, tol=tol, rtol=stop_o.rtol, rtol_window=stop_o.rtol_window,
+        checkpoint=ckpt, every=ckpt_o.every,
     )  # fmt: skip
     wx0: Tensor | None = None
     wP0: Tensor | None = None

@@ -180,7 +180,15 @@ def run_adam(
         state = FitState(it, iterations, value, time.perf_counter() - t0, model, opt, ngd)
         return Outcome({"iteration": it, "loss": value}, state, f"loss {value:.5g}")
 
-    loop = FitLoop(iterations=iterations, progress=progress, callback=callback, start=start)
+    stop = DEFAULTS["gp"].stopping  # the windowed convergence rule, on by default
+    loop = FitLoop(
+        iterations=iterations,
+        progress=progress,
+        callback=callback,
+        rtol=stop.rtol,
+        rtol_window=stop.rtol_window,
+        start=start,
+    )
     if loop.run(step) == "callback" and progress is not None:
         progress.update(loop.iteration, f"loss {losses[-1]:.5g}", final=True)
     return losses
