@@ -19,7 +19,7 @@ from torchfilt.exceptions import ConvergenceWarning, InputError
 from torchfilt.models import LinearGaussianModel
 from torchfilt.models.params import ScalarCovariance
 from torchfilt.optim import FitLoop, Outcome, StoppingOptions
-from torchfilt.training import fit_em, fit_likelihood
+from torchfilt.training import Sequences, calibrate, fit_em, fit_likelihood
 from torchfilt.training.progress import ProgressBar
 
 DT = torch.float64
@@ -194,3 +194,27 @@ def test_em_with_A_fixed_keeps_it_and_re_estimates_Q_and_R():
     q = float(m.transition.noise_cov().reshape(-1)[0])
     r = float(m.measurement.noise_cov().reshape(-1)[0])
     assert q == pytest.approx(q_ref, rel=2e-3) and r == pytest.approx(r_ref, rel=2e-3)
+
+
+def test_calibrate_holds_fixed_parameters():
+    """``calibrate(fixed=...)``: names of the calibrated model; the named scale stays exactly at
+    its start while the others are fitted."""
+    base = torchfilt.StateSpaceModel(
+        lambda x, u: 0.9 * x, lambda x, u: x, Q=0.3 * P0.clone(), R=0.5 * P0.clone()
+    )
+    y = simulate(0.9, 0.6, 0.5, 120, seed=2).unsqueeze(0)
+    free = calibrate(base, Sequences(y), x0=X0, P0=P0, window=None,
+                               iterations=5)  # fmt: skip
+    names = dict(free.model.named_parameters())
+    held = next(n for n in names if n.startswith("transition") and "scale" in n)
+    cal = calibrate(base, Sequences(y), x0=X0, P0=P0, window=None,
+                              iterations=5, fixed=[held])  # fmt: skip
+    longer = calibrate(base, Sequences(y), x0=X0, P0=P0, window=None, iterations=9,
+                       fixed=[held])  # fmt: skip
+    after, later = dict(cal.model.named_parameters()), dict(longer.model.named_parameters())
+    assert torch.equal(after[held], later[held])  # both still the start, bit for bit
+    assert not torch.equal(after[held], names[held])  # the free fit moves it
+    assert cal.fit.log_likelihood > cal.fit.initial_log_likelihood  # the free ones are fitted
+    with pytest.raises(InputError, match="fixed: 'nope' is no parameter"):
+        calibrate(base, Sequences(y), x0=X0, P0=P0, iterations=2,
+                            fixed=["nope"])  # fmt: skip
