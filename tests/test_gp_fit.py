@@ -263,3 +263,19 @@ def test_subset_training_conditions_on_all_rows():
     h = GPMeasurement.fit(x, y, subset=40, iterations=10, progress=False)
     assert h.groups[0].num_points == 120
     assert h.groups[0].gp.train_inputs[0].shape[-2] == 120
+
+
+def test_fixed_hyperparameters_are_bit_identical():
+    """``fixed=`` holds a GP hyperparameter exactly while the others train; an unknown name is
+    an InputError naming it."""
+    x, y = smooth_data(40)
+    name = "groups.0.gp.covar_module.base_kernel.raw_lengthscale"
+    free = GPMeasurement.fit(x, y, iterations=0, progress=False)
+    start = dict(free.named_parameters())[name].detach().clone()
+    noise = dict(free.named_parameters())["groups.0.likelihood.noise_covar.raw_noise"]
+    noise0 = noise.detach().clone()
+    free.optimize(iterations=10, progress=False, fixed=[name])
+    assert torch.equal(dict(free.named_parameters())[name].detach(), start)
+    assert not torch.equal(noise.detach(), noise0)
+    with pytest.raises(InputError, match=r"fixed: 'groups\.9' is no parameter"):
+        free.optimize(iterations=2, progress=False, fixed=["groups.9"])

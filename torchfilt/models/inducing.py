@@ -31,6 +31,7 @@ from torch import Tensor, nn
 
 from torchfilt.exceptions import InputError, ShapeError
 from torchfilt.models.base import ConditionalModel, Prediction
+from torchfilt.numerics import safe_cholesky
 
 __all__ = ["InducingTransition"]
 
@@ -276,7 +277,10 @@ class InducingTransition(ConditionalModel):
         dzz = (Zs.unsqueeze(-2) - Zs).pow(2).sum(-1)
         M = self.num_inducing
         Kzz = torch.exp(-0.5 * dzz) + self.jitter * torch.eye(M, dtype=z.dtype, device=z.device)
-        L = torch.linalg.cholesky(Kzz)
+        # jitter where K_ZZ is numerically singular (close inducing inputs); NaN where even that
+        # fails, which a fit scores as a non-finite step (GuardedStep steps back), never a raw
+        # torch LinAlgError in the middle of an optimiser's line search
+        L = safe_cholesky(Kzz, name="InducingTransition K_ZZ (inducing-point kernel)")
         A = torch.cholesky_solve(Kxz.reshape(-1, M).mT, L).mT.reshape(Kxz.shape)  # K_xZ K_ZZ^-1
         mean = mean + A @ self.inducing_outputs.mT.to(z.dtype)
         q = (A * Kxz).sum(-1, keepdim=True).clamp(0.0, 1.0)  # (..., P, 1)

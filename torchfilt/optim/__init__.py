@@ -18,10 +18,11 @@ have made ``GPModel.fit`` depend on the layer that uses the models.
 * :mod:`torchfilt.optim.checkpoint`: ``CheckpointFile`` (atomic, fingerprinted, bit-identical
   resume, data-parallel agreement on where to resume).
 
-Where the next capabilities land: a new stopping rule (e.g. a relative change over a window of
-iterations) in ``StoppingOptions`` and ``FitLoop._rule``; an estimate of the remaining time in
-``FitLoop.run`` (every fit reports through it); parameters held fixed in the parameter list a fit
-hands to ``GuardedStep``; stochastic subsets of windows in the likelihood fit's step
+Stopping rules live in ``StoppingOptions`` and ``FitLoop._rule`` (the relative change over a
+window of iterations, ``rtol`` / ``rtol_window``, is on by default); the estimate of the stage's
+time and of what is left is drawn by ``FitLoop.run`` through the fit's reporter; parameters held
+fixed (``fixed=``) are left out of the list a fit hands to ``GuardedStep`` by
+``free_parameters``. Where the next capabilities land: stochastic subsets of windows in the likelihood fit's step
 (:mod:`torchfilt.training.likelihood`), whose full objective the loop's rules can then evaluate.
 """
 
@@ -33,6 +34,7 @@ from torchfilt.optim.loop import (
     Outcome,
     Reporter,
     StepResult,
+    free_parameters,
     make_optimizer,
     restore,
     snapshot,
@@ -44,6 +46,7 @@ from torchfilt.optim.options import (
     OptimizerOptions,
     StoppingOptions,
     WindowOptions,
+    stopping_options,
 )
 
 __all__ = [
@@ -62,7 +65,9 @@ __all__ = [
     "StoppingOptions",
     "WindowOptions",
     "fingerprint",
+    "free_parameters",
     "make_optimizer",
     "restore",
     "snapshot",
+    "stopping_options",
 ]

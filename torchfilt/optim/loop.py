@@ -12,7 +12,9 @@ iteration does (an optimiser step, an E- and an M-step), returning an :class:`Ou
    stops all (one collective);
 4. the stopping rules: the step's own ``done``, then early stopping on held-out data
    (:class:`EarlyStopping`, after ``patience`` evaluations without improvement), then
-   convergence (the loss changed by less than ``tol * (1 + |loss|)``);
+   convergence: the loss changed by less than ``tol * (1 + |loss|)`` in one iteration, or by
+   at most ``rtol * max(1, |L_k|)`` over the last ``rtol_window`` iterations
+   (``|L_k - L_{k-w}|``; on by default, see :class:`~torchfilt.optim.StoppingOptions`);
 5. a checkpoint every ``every`` iterations, at the last one and when a rule stopped the fit:
    the loop's state (iteration, history, the stop reason, the early-stopping state) and the
    fit's own entries, written atomically; a fit resumed from it continues exactly where the
@@ -26,12 +28,15 @@ restores the last good parameters; L-BFGS then forgets its curvature once and tr
 from __future__ import annotations
 
 import math
+import time
+import warnings
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any, Literal, NamedTuple, Protocol
 
 import torch
 from torch import Tensor
 
+from torchfilt.exceptions import ConvergenceWarning, InputError, InputTypeError
 from torchfilt.optim.checkpoint import CheckpointFile
 from torchfilt.optim.options import OptimizerOptions, StoppingOptions
 
@@ -42,6 +47,7 @@ __all__ = [
     "Outcome",
     "Reporter",
     "StepResult",
+    "free_parameters",
     "make_optimizer",
     "restore",
     "snapshot",
@@ -64,6 +70,41 @@ def restore(params: Sequence[Tensor], values: Sequence[Tensor]) -> None:
     with torch.no_grad():
         for p, v in zip(params, values, strict=True):
             p.copy_(v)
+
+
+def free_parameters(
+    module: torch.nn.Module,
+    params: Iterable[torch.nn.Parameter] | None = None,
+    fixed: Iterable[str] = (),
+    *,
+    what: str = "params",
+) -> list[torch.nn.Parameter]:
+    """The parameters a fit steps: ``params`` (default: every parameter of ``module``) with
+    ``requires_grad``, less those named in ``fixed`` (names as ``module.named_parameters()``
+    gives them), which the fit then leaves bit-identical.
+
+    Raises:
+        InputError: a name in ``fixed`` that is no parameter of ``module`` (named), or nothing
+            left to fit.
+    """
+    if isinstance(fixed, str):
+        raise InputTypeError(f"fixed: expected a collection of names, got the string {fixed!r}")
+    named = dict(module.named_parameters())
+    unknown = [name for name in fixed if name not in named]
+    if unknown:
+        raise InputError(
+            f"fixed: {unknown[0]!r} is no parameter of the model (its parameters: "
+            f"{sorted(named)[:12]})"
+        )
+    held = {id(named[name]) for name in fixed}
+    source = module.parameters() if params is None else params
+    plist = [p for p in source if p.requires_grad and id(p) not in held]
+    if not plist:
+        raise InputError(
+            f"{what}: nothing to fit (no parameter with requires_grad"
+            + (", less the fixed ones)" if held else ")")
+        )
+    return plist
 
 
 def make_optimizer(params: Sequence[Tensor], options: OptimizerOptions) -> torch.optim.Optimizer:
@@ -183,6 +224,14 @@ class EarlyStopping:
         snapshot: Callable[[], list[Tensor]],
     ) -> None:
         self.options, self.score, self.snapshot = options, score, snapshot
+        if score is None and options.patience_given:
+            warnings.warn(
+                f"patience={options.patience} was given but there is no held-out data "
+                "(validation=None): early stopping cannot act; the fit stops at convergence or "
+                "its iteration budget. Give validation data to stop on held-out likelihood",
+                ConvergenceWarning,
+                stacklevel=3,
+            )
         self.bad, self.best_iteration, self.best_score = 0, 0, -math.inf
         self.best_params = snapshot()
 
@@ -249,6 +298,9 @@ class FitLoop:
         stopping: early stopping on held-out data (checkpointed with the loop).
         tol: convergence: stop when the record's ``loss`` changed by less than
             ``tol * (1 + |loss|)`` since the previous record (0: off).
+        rtol: convergence over a window: stop when ``|L_k - L_{k-w}| <= rtol * max(1, |L_k|)``
+            for the records' ``loss`` ``L`` (0: off).
+        rtol_window: the window ``w`` of ``rtol``.
         checkpoint: the checkpoint file (``None``: none).
         every: iterations between checkpoints.
         start: iterations already done (a run resumed by its caller, without a checkpoint file).
@@ -263,12 +315,15 @@ class FitLoop:
         all_reduce: Callable[[Tensor], None] | None = None,
         stopping: EarlyStopping | None = None,
         tol: float = 0.0,
+        rtol: float = 0.0,
+        rtol_window: int = 20,
         checkpoint: CheckpointFile | None = None,
         every: int = 1,
         start: int = 0,
     ) -> None:
         self.iterations, self.progress, self.callback = iterations, progress, callback
         self.all_reduce, self.stopping, self.tol = all_reduce, stopping, tol
+        self.rtol, self.rtol_window = rtol, max(1, int(rtol_window))
         self.checkpoint, self.every = checkpoint, every
         self.iteration = start  # the last iteration started (or resumed from)
         self.history: list[dict[str, Any]] = []
@@ -302,6 +357,7 @@ class FitLoop:
         """
         if self.done is not None:
             return self.done
+        t0, first = time.perf_counter(), self.iteration
         for it in range(self.iteration + 1, self.iterations + 1):
             self.iteration = it
             out = step(it)
@@ -311,7 +367,7 @@ class FitLoop:
                 continue
             self.history.append(out.record)
             if self.progress is not None:
-                self.progress.update(it, out.info)
+                self.progress.update(it, out.info + self._eta(it, first, t0))
             stop = bool(self.callback(out.state)) if self.callback is not None else False
             if self.all_reduce is not None:
                 flat = torch.tensor([float(stop)], dtype=torch.float64)
@@ -328,12 +384,33 @@ class FitLoop:
                 return done
         return "iterations"
 
+    #: counted iterations before the first estimate of the stage's time
+    ETA_AFTER = 3
+
+    def _eta(self, it: int, first: int, t0: float) -> str:
+        """The estimated time of the stage and what is left, after the first few iterations
+        (the rate of this run's iterations, resumed ones excluded). Drawn by the fit's own
+        reporter, not tqdm: the core dependencies are torch, gpytorch, numpy and matplotlib,
+        and a progress line is not worth another."""
+        done = it - first
+        if done < self.ETA_AFTER:
+            return ""
+        rate = (time.perf_counter() - t0) / done
+        total, left = rate * (self.iterations - first), rate * (self.iterations - it)
+        return f" | stage ~{_seconds(total)}, eta {_seconds(left)}"
+
     def _rule(self) -> str | None:
         if self.stopping is not None and self.stopping.exhausted:
             return "early stopping"
-        if self.tol > 0 and len(self.history) > 1:
-            last, loss = float(self.history[-2]["loss"]), float(self.history[-1]["loss"])
+        hist = self.history
+        if self.tol > 0 and len(hist) > 1 and "loss" in hist[-1]:
+            last, loss = float(hist[-2]["loss"]), float(hist[-1]["loss"])
             if abs(last - loss) <= self.tol * (1 + abs(loss)):
+                return "converged"
+        w = self.rtol_window
+        if self.rtol > 0 and len(hist) > w and "loss" in hist[-1]:
+            then, loss = float(hist[-1 - w]["loss"]), float(hist[-1]["loss"])
+            if abs(loss - then) <= self.rtol * max(1.0, abs(loss)):
                 return "converged"
         return None
 
@@ -346,3 +423,14 @@ class FitLoop:
         if payload is not None:
             data.update(payload())
         return data
+
+
+def _seconds(t: float) -> str:
+    """``t`` seconds as ``12s``, ``3.5min`` or ``1.2h``."""
+    if not math.isfinite(t):
+        return "?"
+    if t < 90:
+        return f"{t:.0f}s"
+    if t < 5400:
+        return f"{t / 60:.1f}min"
+    return f"{t / 3600:.1f}h"

@@ -43,6 +43,7 @@ __all__ = [
     "OptimizerOptions",
     "StoppingOptions",
     "WindowOptions",
+    "stopping_options",
 ]
 
 #: Largest accepted learning rate of the likelihood fits.
@@ -81,8 +82,11 @@ class OptimizerOptions:
     def __post_init__(self) -> None:
         if self.optimizer not in ("adam", "lbfgs"):
             raise InputError(f"optimizer must be 'adam' or 'lbfgs', got {self.optimizer!r}")
-        if self.iterations < 0:
-            raise InputError(f"iterations must be non-negative, got {self.iterations}")
+        if self.iterations < 1:
+            raise InputError(
+                f"iterations must be at least 1, got {self.iterations} (a fit of no iterations "
+                "would return its start unchanged)"
+            )
         _at_least_one(max_iter=self.max_iter, history_size=self.history_size)
         lr = self.learning_rate
         if not (math.isfinite(lr) and 0 < lr <= MAX_LR):
@@ -125,21 +129,44 @@ class WindowOptions:
 class StoppingOptions:
     """When a fit stops before its budget.
 
+    Two convergence rules act on the loss ``L_k`` of the fit's records (per measurement for the
+    likelihood fits and EM), each stopping with ``"converged"``:
+
+    * ``tol``, per iteration: ``|L_k - L_{k-1}| <= tol * (1 + |L_k|)``;
+    * ``rtol`` over a window of ``rtol_window`` iterations:
+      ``|L_k - L_{k-w}| <= rtol * max(1, |L_k|)``. It is on by default (``rtol = 1e-6`` over
+      ``w = 20`` iterations: a loss that moved by less than a millionth in twenty iterations has
+      stopped moving; a fit that still creeps at that rate gains nothing a user would see), so a
+      fit no longer spends its whole budget printing the same loss. A reference comparison that
+      needs the optimum to the last digits passes a smaller ``rtol`` (or 0: off).
+
     Attributes:
         patience: stop after this many held-out evaluations without improvement.
         validate_every: iterations between held-out evaluations.
-        tol: stop when the loss changes by less than ``tol * (1 + |loss|)`` in an iteration
-            (``None``: the fit's default, see :data:`DEFAULTS`; 0: off).
+        tol: the per-iteration rule (``None``: the fit's default, see :data:`DEFAULTS`; 0: off).
+        rtol: the windowed rule's relative tolerance (0: off).
+        rtol_window: its window ``w`` in iterations.
+        patience_given: ``patience`` was given by the caller (not a default): early stopping
+            that cannot act (no held-out data) then warns.
     """
 
     patience: int = 20
     validate_every: int = 1
     tol: float | None = None
+    rtol: float = 1e-6
+    rtol_window: int = 20
+    patience_given: bool = False
 
     def __post_init__(self) -> None:
-        _at_least_one(patience=self.patience, validate_every=self.validate_every)
+        _at_least_one(
+            patience=self.patience,
+            validate_every=self.validate_every,
+            rtol_window=self.rtol_window,
+        )
         if self.tol is not None and not (math.isfinite(self.tol) and self.tol >= 0):
             raise InputError(f"tol must be finite and non-negative, got {self.tol}")
+        if not (math.isfinite(self.rtol) and self.rtol >= 0):
+            raise InputError(f"rtol must be finite and non-negative, got {self.rtol}")
 
     def tolerance(self, optimizer: str) -> float:
         """``tol``, or the likelihood fits' default for ``optimizer`` (``1e-10`` for L-BFGS,
@@ -147,6 +174,28 @@ class StoppingOptions:
         if self.tol is None:
             return 1e-10 if optimizer == "lbfgs" else 0.0
         return float(self.tol)
+
+
+def stopping_options(
+    default: StoppingOptions,
+    patience: int | None,
+    validate_every: int,
+    tol: float | None,
+    rtol: float | None = None,
+    rtol_window: int | None = None,
+) -> StoppingOptions:
+    """A fit's :class:`StoppingOptions` from its keyword arguments, ``None`` meaning the fit's
+    ``default``. ``patience`` counts as given (``patience_given``: early stopping that cannot
+    act then warns) when it differs from the default."""
+    given = patience is not None and patience != default.patience
+    return StoppingOptions(
+        default.patience if patience is None else patience,
+        validate_every,
+        tol,
+        default.rtol if rtol is None else rtol,
+        default.rtol_window if rtol_window is None else rtol_window,
+        patience_given=given,
+    )
 
 
 @dataclass(frozen=True)
@@ -166,6 +215,11 @@ class CheckpointOptions:
 
     def __post_init__(self) -> None:
         _at_least_one(checkpoint_every=self.every)
+        if self.resume and self.path is None:
+            raise InputError(
+                "resume=True needs checkpoint= (the file to continue from); give a checkpoint "
+                "path or leave resume=False"
+            )
 
 
 @dataclass(frozen=True)

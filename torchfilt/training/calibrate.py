@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -150,7 +150,10 @@ def calibrate(
     iterations: int = _C.optimizer.iterations,
     lr: float = _C_LR,
     optimizer: Literal["adam", "lbfgs"] = _C.optimizer.optimizer,
-    patience: int = _C.stopping.patience,
+    patience: int | None = None,
+    rtol: float = _C.stopping.rtol,
+    rtol_window: int = _C.stopping.rtol_window,
+    fixed: Collection[str] = (),
     inflate_only: bool = True,
     progress: bool = False,
     callback: Callable[[LikelihoodState], bool | None] | None = None,
@@ -188,7 +191,12 @@ def calibrate(
             variance there would go unpunished by the fit and make the filter over-confident.
         sides: which sides to calibrate.
         window, burn_in: windows of the likelihood (see :mod:`torchfilt.training.likelihood`).
-        iterations, lr, optimizer, patience: the optimiser (Adam on the log parameters by default).
+        iterations, lr, optimizer, patience: the optimiser (Adam on the log parameters by default;
+            ``patience`` 15, acting only with ``validation``).
+        rtol, rtol_window: stop at convergence, as in
+            :func:`~torchfilt.training.fit_likelihood` (default ``1e-6`` over 20 iterations).
+        fixed: names of parameters of the calibrated model (``result.model.named_parameters()``,
+            e.g. ``"transition.log_scale"``) held fixed; an unknown name is an ``InputError``.
         progress: show a progress bar.
         callback: per-iteration callback (return ``True`` to stop).
         checkpoint, resume, checkpoint_every: checkpointing; a resumed calibration equals an
@@ -313,7 +321,15 @@ def calibrate(
             window=window,
             burn_in=burn_in,
             validation=val,
-            patience=patience,
+            # the default patience (15) with held-out data; without, none, unless one was given
+            patience=(
+                (_C.stopping.patience if val is not None else None)
+                if patience is None or (patience == _C.stopping.patience and val is None)
+                else patience
+            ),
+            rtol=rtol,
+            rtol_window=rtol_window,
+            fixed=fixed,
             optimizer=optimizer,
             lr=lr,
             iterations=iterations,

@@ -109,13 +109,18 @@ def _linear_m_step(
     known: list[int],
     learn_R: bool,
     all_reduce: Callable[[Tensor], None] | None = None,
+    fixed: frozenset[str] = frozenset(),
 ) -> _Lin:
     """Closed-form M-step of a linear-Gaussian model (Shumway & Stoffer 1982; Ghahramani &
     Hinton 1996), with inputs, known rows of ``H`` and missing measurement rows.
 
     The expected sufficient statistics (float64) are sums over the steps ``valid (R, T)`` (a
     padded step past a recording's end is no transition of it), so a data-parallel fit sums them
-    over the processes (one collective) before the closed form."""
+    over the processes (one collective) before the closed form.
+
+    The blocks named in ``fixed`` (of ``A, B, Q, H, R``) keep their values, and the free ones
+    take their closed form given them (the conditional maximisation: ``B`` given a fixed ``A``,
+    ``Q`` from the residuals of the ``A, B`` used, ``R`` from the ``H`` used)."""
     n, dtype = lin.A.shape[-1], lin.A.dtype
     f64 = torch.float64
     keep = valid.reshape(-1)
@@ -158,22 +163,50 @@ def _linear_m_step(
         Szz, Sxz = Spp, Sxp
     n_ok, Sxx_o, Sxy, Syy = stats[-4:]
     AB = psd_solve(Szz, Sxz.mT, name="expected state second moment").mT
-    Q = symmetrize((Sxx - AB @ Sxz.mT) / N).to(dtype)
+    if fixed & {"A", "B"}:
+        AB = _fixed_transition(lin, AB, Sxz, Szz, n, with_B, fixed)
+        Q = symmetrize((Sxx - AB @ Sxz.mT - Sxz @ AB.mT + AB @ Szz @ AB.mT) / N).to(dtype)
+    else:
+        Q = symmetrize((Sxx - AB @ Sxz.mT) / N).to(dtype)
+    if "Q" in fixed:
+        Q = lin.Q
     A = AB[:, :n].to(dtype)
     B = AB[:, n:].to(dtype) if with_B else lin.B
     H, R = lin.H, lin.R
     if float(n_ok) > 0:
         Hd = H.to(f64)
         unknown = [j for j in range(H.shape[0]) if j not in known]
-        if unknown:
+        if unknown and "H" not in fixed:
             Hu = psd_solve(Sxx_o, Sxy[:, unknown], name="state second moment").mT
             Hd = Hd.clone()
             Hd[unknown] = Hu
             H = Hd.to(dtype)
-        if learn_R:
+        if learn_R and "R" not in fixed:
             # sum_t E[(y_t - H x_t)(y_t - H x_t)^T] from the sums
             R = symmetrize((Syy - Hd @ Sxy - Sxy.mT @ Hd.mT + Hd @ Sxx_o @ Hd.mT) / n_ok).to(dtype)
     return _Lin(A, H, Q, R, B, lin.D)
+
+
+def _fixed_transition(
+    lin: _Lin, AB: Tensor, Sxz: Tensor, Szz: Tensor, n: int, with_B: bool, fixed: frozenset[str]
+) -> Tensor:
+    """``[A B]`` with the fixed blocks at their values and a free one at its closed form given
+    the fixed one (float64)."""
+    f64 = torch.float64
+    A = lin.A.to(f64)
+    if not with_B:
+        return A if "A" in fixed else AB
+    assert lin.B is not None
+    B = lin.B.to(f64)
+    if "A" in fixed and "B" in fixed:
+        return torch.cat([A, B], -1)
+    Spp, Spu, Suu = Szz[:n, :n], Szz[:n, n:], Szz[n:, n:]
+    Sxp, Sxu = Sxz[:, :n], Sxz[:, n:]
+    if "A" in fixed:  # B = (Sxu - A Spu) Suu^-1
+        B = psd_solve(Suu, (Sxu - A @ Spu).mT, name="input second moment").mT
+    else:  # A = (Sxp - B Spu^T) Spp^-1
+        A = psd_solve(Spp, (Sxp - B @ Spu.mT).mT, name="expected state second moment").mT
+    return torch.cat([A, B], -1)
 
 
 def _point_cov(side: Any, pred: Any) -> Tensor:
@@ -424,7 +457,9 @@ class _EMProblem:
         learn_R: bool,
         m_step_iterations: int,
         backtracks: int,
+        fixed: frozenset[str] = frozenset(),
     ) -> None:
+        self.fixed = fixed
         self.model, self.lin, self.plist = model, lin, plist
         self.Y, self.U = recs.y, recs.u
         self.X0, self.C0 = recs.x0.detach(), recs.P0.detach()
@@ -472,8 +507,9 @@ class _EMProblem:
         before = self.state()
         if self.lin is not None:
             self.lin = _linear_m_step(
-                self.lin, sp, self.Y, self.U, self.valid, self.known, self.learn_R, self.reduce
-            )
+                self.lin, sp, self.Y, self.U, self.valid, self.known, self.learn_R, self.reduce,
+                self.fixed,
+            )  # fmt: skip
             return (*self.e_step(), False)
         # The E-step of a non-linear model is the CKF's Gaussian approximation, so a better Q need
         # not mean a better likelihood: halve the step until it is (safeguarded GEM). If the joint

@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, NamedTuple
@@ -39,7 +39,7 @@ import torch
 from torch import Tensor, nn
 
 from torchfilt.cubature import CubatureRule
-from torchfilt.exceptions import DivergenceWarning, InputError, ShapeError
+from torchfilt.exceptions import DivergenceWarning, InputError, InputTypeError, ShapeError
 from torchfilt.filters import CKF, FilterResult, rts_smooth
 from torchfilt.io import atomic_write
 from torchfilt.io.progress import ProgressBar
@@ -57,8 +57,10 @@ from torchfilt.optim import (
     StoppingOptions,
     WindowOptions,
     fingerprint,
+    free_parameters,
     restore,
     snapshot,
+    stopping_options,
 )
 
 __all__ = [
@@ -120,12 +122,25 @@ class _Recs(NamedTuple):
     lengths: list[int]
 
 
+def _check_float(t: Tensor, name: str) -> None:
+    if not t.is_floating_point():
+        raise InputTypeError(
+            f"{name}: expected a floating-point tensor (float32 or float64), got {t.dtype}; "
+            "convert it with .double() (an integer tensor cannot hold missing values as NaN)"
+        )
+
+
 def _stack(
     seqs: Tensor | Sequence[Tensor], name: str, fill: float, dtype: torch.dtype
 ) -> tuple[Tensor, list[int]]:
     if isinstance(seqs, Tensor):
         if seqs.dim() < 2:
             raise ShapeError(f"{name}: expected shape (..., T, d), got {tuple(seqs.shape)}")
+        _check_float(seqs, name)
+        if seqs.shape[-2] == 0 or any(int(d) == 0 for d in seqs.shape[:-2]):
+            raise InputError(
+                f"{name}: a recording has no steps (shape {tuple(seqs.shape)}); give at least one"
+            )
         t = seqs.reshape(-1, *seqs.shape[-2:])
         return t.to(dtype), [int(t.shape[-2])] * int(t.shape[0])
     seqs = list(seqs)
@@ -138,6 +153,9 @@ def _stack(
             raise ShapeError(
                 f"{name}[{i}]: has {s.shape[-1]} columns, {name}[0] has {seqs[0].shape[-1]}"
             )
+        _check_float(s, f"{name}[{i}]")
+        if s.shape[0] == 0:
+            raise InputError(f"{name}[{i}]: the recording has no steps; give at least one")
     T = max(int(s.shape[0]) for s in seqs)
     out = torch.full((len(seqs), T, int(seqs[0].shape[-1])), fill, dtype=dtype)
     for i, s in enumerate(seqs):
@@ -182,10 +200,33 @@ def _recordings(
             raise InputError(f"{prefix}u: contains non-finite entries; inputs cannot be missing")
     if not isinstance(x0, Tensor) or not isinstance(P0, Tensor):
         raise InputError(f"{prefix}x0 and {prefix}P0 must be tensors")
+    _check_float(x0, prefix + "x0")
+    _check_float(P0, prefix + "P0")
     X0 = _prior_batch(x0.to(dtype), R, (n,), prefix + "x0")
     C0 = _prior_batch(P0.to(dtype), R, (n, n), prefix + "P0")
+    _check_prior(X0, C0, prefix)
     del T
     return _Recs(Y, U, X0, C0, lengths)
+
+
+def _check_prior(X0: Tensor, C0: Tensor, prefix: str) -> None:
+    """Refuse a non-finite prior and a ``P0`` that is not symmetric positive definite, before
+    any filter pass (a filter would only fail on it after the first pass's work)."""
+    if not bool(torch.isfinite(X0.detach()).all()):
+        raise InputError(f"{prefix}x0: contains non-finite entries")
+    P = C0.detach()
+    if not bool(torch.isfinite(P).all()):
+        raise InputError(f"{prefix}P0: contains non-finite entries")
+    scale = P.abs().amax(dim=(-2, -1), keepdim=True).clamp_min(torch.finfo(P.dtype).tiny)
+    if bool(((P - P.mT).abs() > 1e-8 * scale).any()):
+        raise InputError(f"{prefix}P0: must be symmetric")
+    _, info = torch.linalg.cholesky_ex(P)
+    if bool((info > 0).any()):
+        bad = int(torch.nonzero(info.reshape(-1) > 0)[0])
+        raise InputError(
+            f"{prefix}P0: must be positive definite (recording {bad} is not: its Cholesky "
+            "factorisation fails); give a covariance such as a positive multiple of the identity"
+        )
 
 
 class _Windows(NamedTuple):
@@ -326,11 +367,14 @@ def fit_likelihood(
     refresh_every: int = _D.window.refresh_every,
     validation: Sequences | None = None,
     validate_every: int = _D.stopping.validate_every,
-    patience: int = _D.stopping.patience,
+    patience: int | None = None,
     optimizer: Literal["adam", "lbfgs"] = _D.optimizer.optimizer,
     lr: float | None = _D.optimizer.lr,
     iterations: int = _D.optimizer.iterations,
     tol: float | None = _D.stopping.tol,
+    rtol: float = _D.stopping.rtol,
+    rtol_window: int = _D.stopping.rtol_window,
+    fixed: Collection[str] = (),
     callback: Callable[[LikelihoodState], bool | None] | None = None,
     project: Callable[[], None] | None = None,
     prepare: Callable[[], None] | None = None,
@@ -377,6 +421,13 @@ def fit_likelihood(
         iterations: iteration budget (an L-BFGS iteration runs up to 20 inner steps).
         tol: stop when the loss changes by less than ``tol * (1 + |loss|)`` in an iteration
             (default ``1e-10`` for L-BFGS, off for Adam).
+        rtol, rtol_window: stop (``"converged"``) when the loss per measurement ``L`` moved by
+            at most ``rtol * max(1, |L_k|)`` over the last ``rtol_window`` iterations:
+            ``|L_k - L_{k-w}|`` (default ``1e-6`` over 20; 0: off; see
+            :class:`~torchfilt.optim.StoppingOptions`).
+        fixed: names of parameters held fixed, as ``model.named_parameters()`` gives them
+            (e.g. ``"transition.A"``): they are left out of the fit and end bit-identical; an
+            unknown name is an :class:`~torchfilt.exceptions.InputError`.
         callback: called after every iteration with a :class:`LikelihoodState`; return ``True``
             to stop.
         project: called after every optimiser step to project the parameters back onto their
@@ -414,15 +465,13 @@ def fit_likelihood(
         raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
     opt_o = OptimizerOptions(optimizer, lr, iterations)
     win_o = WindowOptions(window, burn_in, start, refresh_every)
-    stop_o = StoppingOptions(patience, validate_every, tol)
+    stop_o = stopping_options(_D.stopping, patience, validate_every, tol, rtol, rtol_window)
     ckpt_o = CheckpointOptions(checkpoint, checkpoint_every, resume)
     if dtype not in (torch.float32, torch.float64):
         raise InputError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
     model.to(dtype)
     recs = _recordings(model, y, u, x0, P0, dtype)
-    plist = [p for p in (model.parameters() if params is None else params) if p.requires_grad]
-    if not plist:
-        raise InputError("params: nothing to fit (no parameter with requires_grad)")
+    plist = free_parameters(model, params, fixed)
     val = None
     if validation is not None:
         vx0 = recs.x0[0] if validation.x0 is None else validation.x0
@@ -584,7 +633,8 @@ def _run(
     bar = ProgressBar("fit likelihood", iterations, enabled=progress)
     loop = FitLoop(
         iterations=iterations, progress=bar, callback=callback, all_reduce=obj.all_reduce,
-        stopping=early, tol=tol, checkpoint=ckpt, every=ckpt_o.every,
+        stopping=early, tol=tol, rtol=stop_o.rtol, rtol_window=stop_o.rtol_window,
+        checkpoint=ckpt, every=ckpt_o.every,
     )  # fmt: skip
     wx0: Tensor | None = None
     wP0: Tensor | None = None

@@ -52,7 +52,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, NamedTuple
@@ -61,7 +61,7 @@ import torch
 from torch import Tensor, nn
 
 from torchfilt.cubature import CubatureRule, SphericalRadialRule
-from torchfilt.exceptions import GaugeError, InputError, ModelError
+from torchfilt.exceptions import GaugeError, InputError, InputTypeError, ModelError
 from torchfilt.io import atomic_write
 from torchfilt.io.progress import ProgressBar
 from torchfilt.models import (
@@ -69,7 +69,16 @@ from torchfilt.models import (
     StateSpaceModel,
 )
 from torchfilt.models.sensor import AffineSensor
-from torchfilt.optim import DEFAULTS, CheckpointFile, FitLoop, Outcome, fingerprint
+from torchfilt.optim import (
+    DEFAULTS,
+    CheckpointFile,
+    CheckpointOptions,
+    FitLoop,
+    Outcome,
+    fingerprint,
+    free_parameters,
+    stopping_options,
+)
 from torchfilt.training.em_steps import (
     SmoothedPairs,
     _EMProblem,
@@ -296,6 +305,9 @@ def fit_em(
     known_channels: Sequence[int] | None,
     iterations: int = _EM.optimizer.iterations,
     tol: float = _EM_TOL,
+    rtol: float = _EM.stopping.rtol,
+    rtol_window: int = _EM.stopping.rtol_window,
+    fixed: Collection[str] = (),
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
     backtracks: int = 4,
@@ -325,6 +337,13 @@ def fit_em(
         known_channels: the gauge: measurement channels whose map is known (at least one).
         iterations: EM iterations.
         tol: stop when the log-likelihood per measurement changes by less than ``tol``.
+        rtol, rtol_window: stop (``"converged"``) when the negative log-likelihood per
+            measurement ``L`` moved by at most ``rtol * max(1, |L_k|)`` over the last
+            ``rtol_window`` iterations (default ``1e-6`` over 20; 0: off).
+        fixed: blocks held fixed. For the closed-form M-step the matrices ``"A"``, ``"B"``,
+            ``"Q"``, ``"H"``, ``"R"`` (a fixed block keeps its value exactly; the free ones take
+            their closed form given it); for the gradient M-step names of
+            ``model.named_parameters()``. An unknown name is an ``InputError``.
         learn_measurement_noise: update ``R`` (linear) / include the measurement term in the
             M-step (others).
         m_step_iterations: L-BFGS iterations per M-step (non-linear models).
@@ -362,8 +381,10 @@ def fit_em(
     """
     if not isinstance(model, StateSpaceModel):
         raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
-    if iterations < 0:
-        raise InputError(f"iterations must be non-negative, got {iterations}")
+    if iterations < 1:
+        raise InputError(f"iterations must be at least 1, got {iterations}")
+    CheckpointOptions(checkpoint, checkpoint_every, resume)  # resume=True needs a checkpoint
+    stop_o = stopping_options(_EM.stopping, None, 1, tol, rtol, rtol_window)
     for name, v in (
         ("m_step_iterations", m_step_iterations),
         ("checkpoint_every", checkpoint_every),
@@ -390,12 +411,20 @@ def fit_em(
     lin = _linear_start(model, dtype, known)
     plist: list[nn.Parameter] = []
     if lin is None:
-        plist = [p for p in model.parameters() if p.requires_grad]
-        if not plist:
-            raise InputError("model: nothing to fit (no parameter with requires_grad)")
+        plist = free_parameters(model, None, fixed, what="model")
+    else:
+        if isinstance(fixed, str):
+            raise InputTypeError(f"fixed: expected a collection of names, got {fixed!r}")
+        blocks = {"A", "Q", "H", "R"} | ({"B"} if lin.B is not None else set())
+        unknown = [name for name in fixed if name not in blocks]
+        if unknown:
+            raise InputError(
+                f"fixed: {unknown[0]!r} is no block of the closed-form M-step of this linear "
+                f"model (its blocks: {sorted(blocks)})"
+            )
     em = _EMProblem(
         model, lin, plist, recs, valid, known, rule, reduce, learn_measurement_noise,
-        m_step_iterations, backtracks,
+        m_step_iterations, backtracks, frozenset(fixed),
     )  # fmt: skip
     ckpt = None
     if checkpoint is not None:
@@ -406,7 +435,8 @@ def fit_em(
     bar = ProgressBar("fit EM", iterations, enabled=progress)
     loop = FitLoop(
         iterations=iterations, progress=bar, callback=callback, all_reduce=reduce,
-        checkpoint=ckpt, every=checkpoint_every,
+        rtol=stop_o.rtol, rtol_window=stop_o.rtol_window, checkpoint=ckpt,
+        every=checkpoint_every,
     )  # fmt: skip
     initial: float | None = None
     ck = loop.resume() if resume else None
@@ -426,7 +456,7 @@ def fit_em(
         elapsed = time.perf_counter() - t_start
         done = "no improvement" if stalled else ("converged" if abs(change) <= tol else None)
         return Outcome(
-            {"iteration": it, "log_likelihood": ll, "elapsed": elapsed},
+            {"iteration": it, "log_likelihood": ll, "loss": -ll / counted, "elapsed": elapsed},
             EMState(it, iterations, ll, elapsed),
             f"loglik/meas {ll / counted:.6g}",
             done,
@@ -463,6 +493,9 @@ def fit_measurement_only(
     optimizer: Literal["adam", "lbfgs"] = _MO.optimizer.optimizer,
     lr: float | None = _MO.optimizer.lr,
     tol: float | None = _MO.stopping.tol,
+    rtol: float = _MO.stopping.rtol,
+    rtol_window: int = _MO.stopping.rtol_window,
+    fixed: Collection[str] = (),
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
     rule: CubatureRule | None = None,
@@ -495,6 +528,8 @@ def fit_measurement_only(
             :func:`~torchfilt.training.fit_likelihood` (``"likelihood"`` only).
         tol: convergence tolerance (EM: per measurement, default ``1e-9``; likelihood: that of
             ``fit_likelihood``).
+        rtol, rtol_window, fixed: convergence over a window and the parameters held fixed
+            (see :func:`fit_em` and :func:`~torchfilt.training.fit_likelihood`).
         learn_measurement_noise, m_step_iterations: of :func:`fit_em` (``"em"`` only).
         rule: cubature rule.
         callback: per-iteration callback (an :class:`EMState` or a
@@ -527,6 +562,9 @@ def fit_measurement_only(
             known_channels=known,
             iterations=iterations,
             tol=_EM_TOL if tol is None else tol,
+            rtol=rtol,
+            rtol_window=rtol_window,
+            fixed=fixed,
             learn_measurement_noise=learn_measurement_noise,
             m_step_iterations=m_step_iterations,
             rule=rule,
@@ -563,6 +601,9 @@ def fit_measurement_only(
         lr=lr,
         iterations=iterations,
         tol=tol,
+        rtol=rtol,
+        rtol_window=rtol_window,
+        fixed=fixed,
         callback=callback,
         progress=progress,
         dtype=dtype,

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import inspect
 import numbers
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from typing import Any, ClassVar, Literal
 
 import torch
@@ -318,6 +318,7 @@ class GPModel(ConditionalModel):
         callback: Callback | None = None,
         progress: bool = True,
         resume: dict[str, Any] | None = None,
+        fixed: Collection[str] = (),
     ) -> list[float]:
         """Train the hyperparameters (and variational parameters of a sparse model).
 
@@ -336,6 +337,9 @@ class GPModel(ConditionalModel):
                 :class:`~torchfilt.models.gp.optimize.FitState`; returning ``True`` stops.
             progress: print a progress line to stderr every tenth of the run.
             resume: a checkpoint from ``FitState.checkpoint()`` to continue from.
+            fixed: names of parameters held fixed (as ``named_parameters()`` gives them); they
+                end bit-identical (the natural-gradient ``q(u)`` of a sparse model is always
+                trained). An unknown name is an ``InputError``.
 
         Returns:
             The loss per iteration run (also appended to :attr:`history`).
@@ -364,7 +368,7 @@ class GPModel(ConditionalModel):
         losses = train_groups(
             self, iterations=iterations, lr=lr, natural_lr=natural_lr, subset=subset,
             batch_size=batch_size, seed=seed, callback=callback, progress=progress, start=start,
-            optimizer_state=opt_state,
+            optimizer_state=opt_state, fixed=fixed,
         )  # fmt: skip
         self.history.extend(losses)
         if frozen is not None:

@@ -14,7 +14,7 @@ import copy
 import math
 import sys
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import replace
 from typing import Any, NamedTuple, TextIO
 
@@ -24,7 +24,7 @@ from torch import Tensor, nn
 
 from torchfilt.exceptions import InputError, ModelError
 from torchfilt.models.gp.group import GPGroup
-from torchfilt.optim import DEFAULTS, FitLoop, Outcome, make_optimizer
+from torchfilt.optim import DEFAULTS, FitLoop, Outcome, free_parameters, make_optimizer
 
 __all__ = ["FitDivergedError", "FitState", "Progress", "run_adam", "train_groups"]
 
@@ -149,7 +149,9 @@ def run_adam(
         FitDivergedError: if the loss becomes non-finite.
     """
     plist = [p for p in params if p.requires_grad]
-    options = replace(DEFAULTS["gp"].optimizer, lr=lr, iterations=iterations)
+    # the options pick the optimiser; the budget is the loop's (a GP may train 0 iterations,
+    # which OptimizerOptions refuses for the likelihood fits)
+    options = replace(DEFAULTS["gp"].optimizer, lr=lr, iterations=max(1, iterations))
     opt = make_optimizer(plist, options) if plist else None
     ngd = tuple(gpytorch.optim.NGD(list(ps), num_data=n, lr=natural_lr) for ps, n in natural)
     if opt is None and not ngd:  # nothing to learn (e.g. every output constant)
@@ -180,7 +182,15 @@ def run_adam(
         state = FitState(it, iterations, value, time.perf_counter() - t0, model, opt, ngd)
         return Outcome({"iteration": it, "loss": value}, state, f"loss {value:.5g}")
 
-    loop = FitLoop(iterations=iterations, progress=progress, callback=callback, start=start)
+    stop = DEFAULTS["gp"].stopping  # the windowed convergence rule, on by default
+    loop = FitLoop(
+        iterations=iterations,
+        progress=progress,
+        callback=callback,
+        rtol=stop.rtol,
+        rtol_window=stop.rtol_window,
+        start=start,
+    )
     if loop.run(step) == "callback" and progress is not None:
         progress.update(loop.iteration, f"loss {losses[-1]:.5g}", final=True)
     return losses
@@ -199,6 +209,7 @@ def train_groups(
     progress: bool,
     start: int = 0,
     optimizer_state: dict[str, Any] | None = None,
+    fixed: Collection[str] = (),
 ) -> list[float]:
     """Train the hyperparameters of ``model``'s groups (a :class:`~torchfilt.models.gp.GPModel`;
     see :meth:`~torchfilt.models.gp.GPModel.optimize` for the arguments): an exact group on a
@@ -234,9 +245,12 @@ def train_groups(
         (g.variational_parameters(), g.num_points) for g in groups if g.structure == "sparse"
     ]
     skip = {id(p) for ps, _ in natural for p in ps}
+    adam = [p for p in model.parameters() if id(p) not in skip]
+    if fixed:  # held fixed: left out of Adam (names checked by free_parameters)
+        adam = free_parameters(model, adam, fixed)
     try:
         return run_adam(
-            [p for p in model.parameters() if id(p) not in skip],
+            adam,
             loss_fn,
             natural=natural,
             natural_lr=natural_lr,
