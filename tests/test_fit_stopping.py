@@ -16,11 +16,11 @@ from torch import nn
 
 import torchfilt
 from torchfilt.exceptions import ConvergenceWarning, InputError
+from torchfilt.io.progress import ProgressBar
 from torchfilt.models import LinearGaussianModel
 from torchfilt.models.params import ScalarCovariance
 from torchfilt.optim import FitLoop, Outcome, StoppingOptions
 from torchfilt.training import Sequences, calibrate, fit_em, fit_likelihood
-from torchfilt.training.progress import ProgressBar
 
 DT = torch.float64
 X0, P0 = torch.zeros(1, dtype=DT), torch.eye(1, dtype=DT)
