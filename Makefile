@@ -12,7 +12,7 @@ TORCH_SPEC ?= torch==2.13.0
 PIP_TORCH_ARGS ?=
 OUT ?= out
 
-.PHONY: setup demo test test-slow test-all lint bench gpu-check reproduce plaza clean
+.PHONY: setup demo test test-slow test-all lint docs bench gpu-check reproduce plaza clean
 
 setup: $(STAMP)
 
@@ -38,6 +38,10 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
+
+# the documentation site (mkdocs.yml), strict: a warning, broken link or unresolved reference fails
+docs: $(STAMP)
+	$(BIN)/mkdocs build --strict --site-dir site
 
 bench: $(STAMP)
 	$(BIN)/python scripts/bench_filter.py --cckf --out $(OUT)/bench_filter
