@@ -26,7 +26,7 @@ step is reported and the others still run; the exit code is 1 if any step failed
 
 ``--dry-run`` runs the same plumbing on the CPU at tiny sizes (seconds per step): the CUDA tests
 are collected and skipped, the benchmarks run their CPU rows or ``--device cpu``. The default
-test suite runs it (tests/test_gpu_check.py), so the script cannot rot between lent GPUs.
+test suite runs it (tests/scripts/test_gpu_check.py), so the script cannot rot between lent GPUs.
 
 Running it on the lent GPU machine (one call)
 ---------------------------------------------
@@ -183,7 +183,7 @@ def cuda_test_files() -> list[str]:
     machine, whose image may lack their optional dependencies)."""
     return sorted(
         str(p.relative_to(ROOT))
-        for p in (ROOT / "tests").glob("test_*.py")
+        for p in (ROOT / "tests").rglob("test_*.py")
         if "mark.cuda" in p.read_text()
     )
 

@@ -174,7 +174,7 @@ class Unicycle:
 
     ``x_{k+1} = x_k + d cos(th_k + pi + dth/2)``, ``y`` likewise with ``sin``,
     ``th_{k+1} = th_k + dth`` with ``dth = gain * odo_heading + bias``. In Plaza2 the robot travels
-    along heading + pi (checked in ``tests/test_plaza.py``); the odometry distance is unsigned.
+    along heading + pi (checked in ``tests/io/test_plaza.py``); the odometry distance is unsigned.
 
     Args:
         gain: odometry heading gain (1 for the textbook model).

@@ -1,5 +1,5 @@
 """A data-parallel likelihood fit in spawned processes (``torch.distributed`` with ``gloo``), for
-``tests/test_likelihood_ddp.py``."""
+``tests/training/test_likelihood_ddp.py``."""
 
 from __future__ import annotations
 

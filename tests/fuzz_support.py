@@ -1,4 +1,4 @@
-"""Shared machinery of the hypothesis suites (tests/test_fuzz_*.py).
+"""Shared machinery of the hypothesis suites (tests/*/test_fuzz_*.py).
 
 Every case calls a public entry point through :func:`attempt`. The contract it checks:
 
@@ -11,7 +11,7 @@ the test; so does a warning that is not a :class:`~torchfilt.exceptions.Torchfil
 
 Each property runs twice: a short derandomised run in the default suite (a few seconds in all) and a
 long one under ``@pytest.mark.slow`` (over 5,000 cases over all files). :data:`STATS` counts the
-outcomes per entry point; ``pytest -m slow -s tests/test_fuzz_*.py`` prints them.
+outcomes per entry point; ``pytest -m slow -s tests/*/test_fuzz_*.py`` prints them.
 """
 
 from __future__ import annotations

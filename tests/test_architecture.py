@@ -312,3 +312,27 @@ def test_upward_references_only_in_deprecated_shims():
             if target not in DEPRECATED_SHIMS.get(mod, set()):
                 bad.append(f"{mod} (layer {own}) names {target} (layer {layer_of(target)})")
     assert not bad, "\n".join(bad)
+
+
+#: test files that cover the package as a whole and sit at the top of tests/
+CROSS_CUTTING_TESTS = {"test_architecture.py", "test_public_api.py", "test_cuda.py"}
+
+
+def test_tests_mirror_the_package():
+    """Each test file sits in the folder of the sub-package it tests (``tests/filters/``,
+    ``tests/models/gp/``, ...; ``tests/scripts/`` for the scripts, the README and the docs), so
+    a module's tests are found where the module is."""
+    tests = PKG.parent / "tests"
+    packages = {p.relative_to(PKG).as_posix() for p in PKG.rglob("*") if p.is_dir()}
+    packages -= {"__pycache__"}
+    bad = []
+    for path in sorted(tests.rglob("test_*.py")):
+        folder = path.parent.relative_to(tests).as_posix()
+        if folder == ".":
+            if path.name not in CROSS_CUTTING_TESTS:
+                bad.append(
+                    f"tests/{path.name}: move it into the folder of the sub-package it tests"
+                )
+        elif folder != "scripts" and folder not in packages:
+            bad.append(f"tests/{folder}/{path.name}: torchfilt/{folder} is not a sub-package")
+    assert not bad, "\n".join(bad)

@@ -130,7 +130,7 @@ def _close(got, want, rtol=GPU_RTOL, atol=GPU_ATOL):
 
 @pytest.fixture()
 def _fresh_compiler():
-    """Each compiled test traces from scratch (as in tests/test_compile_loop.py)."""
+    """Each compiled test traces from scratch (as in tests/filters/test_compile_loop.py)."""
     torch.compiler.reset()
     yield
     torch.compiler.reset()
@@ -238,7 +238,7 @@ def test_gp_predictor_on_cuda_matches_cpu(opts):
         model.to(DEV)  # in place (an SVGP's cache cannot be deep-copied)
         gpu = model.predict(xq.to(DEV))
     assert gpu.mean.device.type == "cuda"
-    # as tests/test_gp_predictor.py's CUDA test
+    # as tests/models/gp/test_gp_predictor.py's CUDA test
     _close(gpu.mean, cpu.mean, rtol=1e-9, atol=1e-9)
     _close(gpu.var, cpu.var, rtol=1e-7, atol=1e-9)
 

@@ -6,7 +6,7 @@ as ``gtsam/Data/Plaza{1,2}_.mat`` with arrays ``GT`` (time, x, y, heading), ``DR
 and heading increments of the odometry), ``TD`` (time, sensor, beacon id, range) and ``TL``
 (beacon id, x, y).
 
-Facts of the data a model has to respect (checked in ``tests/test_plaza.py``):
+Facts of the data a model has to respect (checked in ``tests/io/test_plaza.py``):
 
 - the robot travels along ``heading + pi``: the ground-truth heading points backwards;
 - the odometry distance is unsigned: where the robot backs up (twice in the last 8 s of Plaza2) it

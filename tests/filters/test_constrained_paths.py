@@ -9,9 +9,9 @@ from torchfilt import CKF, ConstrainedCKF, LinearGaussianModel
 from torchfilt.exceptions import ModelError
 from torchfilt.systems import reaction
 
-#: compiled kernels reorder floating-point operations (as in tests/test_compile.py)
+#: compiled kernels reorder floating-point operations (as in tests/filters/test_compile.py)
 COMPILE_RTOL = 1e-9
-#: the CCKF with no bound in reach equals the CKF up to op order (tests/test_cckf.py)
+#: the CCKF with no bound in reach equals the CKF up to op order (tests/filters/test_cckf.py)
 SAME_FILTER = 1e-9
 
 

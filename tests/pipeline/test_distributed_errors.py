@@ -1,4 +1,4 @@
-"""The errors of ``--ray`` that need no Ray session open in this process (tests/test_distributed.py
+"""The errors of ``--ray`` that need no Ray session open in this process (tests/pipeline/test_distributed.py
 keeps one open for its whole module, which ``--ray ADDRESS`` would then reuse)."""
 
 from __future__ import annotations

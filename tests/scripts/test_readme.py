@@ -12,7 +12,7 @@ import pytest
 
 matplotlib.use("Agg")
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+README = Path(__file__).resolve().parents[2] / "README.md"
 BLOCKS = [
     (bool(slow), code)
     for slow, code in re.findall(
@@ -30,5 +30,5 @@ def test_readme_has_examples():
     [pytest.param(i, marks=pytest.mark.slow) if slow else i for i, (slow, _) in enumerate(BLOCKS)],
 )
 def test_readme_example_runs(i, tmp_path, monkeypatch):
-    monkeypatch.chdir(Path(__file__).resolve().parents[1])
+    monkeypatch.chdir(Path(__file__).resolve().parents[2])
     exec(compile(BLOCKS[i][1], f"README.md block {i}", "exec"), {"__name__": "__readme__"})

@@ -18,7 +18,7 @@ from torchfilt.io.synth import simulate_dataset
 from torchfilt.pipeline import BUNDLE_SCHEMA, load_bundle, load_model, load_recipe, train_recipe
 from torchfilt.training import BundleError, RecipeError, RunError
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 #: resumed and uninterrupted runs execute the same float64 arithmetic: they agree to round-off
 RESUME_RTOL = 1e-10
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from script_support import load_script
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 STEPS = ["pytest", "filter", "parallel", "gp", "ray", "calibrate"]
 
 
@@ -45,4 +45,4 @@ def test_gpu_check_dry_run(tmp_path):
 def test_gpu_check_lists_the_cuda_test_files():
     files = load_script("gpu_check").cuda_test_files()
     assert "tests/test_cuda.py" in files
-    assert "tests/test_gpu_check.py" not in files
+    assert "tests/scripts/test_gpu_check.py" not in files

@@ -21,7 +21,7 @@ def _fresh_compiler():
     torch.compiler.reset()
 
 
-#: compiled kernels reorder floating-point operations (as in tests/test_compile.py)
+#: compiled kernels reorder floating-point operations (as in tests/filters/test_compile.py)
 COMPILE_RTOL = 1e-9
 
 

@@ -369,7 +369,7 @@ def test_bad_options(small):
         ConstrainedCKF(model, 0.0, 1.0, covariance="joseph")
     with pytest.raises(ValueError, match="theta must be"):
         ConstrainedCKF(model, 0.0, 1.0, theta="sd")
-    # smooth() exists now (issue 13): its means respect the bounds (tests/test_constrained_paths.py)
+    # smooth() exists now (issue 13): its means respect the bounds (tests/filters/test_constrained_paths.py)
     sm = ConstrainedCKF(model, 0.0, 1.0).smooth(y, x0=torch.zeros(3, dtype=D) + 0.5, P0=P0)
     assert ((sm.mean >= 0.0) & (sm.mean <= 1.0)).all()
 

@@ -15,7 +15,7 @@ from torchfilt.exceptions import ConvergenceWarning, InputError
 from torchfilt.filters import iterated_smoother
 from torchfilt.systems import pendulum
 
-DATA = Path(__file__).resolve().parents[1] / "data" / "reference" / "pendulum" / "pendulum.json"
+DATA = Path(__file__).resolve().parents[2] / "data" / "reference" / "pendulum" / "pendulum.json"
 #: statistical linearisation of a linear map is exact up to rounding
 LINEAR_TOL = 1e-9
 #: both smoothers iterate to tol = 1e-11; their fixed points then agree to this

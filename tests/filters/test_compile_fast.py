@@ -1,13 +1,13 @@
 """The compiled-path tests of the default suite: a tiny linear model on the cubature path,
 compile=True (the compiled step) and compile="loop" (one while-loop) equal eager;
-tests/test_compile.py and test_compile_loop.py have the slow ones."""
+tests/filters/test_compile.py and test_compile_loop.py have the slow ones."""
 
 import torch
 from test_ckf_linear import make_problem, t64
 
 from torchfilt import CKF, LinearGaussianModel
 
-#: compiled kernels reorder floating-point operations (as in tests/test_compile.py)
+#: compiled kernels reorder floating-point operations (as in tests/filters/test_compile.py)
 COMPILE_RTOL = 1e-9
 
 

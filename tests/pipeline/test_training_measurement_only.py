@@ -408,7 +408,7 @@ def test_sigkilled_run_resumes_to_the_uninterrupted_bundle(data, tmp_path):
     continues from the last checkpoint to the bundle of an uninterrupted run."""
     text = RECIPE.replace(f"iterations = {ITERATIONS}", "iterations = 40", 1)
     recipe = write(tmp_path / "r.toml", data, text)
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     env = {**os.environ, "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1"}
     run = tmp_path / "killed"
     cmd = [sys.executable, "-m", "torchfilt", "train", str(recipe), "--out", str(run), "--quiet"]

@@ -2,7 +2,7 @@
 the bring-your-own-data walkthrough runs as written, from CSV files to a plot, and every code
 block of the other pages under docs/ runs.
 
-Code blocks of the pages (the conventions of tests/test_readme.py, extended):
+Code blocks of the pages (the conventions of tests/scripts/test_readme.py, extended):
 
 - ```python runs as written, from the repository root, each block in a fresh namespace; one
   preceded by the HTML comment ``<!-- test: slow -->`` (it trains for minutes) runs with the
@@ -35,7 +35,7 @@ from torchfilt.training import RecipeError
 
 matplotlib.use("Agg")
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 BYOD = ROOT / "docs" / "byod.md"
 
 

@@ -10,7 +10,7 @@ import torchfilt
 from torchfilt.cubature import UnscentedRule
 from torchfilt.systems import pendulum
 
-DATA = Path(__file__).resolve().parents[1] / "data" / "reference" / "pendulum" / "pendulum.json"
+DATA = Path(__file__).resolve().parents[2] / "data" / "reference" / "pendulum" / "pendulum.json"
 #: the book's printed values are reproduced to this relative accuracy
 PUBLISHED_RTOL = 1e-9
 
