@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 from gp_support import smooth_data
-from test_ckf_linear import make_problem, t64
+from linear_support import make_problem, t64
 
 import torchfilt
 from torchfilt import CKF, CalibratedModel, ConstrainedCKF, LinearGaussianModel, StateSpaceModel

@@ -3,7 +3,7 @@ compile=True (the compiled step) and compile="loop" (one while-loop) equal eager
 tests/filters/test_compile.py and test_compile_loop.py have the slow ones."""
 
 import torch
-from test_ckf_linear import make_problem, t64
+from linear_support import make_problem, t64
 
 from torchfilt import CKF, LinearGaussianModel
 

@@ -3,7 +3,7 @@ a ragged last chunk where the while-loop cannot run, time-varying noise, the squ
 
 import pytest
 import torch
-from test_ckf_linear import make_problem, t64
+from linear_support import make_problem, t64
 
 from torchfilt import CKF, LinearGaussianModel
 from torchfilt.models import TimeVarying

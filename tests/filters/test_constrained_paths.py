@@ -3,7 +3,7 @@ API; graphed() refuses clearly instead of capturing the plain CKF's step."""
 
 import pytest
 import torch
-from test_ckf_linear import make_problem, t64
+from linear_support import make_problem, t64
 
 from torchfilt import CKF, ConstrainedCKF, LinearGaussianModel
 from torchfilt.exceptions import ModelError

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_ckf_linear import make_problem, t64
+from linear_support import make_problem, t64
 from test_kalman import assert_same
 
 import torchfilt

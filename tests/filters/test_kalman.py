@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 from conftest import REF_ATOL, REF_RTOL, random_spd
+from linear_support import make_problem, t64
 from reference import kalman_filter, rts_smoother
-from test_ckf_linear import make_problem, t64
 
 import torchfilt
 from torchfilt import CKF, LinearGaussianModel, StateSpaceModel

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 import torch
-from test_ckf_linear import make_problem, t64
+from linear_support import make_problem, t64
 from test_kalman import assert_results_equal, assert_same
 
 from torchfilt import CKF, LinearGaussianModel

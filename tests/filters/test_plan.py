@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from test_ckf_linear import make_problem, t64
+from linear_support import make_problem, t64
 
 from torchfilt import CKF, ConstrainedCKF, LinearGaussianModel
 from torchfilt.exceptions import InputError, InputTypeError, ModelError

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 from conftest import REF_ATOL, REF_RTOL, TIGHT
+from linear_support import make_problem, t64
 from reference import kalman_filter
-from test_ckf_linear import make_problem, t64
 
 import torchfilt
 from torchfilt import CKF, LinearGaussianModel, settings
