@@ -406,11 +406,39 @@ class MultiPriorityTarget:
             InfeasibleError: the hard constraints admit no steady state.
             ShapeError: wrong input shapes.
         """
-        nu = self.nu
-        y0, up = _finite_vector(y_ss, self.ny, "y_ss"), _finite_vector(u_prev, nu, "u_prev")
+        y0, up = _finite_vector(y_ss, self.ny, "y_ss"), _finite_vector(u_prev, self.nu, "u_prev")
         lo, hi = self._box(up)
         self._check_hard(y0, up, lo, hi)
         F, g = self._affine(y0, up)
+        eps_fixed, du_lp, stage_costs = self._feasibility_stages(y0, up, lo, hi, F, g)
+        du = self._economic_stage(y0, lo, hi, F, g, eps_fixed)
+        if du is None:  # never crash: keep the feasibility stages' answer and say so
+            warnings.warn(
+                "the SSTC economic QP did not converge (Clarabel); the target of the last "
+                f"feasibility stage is used (y_ol_ss = {np.round(y0, 6).tolist()}, u(k-1) = "
+                f"{np.round(up, 6).tolist()})",
+                ConvergenceWarning,
+                stacklevel=2,
+            )
+            du = du_lp if du_lp is not None else self._hard_point(y0, lo, hi)
+        du = np.clip(du, lo, hi)  # remove interior-point rounding outside the hard box
+        return self._result(y0, up, du, F, g, stage_costs)
+
+    def _feasibility_stages(
+        self,
+        y0: np.ndarray,
+        up: np.ndarray,
+        lo: np.ndarray,
+        hi: np.ndarray,
+        F: np.ndarray,
+        g: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray | None, list[float]]:
+        """The LP of every priority but the lowest, in order.
+
+        Returns ``(eps_fixed, du_lp, stage_costs)``: the relaxations fixed by the stages ``(R,)``,
+        the last stage's move (the fallback target; ``None`` without LP stages) and their costs.
+        """
+        nu = self.nu
         R = len(self._kinds)
         eps_fixed = np.zeros(R)  # relaxations fixed by the LP stages
         du_lp: np.ndarray | None = None  # the last LP stage's move (the fallback target)
@@ -447,7 +475,15 @@ class MultiPriorityTarget:
             eps_fixed[this] = np.maximum(res.x[nu:], 0.0)
             stage_costs.append(float(res.fun))
             du_lp = res.x[:nu]
-        # economic QP: z = [du (non-mm), p, n (mm), eps (lowest-priority rows)]
+        return eps_fixed, du_lp, stage_costs
+
+    def _move_split(self) -> tuple[list[int], np.ndarray, np.ndarray]:
+        """The economic QP's move variables ``[du (non-mm), p, n (mm)]``.
+
+        Returns ``(free, T, hcoef)``: the non-minimum-move MVs, ``T (nu, nd)`` with
+        ``du = T z[:nd]`` and the cost of each move variable ``(nd,)``.
+        """
+        nu = self.nu
         free = [i for i in range(nu) if i not in self.mm]
         nd = len(free) + 2 * len(self.mm)
         T = np.zeros((nu, nd))  # du = T z[:nd]
@@ -456,14 +492,30 @@ class MultiPriorityTarget:
         for k, i in enumerate(self.mm):
             T[i, len(free) + 2 * k] = 1.0
             T[i, len(free) + 2 * k + 1] = -1.0
-        lowest = self.levels[-1]
-        low = np.nonzero(self._prio == lowest)[0]
-        nz = nd + low.size
         hcoef = np.zeros(nd)
         for k, i in enumerate(free):
             hcoef[k] = self.h[i]
         for k, i in enumerate(self.mm):
             hcoef[len(free) + 2 * k : len(free) + 2 * k + 2] = self.h[i]
+        return free, T, hcoef
+
+    def _economic_stage(
+        self,
+        y0: np.ndarray,
+        lo: np.ndarray,
+        hi: np.ndarray,
+        F: np.ndarray,
+        g: np.ndarray,
+        eps_fixed: np.ndarray,
+    ) -> np.ndarray | None:
+        """The economic QP's move ``du (nu,)``; ``None`` when it did not converge."""
+        nu = self.nu
+        # economic QP: z = [du (non-mm), p, n (mm), eps (lowest-priority rows)]
+        free, T, hcoef = self._move_split()
+        nd = T.shape[1]
+        lowest = self.levels[-1]
+        low = np.nonzero(self._prio == lowest)[0]
+        nz = nd + low.size
         FT = F @ T
         A, b = self._hard_ub(y0, nz, T)
         Ar, br = self._rows_ub(FT, g, low, nz, nd, width=nd)
@@ -500,18 +552,18 @@ class MultiPriorityTarget:
             accept_almost=True,
             n_eq=len(Ae),
         )
-        if solved:
-            du = T @ x[:nd]
-        else:  # never crash: keep the feasibility stages' answer and say so
-            warnings.warn(
-                "the SSTC economic QP did not converge (Clarabel); the target of the last "
-                f"feasibility stage is used (y_ol_ss = {np.round(y0, 6).tolist()}, u(k-1) = "
-                f"{np.round(up, 6).tolist()})",
-                ConvergenceWarning,
-                stacklevel=2,
-            )
-            du = du_lp if du_lp is not None else self._hard_point(y0, lo, hi)
-        du = np.clip(du, lo, hi)  # remove interior-point rounding outside the hard box
+        return T @ x[:nd] if solved else None
+
+    def _result(
+        self,
+        y0: np.ndarray,
+        up: np.ndarray,
+        du: np.ndarray,
+        F: np.ndarray,
+        g: np.ndarray,
+        stage_costs: list[float],
+    ) -> SSTCResult:
+        """The targets of the move ``du``, with the relaxations it implies and the active set."""
         # the relaxations implied by du (exact; the QP's slacks can exceed them only by rounding)
         f = F @ du + g
         viol = np.where(
@@ -523,8 +575,9 @@ class MultiPriorityTarget:
                 np.abs(f - self._values),
             ),
         )
-        low_rows = self._prio == lowest
-        stage_costs.append(float(np.sum(viol[low_rows] / self._e[low_rows])))
+        low_rows = self._prio == self.levels[-1]
+        stage_costs = [*stage_costs, float(np.sum(viol[low_rows] / self._e[low_rows]))]
+        free = [i for i in range(self.nu) if i not in self.mm]
         J = float(self.h[free] @ du[free] + self.h[self.mm] @ np.abs(du[self.mm]))
         y_new = y0 + self.G @ du
         u_new = up + du

@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable
+from dataclasses import dataclass
 from enum import IntEnum
 from typing import NamedTuple
 
@@ -311,6 +312,21 @@ def bounded_least_squares(
             than a floating tensor, or (without ``jacobian``) an output autograd cannot
             differentiate with respect to ``x`` (``.detach()``, numpy, Python floats).
     """
+    box, tol = _check_arguments(x0, bounds, tol, max_iter, max_backtracks)
+    lo_in, hi_in = box.lower.to(x0), box.upper.to(x0)
+    with torch.no_grad():
+        state, r, J, lo, hi = _start(residual, jacobian, x0, box, lo_in, hi_in)
+        _iterate(residual, jacobian, state, r, J, lo, hi, tol, max_iter, max_backtracks)
+    x = _attach_gradient(residual, jacobian, state.x, lo_in, hi_in)
+    if warn:
+        _warn_unconverged(state.status, tol)
+    return LeastSquaresResult(x, state.F.detach(), state.opt, state.iters, state.status)
+
+
+def _check_arguments(
+    x0: Tensor, bounds: Box | None, tol: float | None, max_iter: int, max_backtracks: int
+) -> tuple[Box, float]:
+    """The checked arguments of :func:`bounded_least_squares`: the box and the tolerance."""
     if not isinstance(x0, Tensor) or x0.dim() < 1:
         raise InputError("x0 must be a floating-point tensor of shape (..., n)")
     check_real_tensor(x0, "x0")
@@ -329,130 +345,248 @@ def bounded_least_squares(
         ) from None
     if max_iter < 0 or max_backtracks < 1:
         raise InputError("max_iter must be >= 0 and max_backtracks >= 1")
-    dtype = x0.dtype
-    eps = torch.finfo(dtype).eps
+    eps = torch.finfo(x0.dtype).eps
     tol = math.sqrt(eps) if tol is None else float(tol)
     if not tol > 0 or not math.isfinite(tol):
         raise InputError(f"tol must be positive and finite, got {tol}")
-    lo_in, hi_in = box.lower.to(x0), box.upper.to(x0)
+    return box, tol
 
-    with torch.no_grad():
-        x = torch.clamp(x0.detach(), lo_in, hi_in)
-        r = _first_residual(residual, x, differentiable=jacobian is None)
-        try:
-            batch = torch.broadcast_shapes(x.shape[:-1], r.shape[:-1], box.batch_shape)
-        except RuntimeError:
-            raise ShapeError(
-                f"residual batch shape {tuple(r.shape[:-1])}, x0 {tuple(x.shape[:-1])} and "
-                f"bounds {tuple(box.batch_shape)} do not broadcast"
-            ) from None
-        expanded = x.shape[:-1] != batch
-        x = x.expand(*batch, n).clone()
-        r, J = _evaluate(residual, jacobian, x, None if expanded else r)
-        lo, hi = lo_in.detach().expand(*batch, n), hi_in.detach().expand(*batch, n)
-        status = torch.full(batch, int(SolverStatus.MAX_ITER), dtype=torch.long, device=x.device)
-        iters = torch.zeros(batch, dtype=torch.long, device=x.device)
-        mu = torch.zeros(batch, dtype=dtype, device=x.device)
-        done = torch.zeros(batch, dtype=torch.bool, device=x.device)
-        opt = torch.zeros(batch, dtype=dtype, device=x.device)
-        F = 0.5 * _dot(r, r)
-        for it in range(max_iter + 1):
-            A, g = _normal_equations(J, r)
-            finite = (
-                torch.isfinite(F) & torch.isfinite(g).all(-1) & torch.isfinite(A).all(-1).all(-1)
-            )
-            bad = finite.logical_not() & done.logical_not()
-            status = torch.where(bad, int(SolverStatus.NONFINITE), status)
-            done = done | bad
-            g = torch.where(finite.unsqueeze(-1), g, torch.zeros_like(g))
-            A = torch.where(finite[..., None, None], A, torch.eye(n, dtype=dtype, device=x.device))
-            diag = A.diagonal(dim1=-2, dim2=-1)
-            # a zero column (x_j does not enter the residual) borrows the largest curvature
-            scale = diag.amax(-1, keepdim=True).clamp_min(torch.finfo(dtype).tiny)
-            dA = torch.where(diag > 0, diag, scale)
-            s = g / dA
-            bind = ((g > 0) & (x - lo <= s)) | ((g < 0) & (hi - x <= -s))
-            free = bind.logical_not()
-            d0 = _reduced_solve(A, dA, free, -g, None)
-            xb = torch.clamp(x - s, lo, hi)
-            delta = _dot(g, torch.where(bind, x - xb, -d0))
-            delta = delta.clamp_min(0.0)
-            opt = torch.where(done, opt, delta.sqrt())
-            by_tol = delta.sqrt() <= tol
-            by_round = 0.5 * delta <= ROUNDOFF * eps * F
-            conv = done.logical_not() & (by_tol | by_round)
-            status = torch.where(
-                conv & by_tol,
-                int(SolverStatus.CONVERGED),
-                torch.where(conv, int(SolverStatus.ROUNDOFF), status),
-            )
-            # problems still iterating take a step; converged ones take one last undamped step
-            # (polish: for an affine residual it lands exactly on the solution) if it helps
-            stepping = conv if it == max_iter else done.logical_not()
-            if not bool(stepping.any()):
-                break
-            if bool((mu > 0).any()):
-                d = _reduced_solve(A, dA, free, -g, mu)
-                d = torch.where(conv.unsqueeze(-1), d0, d)
-            else:
-                d = d0
-            d = torch.where(bind, -s, d)
-            # ---- projected backtracking line search
-            alpha = torch.ones(batch, dtype=dtype, device=x.device)
-            need = stepping
-            x_new, F_new = x.clone(), F.clone()
-            full = torch.zeros_like(need)
-            for bt in range(max_backtracks):
-                xt = torch.clamp(x + alpha.unsqueeze(-1) * d, lo, hi)
-                rt = residual(xt)
-                Ft = 0.5 * _dot(rt, rt).expand(batch)
-                armijo = Ft <= F + ARMIJO * _dot(g, xt - x)
-                polish = Ft <= F + ROUNDOFF * eps * F.abs()
-                ok = need & torch.isfinite(Ft) & torch.where(conv, polish, armijo)
-                x_new = torch.where(ok.unsqueeze(-1), xt, x_new)
-                F_new = torch.where(ok, Ft, F_new)
-                if bt == 0:
-                    full = ok
-                need = need & ok.logical_not() & conv.logical_not()
-                if not bool(need.any()):
-                    break
-                alpha = alpha * BACKTRACK
-            moving = stepping & conv.logical_not()
-            # gain ratio of the accepted step: actual over model-predicted decrease
-            step = x_new - x
-            pred = -(_dot(g, step) + 0.5 * _dot(step, _dot(A, step.unsqueeze(-2))))
-            gain = (F - F_new) / pred.clamp_min(torch.finfo(dtype).tiny)
-            mu = torch.where(
-                full & (gain > GAIN_HIGH),
-                mu / MU_SHRINK,
-                torch.where(full & (gain >= GAIN_LOW), mu, torch.clamp(mu * MU_GROW, min=MU_INIT)),
-            )
-            mu = torch.where(mu < MU_MIN, torch.zeros_like(mu), mu)
-            stalled = need & (mu > MU_MAX)
-            status = torch.where(stalled, int(SolverStatus.STALLED), status)
-            # an accepted step below the resolution of x: no further progress is representable
-            frozen = moving & need.logical_not()
-            frozen = frozen & ((x_new - x).abs() <= ROUNDOFF * eps * x.abs()).all(-1)
-            status = torch.where(frozen, int(SolverStatus.ROUNDOFF), status)
-            done = done | stalled | conv | frozen
-            iters = iters + moving.long()
-            x, F = x_new, F_new
-            if bool(done.all()) or it == max_iter:
-                break
-            r, J = _evaluate(residual, jacobian, x)
-            F = 0.5 * _dot(r, r)
 
-    x = _attach_gradient(residual, jacobian, x, lo_in, hi_in)
-    if warn and not bool((status > 0).all()):
-        counts = {s.name.lower(): int((status == s).sum()) for s in SolverStatus if s <= 0}
-        detail = ", ".join(f"{k}: {v}" for k, v in counts.items() if v)
-        warnings.warn(
-            f"bounded_least_squares: {int((status <= 0).sum())} of {status.numel()} problems did "
-            f"not converge to tol={tol:.1e} ({detail})",
-            ConvergenceWarning,
-            stacklevel=2,
+@dataclass
+class _State:
+    """The iterates of :func:`bounded_least_squares`: ``x (..., n)``, the rest ``(...)``."""
+
+    x: Tensor
+    F: Tensor
+    status: Tensor
+    iters: Tensor
+    mu: Tensor
+    done: Tensor
+    opt: Tensor
+
+
+class _Model(NamedTuple):
+    """The Gauss-Newton model at an iterate (module docstring): ``A = J^T J``, ``g = J^T r``, the
+    scaling ``dA`` and step ``s = g / dA``, the binding and free sets, the undamped step ``d0``
+    and which problems converged there (``conv``)."""
+
+    A: Tensor
+    g: Tensor
+    dA: Tensor
+    s: Tensor
+    bind: Tensor
+    free: Tensor
+    d0: Tensor
+    conv: Tensor
+
+
+def _start(
+    residual: Residual,
+    jacobian: Residual | None,
+    x0: Tensor,
+    box: Box,
+    lo_in: Tensor,
+    hi_in: Tensor,
+) -> tuple[_State, Tensor, Tensor, Tensor, Tensor]:
+    """The start point projected onto the box and expanded to the common batch shape, with
+    ``(state, r, J, lo, hi)``: the residual and Jacobian there and the bounds, expanded."""
+    n, dtype = x0.shape[-1], x0.dtype
+    x = torch.clamp(x0.detach(), lo_in, hi_in)
+    r = _first_residual(residual, x, differentiable=jacobian is None)
+    try:
+        batch = torch.broadcast_shapes(x.shape[:-1], r.shape[:-1], box.batch_shape)
+    except RuntimeError:
+        raise ShapeError(
+            f"residual batch shape {tuple(r.shape[:-1])}, x0 {tuple(x.shape[:-1])} and "
+            f"bounds {tuple(box.batch_shape)} do not broadcast"
+        ) from None
+    expanded = x.shape[:-1] != batch
+    x = x.expand(*batch, n).clone()
+    r, J = _evaluate(residual, jacobian, x, None if expanded else r)
+    lo, hi = lo_in.detach().expand(*batch, n), hi_in.detach().expand(*batch, n)
+    state = _State(
+        x=x,
+        F=0.5 * _dot(r, r),
+        status=torch.full(batch, int(SolverStatus.MAX_ITER), dtype=torch.long, device=x.device),
+        iters=torch.zeros(batch, dtype=torch.long, device=x.device),
+        mu=torch.zeros(batch, dtype=dtype, device=x.device),
+        done=torch.zeros(batch, dtype=torch.bool, device=x.device),
+        opt=torch.zeros(batch, dtype=dtype, device=x.device),
+    )
+    return state, r, J, lo, hi
+
+
+def _iterate(
+    residual: Residual,
+    jacobian: Residual | None,
+    st: _State,
+    r: Tensor,
+    J: Tensor,
+    lo: Tensor,
+    hi: Tensor,
+    tol: float,
+    max_iter: int,
+    max_backtracks: int,
+) -> None:
+    """Run the iterations on ``st`` in place (``r``, ``J``: residual and Jacobian at ``st.x``)."""
+    for it in range(max_iter + 1):
+        m = _gauss_newton_model(st, r, J, lo, hi, tol)
+        # problems still iterating take a step; converged ones take one last undamped step
+        # (polish: for an affine residual it lands exactly on the solution) if it helps
+        stepping = m.conv if it == max_iter else st.done.logical_not()
+        if not bool(stepping.any()):
+            break
+        d = _direction(m, st.mu)
+        x_new, F_new, full, need = _line_search(
+            residual, st, m, d, lo, hi, stepping, max_backtracks
         )
-    return LeastSquaresResult(x, F.detach(), opt, iters, status)
+        _accept(st, m, stepping, x_new, F_new, full, need)
+        if bool(st.done.all()) or it == max_iter:
+            break
+        r, J = _evaluate(residual, jacobian, st.x)
+        st.F = 0.5 * _dot(r, r)
+
+
+def _gauss_newton_model(
+    st: _State, r: Tensor, J: Tensor, lo: Tensor, hi: Tensor, tol: float
+) -> _Model:
+    """The model at ``st.x``; marks non-finite and converged problems in ``st`` and records
+    their optimality."""
+    x, F = st.x, st.F
+    n, dtype = x.shape[-1], x.dtype
+    eps = torch.finfo(dtype).eps
+    A, g = _normal_equations(J, r)
+    finite = torch.isfinite(F) & torch.isfinite(g).all(-1) & torch.isfinite(A).all(-1).all(-1)
+    bad = finite.logical_not() & st.done.logical_not()
+    st.status = torch.where(bad, int(SolverStatus.NONFINITE), st.status)
+    st.done = st.done | bad
+    g = torch.where(finite.unsqueeze(-1), g, torch.zeros_like(g))
+    A = torch.where(finite[..., None, None], A, torch.eye(n, dtype=dtype, device=x.device))
+    diag = A.diagonal(dim1=-2, dim2=-1)
+    # a zero column (x_j does not enter the residual) borrows the largest curvature
+    scale = diag.amax(-1, keepdim=True).clamp_min(torch.finfo(dtype).tiny)
+    dA = torch.where(diag > 0, diag, scale)
+    s = g / dA
+    bind = ((g > 0) & (x - lo <= s)) | ((g < 0) & (hi - x <= -s))
+    free = bind.logical_not()
+    d0 = _reduced_solve(A, dA, free, -g, None)
+    xb = torch.clamp(x - s, lo, hi)
+    delta = _dot(g, torch.where(bind, x - xb, -d0))
+    delta = delta.clamp_min(0.0)
+    st.opt = torch.where(st.done, st.opt, delta.sqrt())
+    by_tol = delta.sqrt() <= tol
+    by_round = 0.5 * delta <= ROUNDOFF * eps * F
+    conv = st.done.logical_not() & (by_tol | by_round)
+    st.status = torch.where(
+        conv & by_tol,
+        int(SolverStatus.CONVERGED),
+        torch.where(conv, int(SolverStatus.ROUNDOFF), st.status),
+    )
+    return _Model(A, g, dA, s, bind, free, d0, conv)
+
+
+def _direction(m: _Model, mu: Tensor) -> Tensor:
+    """The search direction: damped on the free set (undamped where converged), ``-s`` on the
+    binding set."""
+    if bool((mu > 0).any()):
+        d = _reduced_solve(m.A, m.dA, m.free, -m.g, mu)
+        d = torch.where(m.conv.unsqueeze(-1), m.d0, d)
+    else:
+        d = m.d0
+    return torch.where(m.bind, -m.s, d)
+
+
+def _line_search(
+    residual: Residual,
+    st: _State,
+    m: _Model,
+    d: Tensor,
+    lo: Tensor,
+    hi: Tensor,
+    stepping: Tensor,
+    max_backtracks: int,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Projected backtracking line search along ``d`` from ``st.x``.
+
+    Returns ``(x_new, F_new, full, need)``: the accepted points and costs (the old ones where no
+    step was accepted), whether the full step was accepted, and which problems found no step.
+    """
+    x, F, g, conv = st.x, st.F, m.g, m.conv
+    batch, dtype = x.shape[:-1], x.dtype
+    eps = torch.finfo(dtype).eps
+    alpha = torch.ones(batch, dtype=dtype, device=x.device)
+    need = stepping
+    x_new, F_new = x.clone(), F.clone()
+    full = torch.zeros_like(need)
+    for bt in range(max_backtracks):
+        xt = torch.clamp(x + alpha.unsqueeze(-1) * d, lo, hi)
+        rt = residual(xt)
+        Ft = 0.5 * _dot(rt, rt).expand(batch)
+        armijo = Ft <= F + ARMIJO * _dot(g, xt - x)
+        polish = Ft <= F + ROUNDOFF * eps * F.abs()
+        ok = need & torch.isfinite(Ft) & torch.where(conv, polish, armijo)
+        x_new = torch.where(ok.unsqueeze(-1), xt, x_new)
+        F_new = torch.where(ok, Ft, F_new)
+        if bt == 0:
+            full = ok
+        need = need & ok.logical_not() & conv.logical_not()
+        if not bool(need.any()):
+            break
+        alpha = alpha * BACKTRACK
+    return x_new, F_new, full, need
+
+
+def _accept(
+    st: _State,
+    m: _Model,
+    stepping: Tensor,
+    x_new: Tensor,
+    F_new: Tensor,
+    full: Tensor,
+    need: Tensor,
+) -> None:
+    """Move ``st`` to the line search's points: update the damping by the gain ratio, mark
+    stalled, frozen and converged problems, count the iterations."""
+    dtype = st.x.dtype
+    eps = torch.finfo(dtype).eps
+    x, F, g, A = st.x, st.F, m.g, m.A
+    moving = stepping & m.conv.logical_not()
+    # gain ratio of the accepted step: actual over model-predicted decrease
+    step = x_new - x
+    pred = -(_dot(g, step) + 0.5 * _dot(step, _dot(A, step.unsqueeze(-2))))
+    gain = (F - F_new) / pred.clamp_min(torch.finfo(dtype).tiny)
+    mu = st.mu
+    mu = torch.where(
+        full & (gain > GAIN_HIGH),
+        mu / MU_SHRINK,
+        torch.where(full & (gain >= GAIN_LOW), mu, torch.clamp(mu * MU_GROW, min=MU_INIT)),
+    )
+    mu = torch.where(mu < MU_MIN, torch.zeros_like(mu), mu)
+    st.mu = mu
+    stalled = need & (mu > MU_MAX)
+    st.status = torch.where(stalled, int(SolverStatus.STALLED), st.status)
+    # an accepted step below the resolution of x: no further progress is representable
+    frozen = moving & need.logical_not()
+    frozen = frozen & ((x_new - x).abs() <= ROUNDOFF * eps * x.abs()).all(-1)
+    st.status = torch.where(frozen, int(SolverStatus.ROUNDOFF), st.status)
+    st.done = st.done | stalled | m.conv | frozen
+    st.iters = st.iters + moving.long()
+    st.x, st.F = x_new, F_new
+
+
+def _warn_unconverged(status: Tensor, tol: float) -> None:
+    """The :class:`ConvergenceWarning` of :func:`bounded_least_squares` (at its caller), if a
+    problem did not converge."""
+    if bool((status > 0).all()):
+        return
+    counts = {s.name.lower(): int((status == s).sum()) for s in SolverStatus if s <= 0}
+    detail = ", ".join(f"{k}: {v}" for k, v in counts.items() if v)
+    warnings.warn(
+        f"bounded_least_squares: {int((status <= 0).sum())} of {status.numel()} problems did "
+        f"not converge to tol={tol:.1e} ({detail})",
+        ConvergenceWarning,
+        stacklevel=3,
+    )
 
 
 def _attach_gradient(

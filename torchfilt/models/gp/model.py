@@ -178,18 +178,7 @@ class GPModel(ConditionalModel):
             num_inducing=num_inducing,
         )
         feats = pairs.features
-        base = None
-        if prior_mean is not None:
-            if not callable(prior_mean):
-                raise InputError(f"prior_mean must be callable, got {type(prior_mean).__name__}")
-            nominal = FunctionModel(prior_mean, out_dim=d, in_dim=n, name="prior_mean")
-            with torch.no_grad():
-                base = nominal.predict(pairs.states, pairs.inputs).mean
-            if not bool(torch.isfinite(base).all()):
-                raise InputError("prior_mean returned non-finite values on the training states")
-        elif increment:
-            base = pairs.states
-        resid = pairs.targets if base is None else pairs.targets - base.to(dtype)
+        resid = _residual(pairs, prior_mean, increment)
         valid = torch.isfinite(resid)
         for j in range(d):
             cnt = int(valid[:, j].sum())
@@ -206,7 +195,6 @@ class GPModel(ConditionalModel):
         sel = resolve_inputs(inputs, d, feats.shape[-1], "inputs")
         const_out = [j for j in range(d) if bool(target_std.constant[j])]
         modelled = [j for j in range(d) if j not in const_out]
-
         # ---- output groups: same features and same observed rows share one batch GP
         specs: list[GroupSpec] = []
         if structure == "multitask":
@@ -220,65 +208,20 @@ class GPModel(ConditionalModel):
                 key = (sel[j], valid[:, j].cpu().numpy().tobytes())
                 keys.setdefault(key, []).append(j)
             specs = [GroupSpec(tuple(outs), key[0]) for key, outs in keys.items()]
-
-        # ---- noise floor and initial / fixed noise, per output, standardised
         gen = torch.Generator().manual_seed(seed)
-        scale2 = target_std.scale.pow(2)
-        est = torch.zeros(d, dtype=dtype)
-        for spec in specs:
-            rows = valid[:, list(spec.outputs)].all(-1)
-            z = z_all[rows][:, list(spec.features)]
-            est[list(spec.outputs)] = neighbour_noise(z, y_all[rows][:, list(spec.outputs)], gen)
-        fixed = noise is not None
-        if fixed:
-            fixed_val = _per_output(noise, d, "noise", dtype) / scale2
-            floor = torch.zeros(d, dtype=dtype)
-            init = fixed_val
-        else:
-            if isinstance(noise_floor, str):
-                if noise_floor != "auto":
-                    raise InputError(
-                        f"noise_floor must be 'auto' or a variance, got {noise_floor!r}"
-                    )
-                floor = auto_floor(est, dtype)
-            else:
-                floor = _per_output(noise_floor, d, "noise_floor", dtype) / scale2
-            init = torch.minimum(est, torch.full_like(est, INIT_NOISE_MAX)).clamp_min(0.0)
-            init = torch.maximum(torch.nan_to_num(init, nan=INIT_NOISE_MAX), floor)
-        floor = floor.masked_fill(target_std.constant, 0.0)
+        fixed, floor, init = _noise_levels(
+            specs, valid, z_all, y_all, target_std, noise, noise_floor, gen, d, dtype
+        )
         config = GPConfig(
             **{
                 **cfg0.to_dict(),
                 "groups": tuple(specs),
-                "noise_floor": tuple(float(v) for v in (floor * scale2)),
+                "noise_floor": tuple(float(v) for v in (floor * target_std.scale.pow(2))),
                 "noise_fixed": fixed,
                 "constant_outputs": tuple(const_out),
             }
         )
-        groups = []
-        for spec in specs:
-            outs = list(spec.outputs)
-            rows = valid[:, outs].all(-1)
-            if int(rows.sum()) < MIN_POINTS:  # a multitask GP needs every output at a row
-                raise InputError(
-                    f"{target_name}: only {int(rows.sum())} rows observe all of outputs {outs}; "
-                    f"a multitask GP needs at least {MIN_POINTS}"
-                )
-            groups.append(
-                GPGroup(
-                    structure,
-                    z_all[rows][:, list(spec.features)].contiguous(),
-                    y_all[rows][:, outs].T.contiguous(),
-                    kernel=kernel,
-                    floor=floor[outs],
-                    noise_init=init[outs],
-                    noise_fixed=fixed,
-                    num_latents=num_latents,
-                    task_rank=task_rank,
-                    num_inducing=num_inducing,
-                    generator=gen,
-                )
-            )
+        groups = _make_groups(config, valid, z_all, y_all, floor, init, gen)
         return cls(config, groups, input_std, target_std, prior_mean)
 
     @classmethod
@@ -770,3 +713,90 @@ def _per_output(value: Any, d: int, name: str, dtype: torch.dtype) -> Tensor:
     if not bool(torch.isfinite(t).all()) or not bool((t > 0).all()):
         raise InputError(f"{name}: variances must be positive and finite, got {t.tolist()}")
     return t
+
+
+def _residual(pairs: PairData, prior_mean: Callable[..., Tensor] | None, increment: bool) -> Tensor:
+    """The GP's targets ``(N, d)``: the data's targets less the prior mean, the state or nothing."""
+    n, d, dtype = pairs.states.shape[-1], pairs.targets.shape[-1], pairs.states.dtype
+    base = pairs.states if increment else None  # a prior mean takes precedence
+    if prior_mean is not None:
+        if not callable(prior_mean):
+            raise InputError(f"prior_mean must be callable, got {type(prior_mean).__name__}")
+        nominal = FunctionModel(prior_mean, out_dim=d, in_dim=n, name="prior_mean")
+        with torch.no_grad():
+            base = nominal.predict(pairs.states, pairs.inputs).mean
+        if not bool(torch.isfinite(base).all()):
+            raise InputError("prior_mean returned non-finite values on the training states")
+    return pairs.targets if base is None else pairs.targets - base.to(dtype)
+
+
+def _noise_levels(
+    specs: list[GroupSpec],
+    valid: Tensor,
+    z_all: Tensor,
+    y_all: Tensor,
+    target_std: Standardizer,
+    noise: Any,
+    noise_floor: Any,
+    gen: torch.Generator,
+    d: int,
+    dtype: torch.dtype,
+) -> tuple[bool, Tensor, Tensor]:
+    """``(fixed, floor, init)``: is the noise fixed, its floor and initial value ``(d,)``, scaled."""
+    scale2 = target_std.scale.pow(2)
+    est = torch.zeros(d, dtype=dtype)
+    for spec in specs:
+        rows = valid[:, list(spec.outputs)].all(-1)
+        z, outs = z_all[rows][:, list(spec.features)], list(spec.outputs)
+        est[outs] = neighbour_noise(z, y_all[rows][:, outs], gen)
+    fixed = noise is not None
+    if fixed:
+        init = _per_output(noise, d, "noise", dtype) / scale2
+        floor = torch.zeros(d, dtype=dtype)
+    else:
+        if isinstance(noise_floor, str):
+            if noise_floor != "auto":
+                raise InputError(f"noise_floor must be 'auto' or a variance, got {noise_floor!r}")
+            floor = auto_floor(est, dtype)
+        else:
+            floor = _per_output(noise_floor, d, "noise_floor", dtype) / scale2
+        init = torch.minimum(est, torch.full_like(est, INIT_NOISE_MAX)).clamp_min(0.0)
+        init = torch.maximum(torch.nan_to_num(init, nan=INIT_NOISE_MAX), floor)
+    return fixed, floor.masked_fill(target_std.constant, 0.0), init
+
+
+def _make_groups(
+    config: GPConfig,
+    valid: Tensor,
+    z_all: Tensor,
+    y_all: Tensor,
+    floor: Tensor,
+    init: Tensor,
+    gen: torch.Generator,
+) -> list[GPGroup]:
+    """One :class:`GPGroup` per group of ``config``, on the rows observing all its outputs."""
+    target_name, groups = "x_next" if config.role == "transition" else "y", []
+    for spec in config.groups:
+        outs = list(spec.outputs)
+        rows = valid[:, outs].all(-1)
+        if int(rows.sum()) < MIN_POINTS:  # a multitask GP needs every output at a row
+            raise InputError(
+                f"{target_name}: only {int(rows.sum())} rows observe all of outputs {outs}; "
+                f"a multitask GP needs at least {MIN_POINTS}"
+            )
+        groups.append(
+            GPGroup(
+                config.structure,
+                z_all[rows][:, list(spec.features)].contiguous(),
+                y_all[rows][:, outs].T.contiguous(),
+                kernel=config.kernel,
+                floor=floor[outs],
+                noise_init=init[outs],
+                noise_fixed=config.noise_fixed,
+                num_latents=config.num_latents,
+                task_rank=config.task_rank,
+                num_inducing=config.num_inducing,
+                generator=gen,
+            )
+        )
+    return groups
