@@ -13,9 +13,7 @@ import torch
 from torch import Tensor
 
 from torchfilt.filters.kalman_steps import (
-    _LOG_2PI,
     Belief,
-    _log_prob,
     _psd_sqrt_steps,
     predict,
     predict_sqrt,
@@ -24,7 +22,7 @@ from torchfilt.filters.kalman_steps import (
 )
 from torchfilt.filters.linear_data import Data, LinearSteps
 from torchfilt.filters.plan import ExecutionPlan
-from torchfilt.numerics import safe_cholesky
+from torchfilt.numerics import gaussian_log_prob, safe_cholesky
 
 __all__ = ["linear_facts", "run_exact"]
 
@@ -109,7 +107,7 @@ def _run(
             store["predicted_cov"].put(t, pred.cov)
         if loop_ll:
             dof = up.residual.shape[-1] if obs is None else obs[..., t, :].to(e_dtype).sum(-1)
-            term = _log_prob(up.residual, up.innov_chol, dof)
+            term = gaussian_log_prob(up.residual, up.innov_chol, dof)
             ll_sum = term if ll_sum is None else ll_sum + term
     out = {k: v.value() for k, v in store.items()}
     if ll_sum is not None:
@@ -224,13 +222,8 @@ def _run_fast(
         P = Pp - PHt @ KT
         infos.append(info)
         if want_ll and not vector_ll:
-            z = torch.linalg.solve_triangular(L, e.mT, upper=False)
             dof = m if data.complete else o_rows[t].sum((-2, -1))
-            term = -0.5 * (
-                (z * z).sum((-2, -1))
-                + 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-                + dof * _LOG_2PI
-            )
+            term = gaussian_log_prob(e.squeeze(-2), L, dof, library=True)
             ll_sum = term if ll_sum is None else ll_sum + term
         out.update(
             mean=mean,
@@ -254,12 +247,7 @@ def _run_fast(
     if vector_ll:
         e_all, L_all = res.pop("_residual"), res.pop("_chol")
         dof_all = m if data.complete else data.obs.to(e_all.dtype).sum(-1).reshape(B, T)
-        z_all = torch.linalg.solve_triangular(L_all, e_all.unsqueeze(-1), upper=False)
-        ll_sum = -0.5 * (
-            (z_all * z_all).sum((-2, -1))
-            + 2.0 * L_all.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-            + dof_all * _LOG_2PI
-        ).sum(-1)
+        ll_sum = gaussian_log_prob(e_all, L_all, dof_all, library=True).sum(-1)
     if "innovation" in res:
         missing = ~data.obs.expand(*batch, T, m).reshape(B, T, m)
         if inplace:
@@ -513,22 +501,14 @@ def _run_riccati(
         torch.sub(innov_in, e, out=e)
     # log-likelihood: whitened innovations, per step while the gains change, then one factor
     L_h = head["L"]  # (k, [B,] m, m)
-    if one:
-        z_h = torch.linalg.solve_triangular(L_h, e[:k].mT, upper=False)  # (k, m, B)
-        sq = z_h.square_().sum((0, 1))
-    else:
-        z_h = torch.linalg.solve_triangular(L_h, e[:k].unsqueeze(-1), upper=False)
-        sq = z_h.square_().sum((0, 2, 3))
-    logdet = 2.0 * L_h.diagonal(dim1=-2, dim2=-1).log().sum((0, -1))  # () or (B,)
-    if k < T:
+    ll = gaussian_log_prob(e[:k], L_h.unsqueeze(1) if one else L_h, library=True).sum(0)
+    if k < T:  # one factor per sequence (or one for all) for the whole tail
         if L_c.shape[0] == 1:
-            z_c = torch.linalg.solve_triangular(L_c[0], e[k:].reshape(-1, m).mT, upper=False)
-            sq = sq + z_c.square_().reshape(m, T - k, B).sum((0, 1))
+            ll = ll + gaussian_log_prob(e[k:], L_c[0], library=True).sum(0)
         else:
-            z_c = torch.linalg.solve_triangular(L_c, e[k:].permute(1, 2, 0), upper=False)
-            sq = sq + z_c.square_().sum((1, 2))
-        logdet = logdet + (T - k) * 2.0 * L_c.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-    ll = -0.5 * (sq + logdet + T * m * _LOG_2PI)
+            ll = ll + gaussian_log_prob(e[k:].transpose(0, 1), L_c.unsqueeze(1), library=True).sum(
+                -1
+            )
     res = {"log_likelihood": ll.reshape(batch)}
     means = {"mean": m_all, "predicted_mean": mp, "measurement_mean": ym, "innovation": e}
     for name, v in means.items():
