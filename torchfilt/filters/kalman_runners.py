@@ -145,6 +145,39 @@ def _result_bytes(data: Data, keep: frozenset[str]) -> int:
     return data.batch.numel() * data.y.shape[-2] * size * data.y.element_size()
 
 
+def _masks_per_step(data: Data, B: int) -> tuple[list[Tensor], list[Tensor], list[Tensor]]:
+    """Per step ``(B, ., .)``: the observed rows ``o``, ``o^T o`` and the unit diagonal of the
+    missing components, prepared once so the loop masks with one ``addcmul`` and one product
+    (empty lists when all is observed)."""
+    if data.complete:
+        return [], [], []
+    o = data.obs.to(data.y.dtype).unsqueeze(-2)  # (..., T, 1, m)
+    rows = _per_step(o, data.batch, B, 2) or []
+    outer = _per_step(o.mT * o, data.batch, B, 2) or []
+    unit = _per_step(torch.diag_embed(1.0 - o.squeeze(-2)), data.batch, B, 2) or []
+    return rows, outer, unit
+
+
+def _vector_log_likelihood(data: Data, e_all: Tensor, L_all: Tensor) -> Tensor:
+    """The summed log-likelihood ``(B,)`` from the residuals ``(B, T, m)`` and innovation factors
+    ``(B, T, m, m)`` the fast loop stored, vectorised over time."""
+    B, T, m = e_all.shape
+    dof = m if data.complete else data.obs.to(e_all.dtype).expand(*data.batch, T, m)
+    if isinstance(dof, Tensor):
+        dof = dof.reshape(B, T, m).sum(-1)
+    return gaussian_log_prob(e_all, L_all, dof, library=True).sum(-1)
+
+
+def _nan_missing(data: Data, res: dict[str, Tensor], *, inplace: bool) -> None:
+    """NaN in the innovations ``res['innovation'] (B, T, m)`` where not observed."""
+    B, T, m = res["innovation"].shape
+    missing = ~data.obs.expand(*data.batch, T, m).reshape(B, T, m)
+    if inplace:
+        res["innovation"].masked_fill_(missing, float("nan"))
+    else:
+        res["innovation"] = res["innovation"].masked_fill(missing, float("nan"))
+
+
 def _run_fast(
     data: Data, steps: LinearSteps, *, keep: frozenset[str], inplace: bool
 ) -> dict[str, Tensor] | None:
@@ -171,14 +204,7 @@ def _run_fast(
     c = _per_step(None if steps.c is None else steps.c.unsqueeze(-2), batch, B, 2)
     d = _per_step(None if steps.d is None else steps.d.unsqueeze(-2), batch, B, 2)
     y = _per_step(data.y.unsqueeze(-2), batch, B, 2) or []
-    o_rows: list[Tensor] = []
-    o_outer: list[Tensor] = []
-    o_unit: list[Tensor] = []
-    if not data.complete:
-        o = data.obs.to(data.y.dtype).unsqueeze(-2)  # (..., T, 1, m)
-        o_rows = _per_step(o, batch, B, 2) or []
-        o_outer = _per_step(o.mT * o, batch, B, 2) or []
-        o_unit = _per_step(torch.diag_embed(1.0 - o.squeeze(-2)), batch, B, 2) or []
+    o_rows, o_outer, o_unit = _masks_per_step(data, B)
     want_ll = "log_likelihood" in keep
     vector_ll = want_ll and B * T * m * m * data.y.element_size() < _VECTOR_LL_BYTES
     shapes = {
@@ -199,6 +225,11 @@ def _run_fast(
     bufs = {k: mean.new_empty(B, T, *shapes[k]) for k in fields} if inplace else {}
     ll_sum: Tensor | None = None
     infos: list[Tensor] = []
+    # kalman_steps.predict / update written out rather than called: the means are row vectors
+    # (one matmul over the batch for a shared A, where _mv broadcasts A to a batched product),
+    # the masks are prepared once, the factor is not retried with jitter (a host synchronisation
+    # per step; failures are checked once after the loop and the sequential runner takes over),
+    # no symmetrization, and the fields are the loop's intermediate results written in place.
     for t in range(T):
         cross = P @ AT[t]
         mp = mean @ AT[t]
@@ -245,15 +276,9 @@ def _run_fast(
         return None
     res = bufs if inplace else {k: torch.cat(v, 1) for k, v in lists.items()}
     if vector_ll:
-        e_all, L_all = res.pop("_residual"), res.pop("_chol")
-        dof_all = m if data.complete else data.obs.to(e_all.dtype).sum(-1).reshape(B, T)
-        ll_sum = gaussian_log_prob(e_all, L_all, dof_all, library=True).sum(-1)
+        ll_sum = _vector_log_likelihood(data, res.pop("_residual"), res.pop("_chol"))
     if "innovation" in res:
-        missing = ~data.obs.expand(*batch, T, m).reshape(B, T, m)
-        if inplace:
-            res["innovation"].masked_fill_(missing, float("nan"))
-        else:
-            res["innovation"] = res["innovation"].masked_fill(missing, float("nan"))
+        _nan_missing(data, res, inplace=inplace)
     final = {k: v.reshape(*batch, *v.shape[1:]) for k, v in res.items()}
     if ll_sum is not None:
         final["log_likelihood"] = ll_sum.reshape(batch)
