@@ -63,6 +63,7 @@ from torchfilt.filters.steps import (
 from torchfilt.models import ConditionalModel, Prediction, StateSpaceModel
 from torchfilt.numerics import (
     Box,
+    LeastSquaresResult,
     SolverStatus,
     batched_jacobian,
     bounded_least_squares,
@@ -201,6 +202,75 @@ def constrained_predict(
     return Belief(m_pred, P_pred), PredictCache(Xs, D, cross, None)
 
 
+def _reconcile(
+    h: ConditionalModel,
+    Xu: Tensor,
+    uP: Tensor | None,
+    y: Tensor,
+    obs_f: Tensor,
+    S_pred: Tensor,
+    R: Tensor | None,
+    Vh_pts: Tensor | None,
+    box: Box,
+    *,
+    tol: float | None,
+    max_iter: int,
+) -> LeastSquaresResult:
+    """The NDDR of the points ``Xu (..., 2n, n)``: each point's bounded least-squares problem
+    ``min |S^{-1}(x - X_i)|^2 + |R_i^{-1/2}(y - h(x))|^2`` (observed components only) inside the
+    box, the whitening formed once per step.
+
+    Raises:
+        ModelError: the measurement noise (plus any per-point variance) is not positive definite.
+    """
+    R_pts = add(None if Vh_pts is None else Vh_pts, None if R is None else R.unsqueeze(-3))
+    L_R, bad = torch.linalg.cholesky_ex(_observed_block(R_pts, obs_f.unsqueeze(-2), 1.0))
+    if bool((bad > 0).any()):
+        raise ModelError(
+            "the measurement noise R (plus the model's per-point variance) is not positive "
+            "definite: the reconciliation weighs the measurement by its inverse"
+        )
+    L_P = S_pred.unsqueeze(-3)
+    z = y.unsqueeze(-2)
+    o = obs_f.unsqueeze(-2)
+
+    # whitening by the inverse Cholesky factors, formed once per step (triangular solves of the
+    # identity) so that the solver's many residual calls are cheap products
+    n, m = Xu.shape[-1], y.shape[-1]
+    W_P = torch.linalg.solve_triangular(
+        L_P, torch.eye(n, dtype=Xu.dtype, device=Xu.device), upper=False
+    )  # (..., 1, n, n): also the (constant) Jacobian of the prior residual
+    W_R = torch.linalg.solve_triangular(
+        L_R, torch.eye(m, dtype=Xu.dtype, device=Xu.device), upper=False
+    )  # (..., 1 or 2n, m, m)
+
+    ones_n, ones_m = Xu.new_ones(n), Xu.new_ones(m)
+
+    def h_mean(x: Tensor) -> Tensor:  # the solver needs the mean only
+        return h.predict_mean(x, uP)
+
+    def residual(x: Tensor) -> Tensor:  # (..., 2n, n) -> (..., 2n, n + m)
+        # W v as (W * v) @ 1: much faster than a batched matmul for tiny matrices on CPU
+        rp = (W_P * (x - Xu).unsqueeze(-2)) @ ones_n
+        rm = (W_R * ((z - h_mean(x)) * o).unsqueeze(-2)) @ ones_m
+        return torch.cat([rp, rm], dim=-1)
+
+    def jacobian(x: Tensor) -> Tensor:  # (..., 2n, n + m, n); autograd only through h
+        _, Jh = batched_jacobian(h_mean, x)
+        Jm = -W_R @ (Jh * o.unsqueeze(-1))
+        return torch.cat([W_P.expand(*Jm.shape[:-2], n, n), Jm], dim=-2)
+
+    return bounded_least_squares(
+        residual,
+        Xu,
+        box.unsqueeze(-2),
+        jacobian=jacobian,
+        tol=tol,
+        max_iter=max_iter,
+        warn=False,
+    )
+
+
 def constrained_update(
     belief: Belief,
     y: Tensor,
@@ -275,52 +345,7 @@ def constrained_update(
     ll = gaussian_log_prob(e, L_yy, dim=obs_f.sum(-1))
 
     # ---- NDDR: one bounded least-squares problem per batch element and cubature point
-    R_pts = add(None if Vh_pts is None else Vh_pts, None if R is None else R.unsqueeze(-3))
-    L_R, bad = torch.linalg.cholesky_ex(_observed_block(R_pts, obs_f.unsqueeze(-2), 1.0))
-    if bool((bad > 0).any()):
-        raise ModelError(
-            "the measurement noise R (plus the model's per-point variance) is not positive "
-            "definite: the reconciliation weighs the measurement by its inverse"
-        )
-    L_P = S_pred.unsqueeze(-3)
-    z = y.unsqueeze(-2)
-    o = obs_f.unsqueeze(-2)
-
-    # whitening by the inverse Cholesky factors, formed once per step (triangular solves of the
-    # identity) so that the solver's many residual calls are cheap products
-    n, m = m_pred.shape[-1], y.shape[-1]
-    W_P = torch.linalg.solve_triangular(
-        L_P, torch.eye(n, dtype=m_pred.dtype, device=m_pred.device), upper=False
-    )  # (..., 1, n, n): also the (constant) Jacobian of the prior residual
-    W_R = torch.linalg.solve_triangular(
-        L_R, torch.eye(m, dtype=m_pred.dtype, device=m_pred.device), upper=False
-    )  # (..., 1 or 2n, m, m)
-
-    ones_n, ones_m = m_pred.new_ones(n), m_pred.new_ones(m)
-
-    def h_mean(x: Tensor) -> Tensor:  # the solver needs the mean only
-        return h.predict_mean(x, uP)
-
-    def residual(x: Tensor) -> Tensor:  # (..., 2n, n) -> (..., 2n, n + m)
-        # W v as (W * v) @ 1: much faster than a batched matmul for tiny matrices on CPU
-        rp = (W_P * (x - Xu).unsqueeze(-2)) @ ones_n
-        rm = (W_R * ((z - h_mean(x)) * o).unsqueeze(-2)) @ ones_m
-        return torch.cat([rp, rm], dim=-1)
-
-    def jacobian(x: Tensor) -> Tensor:  # (..., 2n, n + m, n); autograd only through h
-        _, Jh = batched_jacobian(h_mean, x)
-        Jm = -W_R @ (Jh * o.unsqueeze(-1))
-        return torch.cat([W_P.expand(*Jm.shape[:-2], n, n), Jm], dim=-2)
-
-    sol = bounded_least_squares(
-        residual,
-        Xu,
-        box.unsqueeze(-2),
-        jacobian=jacobian,
-        tol=tol,
-        max_iter=max_iter,
-        warn=False,
-    )
+    sol = _reconcile(h, Xu, uP, y, obs_f, S_pred, R, Vh_pts, box, tol=tol, max_iter=max_iter)
     Xk = sol.x
     x_upd = box.project(_wmean(wu, Xk))  # a convex combination; projection only removes round-off
     Dk = Xk - x_upd.unsqueeze(-2)

@@ -37,7 +37,6 @@ from torchfilt.filters.inputs import broadcast_batch, check_prior, observed
 from torchfilt.filters.kalman_runners import _STEADY_ULPS
 from torchfilt.filters.kalman_steps import (
     Belief,
-    _log_prob,
     _mv,
     _psd_sqrt_steps,
     predict,
@@ -54,7 +53,13 @@ from torchfilt.filters.results import (
     SmootherResult,
 )
 from torchfilt.models import LinearSystem, StateSpaceModel, linear_system
-from torchfilt.numerics import cholesky_solve, safe_cholesky, symmetrize, tria
+from torchfilt.numerics import (
+    cholesky_solve,
+    gaussian_log_prob,
+    safe_cholesky,
+    symmetrize,
+    tria,
+)
 from torchfilt.settings import NumericsPath
 
 __all__ = [
@@ -230,12 +235,12 @@ def measurement_terms(
     e = data.y - y_mean
     if data.complete:
         L = safe_cholesky(S, name="innovation covariance")
-        ll = _log_prob(e, L, e.shape[-1]).sum(-1)
+        ll = gaussian_log_prob(e, L).sum(-1)
     else:
         o = data.obs.to(S.dtype)
         Sm = S * (o.unsqueeze(-1) * o.unsqueeze(-2)) + torch.diag_embed(1.0 - o)
         L = safe_cholesky(Sm, name="innovation covariance")
-        ll = _log_prob(e * o, L, o.sum(-1)).sum(-1)
+        ll = gaussian_log_prob(e * o, L, o.sum(-1)).sum(-1)
     innovation = torch.where(data.obs, e, torch.full_like(e, float("nan")))
     return y_mean, innovation, S, ll
 

@@ -13,9 +13,7 @@ import torch
 from torch import Tensor
 
 from torchfilt.filters.kalman_steps import (
-    _LOG_2PI,
     Belief,
-    _log_prob,
     _psd_sqrt_steps,
     predict,
     predict_sqrt,
@@ -24,7 +22,7 @@ from torchfilt.filters.kalman_steps import (
 )
 from torchfilt.filters.linear_data import Data, LinearSteps
 from torchfilt.filters.plan import ExecutionPlan
-from torchfilt.numerics import safe_cholesky
+from torchfilt.numerics import gaussian_log_prob, safe_cholesky
 
 __all__ = ["linear_facts", "run_exact"]
 
@@ -109,7 +107,7 @@ def _run(
             store["predicted_cov"].put(t, pred.cov)
         if loop_ll:
             dof = up.residual.shape[-1] if obs is None else obs[..., t, :].to(e_dtype).sum(-1)
-            term = _log_prob(up.residual, up.innov_chol, dof)
+            term = gaussian_log_prob(up.residual, up.innov_chol, dof)
             ll_sum = term if ll_sum is None else ll_sum + term
     out = {k: v.value() for k, v in store.items()}
     if ll_sum is not None:
@@ -147,6 +145,39 @@ def _result_bytes(data: Data, keep: frozenset[str]) -> int:
     return data.batch.numel() * data.y.shape[-2] * size * data.y.element_size()
 
 
+def _masks_per_step(data: Data, B: int) -> tuple[list[Tensor], list[Tensor], list[Tensor]]:
+    """Per step ``(B, ., .)``: the observed rows ``o``, ``o^T o`` and the unit diagonal of the
+    missing components, prepared once so the loop masks with one ``addcmul`` and one product
+    (empty lists when all is observed)."""
+    if data.complete:
+        return [], [], []
+    o = data.obs.to(data.y.dtype).unsqueeze(-2)  # (..., T, 1, m)
+    rows = _per_step(o, data.batch, B, 2) or []
+    outer = _per_step(o.mT * o, data.batch, B, 2) or []
+    unit = _per_step(torch.diag_embed(1.0 - o.squeeze(-2)), data.batch, B, 2) or []
+    return rows, outer, unit
+
+
+def _vector_log_likelihood(data: Data, e_all: Tensor, L_all: Tensor) -> Tensor:
+    """The summed log-likelihood ``(B,)`` from the residuals ``(B, T, m)`` and innovation factors
+    ``(B, T, m, m)`` the fast loop stored, vectorised over time."""
+    B, T, m = e_all.shape
+    dof = m if data.complete else data.obs.to(e_all.dtype).expand(*data.batch, T, m)
+    if isinstance(dof, Tensor):
+        dof = dof.reshape(B, T, m).sum(-1)
+    return gaussian_log_prob(e_all, L_all, dof, library=True).sum(-1)
+
+
+def _nan_missing(data: Data, res: dict[str, Tensor], *, inplace: bool) -> None:
+    """NaN in the innovations ``res['innovation'] (B, T, m)`` where not observed."""
+    B, T, m = res["innovation"].shape
+    missing = ~data.obs.expand(*data.batch, T, m).reshape(B, T, m)
+    if inplace:
+        res["innovation"].masked_fill_(missing, float("nan"))
+    else:
+        res["innovation"] = res["innovation"].masked_fill(missing, float("nan"))
+
+
 def _run_fast(
     data: Data, steps: LinearSteps, *, keep: frozenset[str], inplace: bool
 ) -> dict[str, Tensor] | None:
@@ -173,14 +204,7 @@ def _run_fast(
     c = _per_step(None if steps.c is None else steps.c.unsqueeze(-2), batch, B, 2)
     d = _per_step(None if steps.d is None else steps.d.unsqueeze(-2), batch, B, 2)
     y = _per_step(data.y.unsqueeze(-2), batch, B, 2) or []
-    o_rows: list[Tensor] = []
-    o_outer: list[Tensor] = []
-    o_unit: list[Tensor] = []
-    if not data.complete:
-        o = data.obs.to(data.y.dtype).unsqueeze(-2)  # (..., T, 1, m)
-        o_rows = _per_step(o, batch, B, 2) or []
-        o_outer = _per_step(o.mT * o, batch, B, 2) or []
-        o_unit = _per_step(torch.diag_embed(1.0 - o.squeeze(-2)), batch, B, 2) or []
+    o_rows, o_outer, o_unit = _masks_per_step(data, B)
     want_ll = "log_likelihood" in keep
     vector_ll = want_ll and B * T * m * m * data.y.element_size() < _VECTOR_LL_BYTES
     shapes = {
@@ -201,6 +225,11 @@ def _run_fast(
     bufs = {k: mean.new_empty(B, T, *shapes[k]) for k in fields} if inplace else {}
     ll_sum: Tensor | None = None
     infos: list[Tensor] = []
+    # kalman_steps.predict / update written out rather than called: the means are row vectors
+    # (one matmul over the batch for a shared A, where _mv broadcasts A to a batched product),
+    # the masks are prepared once, the factor is not retried with jitter (a host synchronisation
+    # per step; failures are checked once after the loop and the sequential runner takes over),
+    # no symmetrization, and the fields are the loop's intermediate results written in place.
     for t in range(T):
         cross = P @ AT[t]
         mp = mean @ AT[t]
@@ -224,13 +253,8 @@ def _run_fast(
         P = Pp - PHt @ KT
         infos.append(info)
         if want_ll and not vector_ll:
-            z = torch.linalg.solve_triangular(L, e.mT, upper=False)
             dof = m if data.complete else o_rows[t].sum((-2, -1))
-            term = -0.5 * (
-                (z * z).sum((-2, -1))
-                + 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-                + dof * _LOG_2PI
-            )
+            term = gaussian_log_prob(e.squeeze(-2), L, dof, library=True)
             ll_sum = term if ll_sum is None else ll_sum + term
         out.update(
             mean=mean,
@@ -252,20 +276,9 @@ def _run_fast(
         return None
     res = bufs if inplace else {k: torch.cat(v, 1) for k, v in lists.items()}
     if vector_ll:
-        e_all, L_all = res.pop("_residual"), res.pop("_chol")
-        dof_all = m if data.complete else data.obs.to(e_all.dtype).sum(-1).reshape(B, T)
-        z_all = torch.linalg.solve_triangular(L_all, e_all.unsqueeze(-1), upper=False)
-        ll_sum = -0.5 * (
-            (z_all * z_all).sum((-2, -1))
-            + 2.0 * L_all.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-            + dof_all * _LOG_2PI
-        ).sum(-1)
+        ll_sum = _vector_log_likelihood(data, res.pop("_residual"), res.pop("_chol"))
     if "innovation" in res:
-        missing = ~data.obs.expand(*batch, T, m).reshape(B, T, m)
-        if inplace:
-            res["innovation"].masked_fill_(missing, float("nan"))
-        else:
-            res["innovation"] = res["innovation"].masked_fill(missing, float("nan"))
+        _nan_missing(data, res, inplace=inplace)
     final = {k: v.reshape(*batch, *v.shape[1:]) for k, v in res.items()}
     if ll_sum is not None:
         final["log_likelihood"] = ll_sum.reshape(batch)
@@ -337,6 +350,202 @@ def _affine_head(x: Tensor, F: Tensor) -> None:
         s *= 2
 
 
+#: the Riccati runner's covariance fields by the name of their per-step value in its loop
+_RICCATI_COVS = {"cov": "cov", "predicted_cov": "pcov", "cross_cov": "cross", "innovation_cov": "S"}
+
+
+def _time_major(data: Data, steps: LinearSteps) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """``y_t - d_t``, ``c_t`` and ``d_t`` as ``(T, B, .)`` over the flattened batch."""
+    batch, T = data.batch, data.y.shape[-2]
+    B = batch.numel()
+
+    def tmajor(x: Tensor) -> Tensor:  # (..., T, d) -> (T, B, d)
+        d = x.shape[-1]
+        return x.expand(*batch, T, d).reshape(B, T, d).transpose(0, 1)
+
+    y_t = tmajor(data.y)
+    d_t = None if steps.d is None else tmajor(steps.d)
+    c_t = None if steps.c is None else tmajor(steps.c)
+    return (y_t if d_t is None else y_t - d_t), c_t, d_t
+
+
+def _riccati_records(
+    keep: frozenset[str], P: Tensor, B: int, T: int, m: int, *, one: bool
+) -> tuple[list[str], dict[str, Tensor]]:
+    """What the Riccati loop records: a shared sequence records its per-step values (the names
+    returned) and stacks them after the loop; one covariance per sequence writes the kept fields
+    straight into their outputs ``(B, T, ., .)`` (the dict returned)."""
+    n = P.shape[-1]
+    names = ["KT", "L"] if one else ["L"]
+    names += [name for field, name in _RICCATI_COVS.items() if field in keep] if one else []
+    direct = {
+        field: P.new_empty(B, T, *((m, m) if field == "innovation_cov" else (n, n)))
+        for field in _RICCATI_COVS
+        if field in keep and not one
+    }
+    return names, direct
+
+
+def _head_factors(
+    head: dict[str, Tensor], infos: list[Tensor], *, scalar: bool, late: bool
+) -> bool:
+    """The innovation factors of the Riccati head, taken after the loop where the loop only
+    solved (``m = 1``: a square root; many small systems: one batched Cholesky); False if one
+    failed. One host synchronisation for the whole run."""
+    if scalar:
+        if not bool((head["L"] > 0).all()):
+            return False
+        head["L"] = head["L"].sqrt()
+    elif bool(torch.stack(infos).any()):
+        return False
+    elif late:
+        head["L"], info = torch.linalg.cholesky_ex(head["L"])
+        if bool(info.any()):
+            return False
+    return True
+
+
+def _head_means(
+    m_all: Tensor,
+    innov_in: Tensor,
+    c_t: Tensor | None,
+    x0: Tensor,
+    A_h: Tensor,
+    H_h: Tensor,
+    KT_h: Tensor,
+) -> None:
+    """The means of the head ``m_all[:k]`` when one covariance sequence serves the batch:
+    ``m_t = m_{t-1} F_t + g_t`` with the shared ``F_t = A_t^T (I - H_t^T K_t^T)``. The pure
+    :func:`~torchfilt.filters.kalman_steps.update` cannot be used here: it would redo the gain
+    solve per sequence, whereas the gains of the shared covariance are already known for all
+    steps and the recursion is affine (a doubling scan over ``k`` steps when the batch is small)."""
+    k, B, n = KT_h.shape[0], m_all.shape[1], m_all.shape[2]
+    eye = torch.eye(n, dtype=KT_h.dtype, device=KT_h.device)
+    IKH = eye - H_h.mT @ KT_h
+    m_all[:k] = innov_in[:k] @ KT_h
+    if c_t is not None:
+        m_all[:k] += c_t[:k] @ IKH
+    F_h = A_h.mT @ IKH
+    m_all[0].addmm_(x0, F_h[0])
+    if B * n * n * math.log2(k + 1) <= _DOUBLING_WORK:
+        _affine_head(m_all[:k], F_h)
+    else:
+        for t in range(1, k):
+            m_all[t].addmm_(m_all[t - 1], F_h[t])
+
+
+def _tail_means(
+    m_all: Tensor,
+    innov_in: Tensor,
+    c_t: Tensor | None,
+    KT_last: Tensor,
+    P: Tensor,
+    tol: float,
+    AT: Tensor,
+    HT: Tensor,
+    k: int,
+    *,
+    one: bool,
+) -> Tensor:
+    """The means of the converged tail ``m_all[k:]``, where the gain repeats: the affine
+    recursion with one constant ``F`` (a doubling scan when the batch is small, else one
+    multiply-add per step), which no per-step update expresses. Per-sequence covariances that
+    have all reached the same steady state (as they do for a time-invariant model) share one gain:
+    one product per step for the batch. Returns the tail's gains ``(Bc', m, n)``."""
+    T, B, n = m_all.shape
+    KT_c = KT_last.unsqueeze(0) if one else KT_last  # (Bc', m, n)
+    tol_agree = _AGREE_ULPS / _STEADY_ULPS * tol * P.abs().amax()
+    if not one and bool((P - P[:1]).abs().amax() <= tol_agree):
+        KT_c = KT_c[:1]
+    eye = torch.eye(n, dtype=P.dtype, device=P.device)
+    IKH_c = eye - HT @ KT_c
+    F_c = AT @ IKH_c
+    if KT_c.shape[0] == 1:
+        torch.matmul(innov_in[k:], KT_c[0], out=m_all[k:])
+    else:
+        m_all[k:] = _rows_const(innov_in[k:], KT_c)
+    if c_t is not None:
+        m_all[k:] += _rows_const(c_t[k:], IKH_c)
+    m_all[k] += _rows_const(m_all[k - 1 : k], F_c)[0]
+    if B * n * n * math.log2(T - k + 1) <= _DOUBLING_WORK:
+        _affine_tail(m_all[k:], F_c)
+    elif F_c.shape[0] == 1:
+        for t in range(k + 1, T):
+            m_all[t].addmm_(m_all[t - 1], F_c[0])
+    else:
+        for t in range(k + 1, T):
+            m_all[t].unsqueeze(1).baddbmm_(m_all[t - 1].unsqueeze(1), F_c)
+    return KT_c
+
+
+def _innovations(
+    m_all: Tensor,
+    x0: Tensor,
+    innov_in: Tensor,
+    c_t: Tensor | None,
+    d_t: Tensor | None,
+    A_all: Tensor,
+    H_all: Tensor,
+    *,
+    predicted: bool,
+) -> tuple[Tensor | None, Tensor | None, Tensor]:
+    """Predicted means, measurement means (when ``predicted``) and innovations ``(T, B, .)`` of
+    all steps at once from the filtered means (the predict step vectorised over time)."""
+    T, B, n = m_all.shape
+
+    def after_prev(M: Tensor) -> Tensor:
+        """``x_{t-1} M_t`` for every step, ``x_{-1} = x0``: ``(T, B, M.shape[-1])``."""
+        out = x0.new_empty(T, B, M.shape[-1])
+        torch.matmul(x0, M if M.dim() == 2 else M[0], out=out[0])
+        if M.dim() == 2:  # one product over the stacked rows
+            torch.matmul(m_all[:-1].reshape(-1, n), M, out=out[1:].view(-1, M.shape[-1]))
+        else:
+            torch.matmul(m_all[:-1], M[1:], out=out[1:])
+        return out
+
+    mp = ym = None
+    if predicted:
+        mp = after_prev(A_all.mT)  # m^-_t = m_{t-1} A_t^T + c_t
+        if c_t is not None:
+            mp += c_t
+        ym = mp @ H_all.mT
+        e = innov_in - ym  # (T, B, m)
+        if d_t is not None:
+            ym += d_t
+    else:  # straight to the innovations: e_t = (y_t - d_t) - m_{t-1} (H A)^T - c_t H^T
+        e = after_prev(A_all.mT @ H_all.mT)
+        if c_t is not None:
+            e += c_t @ H_all.mT
+        torch.sub(innov_in, e, out=e)
+    return mp, ym, e
+
+
+def _riccati_log_likelihood(e: Tensor, L_h: Tensor, L_c: Tensor | None, *, one: bool) -> Tensor:
+    """The summed log-likelihood of innovations ``e (T, B, m)``: the head's factors
+    ``L_h (k, [B,] m, m)`` per step, then the tail's one factor ``L_c (Bc', m, m)`` (or None)."""
+    k = L_h.shape[0]
+    ll = gaussian_log_prob(e[:k], L_h.unsqueeze(1) if one else L_h, library=True).sum(0)
+    if L_c is None:
+        return ll
+    if L_c.shape[0] == 1:  # one factor for the batch: the innovations are its columns
+        return ll + gaussian_log_prob(e[k:], L_c[0], library=True).sum(0)
+    tail = gaussian_log_prob(e[k:].transpose(0, 1), L_c.unsqueeze(1), library=True)
+    return ll + tail.sum(-1)
+
+
+def _repeat_tail(x: Tensor, k: int, T: int, batch: torch.Size, *, one: bool) -> Tensor:
+    """A covariance field over all ``T`` steps, its steps ``k ..`` repeating step ``k - 1``:
+    from the shared head ``(k, d, d)`` (returned ``(T, d, d)``, for ``assemble`` to expand over
+    the batch), or the per-sequence output ``(B, T, d, d)`` filled in place."""
+    if one:
+        whole = x.new_empty(T, *x.shape[1:])
+        whole[:k] = x
+        whole[k:] = x[-1]
+        return whole
+    x[:, k:] = x[:, k - 1 : k]
+    return x.reshape(*batch, T, *x.shape[-2:])
+
+
 def _run_riccati(
     data: Data, steps: LinearSteps, *, keep: frozenset[str], Bc: int
 ) -> dict[str, Tensor] | None:
@@ -360,26 +569,12 @@ def _run_riccati(
     P = data.P0.reshape(-1, n, n)[0] if one else data.P0.expand(*batch, n, n).reshape(B, n, n)
     tol = _STEADY_ULPS * torch.finfo(P.dtype).eps
 
-    def tmajor(x: Tensor, d: int) -> Tensor:  # (..., T, d) -> (T, B, d)
-        return x.expand(*batch, T, d).reshape(B, T, d).transpose(0, 1)
-
-    y_t = tmajor(data.y, m)
-    d_t = None if steps.d is None else tmajor(steps.d, m)
-    innov_in = y_t if d_t is None else y_t - d_t  # y_t - d_t
-    c_t = None if steps.c is None else tmajor(steps.c, n)
+    innov_in, c_t, d_t = _time_major(data, steps)
     x0 = data.x0.reshape(B, n)
     m_all = x0.new_empty(T, B, n)
-    covs = {"cov": "cov", "predicted_cov": "pcov", "cross_cov": "cross", "innovation_cov": "S"}
-    # a shared sequence records its per-step values and stacks them after the loop; one
-    # covariance per sequence writes the kept ones straight into their outputs (B, T, ., .)
-    names = ["KT", "L"] if one else ["L"]
-    names += [name for field, name in covs.items() if field in keep] if one else []
+    covs = _RICCATI_COVS
+    names, direct = _riccati_records(keep, P, B, T, m, one=one)
     rec: dict[str, list[Tensor]] = {k: [] for k in names}
-    direct = {
-        field: P.new_empty(B, T, *((m, m) if field == "innovation_cov" else (n, n)))
-        for field in covs
-        if field in keep and not one
-    }
     KT_last = P.new_empty(0)
     infos: list[Tensor] = []
     scalar = m == 1
@@ -387,6 +582,11 @@ def _run_riccati(
     k = 0  # steps run
     A, Q, H, R = (x.select(-3, 0) for x in (steps.A, steps.Q, steps.H, steps.R))
     AT, HT = A.mT, H.mT
+    # The covariance half of kalman_steps.predict / update, without their means: the pure steps
+    # cannot be used because they couple the gain to one mean each (here one covariance serves
+    # the batch, or the means are run afterwards as an affine recursion), factor with a jitter
+    # retry (a host synchronisation per step; here failures are collected and checked once) and
+    # symmetrize (two more operations per step); the gain solve is batched by the system size.
     for t in range(T):
         if not invariant:
             A, Q, H, R = (x[t] for x in (steps.A, steps.Q, steps.H, steps.R))
@@ -435,118 +635,27 @@ def _run_riccati(
         P = P_new
     # steps k .. T-1 repeat step k-1
     head = {name: torch.stack(vals, 0) for name, vals in rec.items()}  # (k, [B,] ., .)
-    if scalar:
-        if not bool((head["L"] > 0).all()):
-            return None
-        head["L"] = head["L"].sqrt()
-    elif bool(torch.stack(infos).any()):
+    if not _head_factors(head, infos, scalar=scalar, late=late):
         return None
-    elif late:
-        head["L"], info = torch.linalg.cholesky_ex(head["L"])
-        if bool(info.any()):
-            return None
-    eye = torch.eye(n, dtype=P.dtype, device=P.device)
     if one:  # the head: m_t = m_{t-1} F_t + g_t with the shared F_t
-        A_h, H_h, KT_h = steps.A[:k], steps.H[:k], head["KT"]
-        IKH = eye - H_h.mT @ KT_h
-        m_all[:k] = innov_in[:k] @ KT_h
-        if c_t is not None:
-            m_all[:k] += c_t[:k] @ IKH
-        F_h = A_h.mT @ IKH
-        m_all[0].addmm_(x0, F_h[0])
-        if B * n * n * math.log2(k + 1) <= _DOUBLING_WORK:
-            _affine_head(m_all[:k], F_h)
-        else:
-            for t in range(1, k):
-                m_all[t].addmm_(m_all[t - 1], F_h[t])
+        _head_means(m_all, innov_in, c_t, x0, steps.A[:k], steps.H[:k], head["KT"])
     if k < T:
-        # per-sequence covariances that have all reached the same steady state (as they do for
-        # a time-invariant model) share one gain in the tail: one product per step for the batch
-        KT_c = KT_last.unsqueeze(0) if one else KT_last  # (Bc', m, n)
-        tol_agree = _AGREE_ULPS / _STEADY_ULPS * tol * P.abs().amax()
-        if not one and bool((P - P[:1]).abs().amax() <= tol_agree):
-            KT_c = KT_c[:1]
-        IKH_c = eye - HT @ KT_c
-        F_c = AT @ IKH_c
-        if KT_c.shape[0] == 1:
-            torch.matmul(innov_in[k:], KT_c[0], out=m_all[k:])
-        else:
-            m_all[k:] = _rows_const(innov_in[k:], KT_c)
-        if c_t is not None:
-            m_all[k:] += _rows_const(c_t[k:], IKH_c)
-        m_all[k] += _rows_const(m_all[k - 1 : k], F_c)[0]
-        if B * n * n * math.log2(T - k + 1) <= _DOUBLING_WORK:
-            _affine_tail(m_all[k:], F_c)
-        elif F_c.shape[0] == 1:
-            for t in range(k + 1, T):
-                m_all[t].addmm_(m_all[t - 1], F_c[0])
-        else:
-            for t in range(k + 1, T):
-                m_all[t].unsqueeze(1).baddbmm_(m_all[t - 1].unsqueeze(1), F_c)
+        KT_c = _tail_means(m_all, innov_in, c_t, KT_last, P, tol, AT, HT, k, one=one)
         L_c = head["L"][-1:] if one else head["L"][-1][: KT_c.shape[0]]  # (Bc', m, m)
     # (T, ., .) per-step matrices, or one (., .) for a time-invariant model (then the loop's)
     A_all, H_all = (AT.mT, HT.mT) if invariant else (steps.A, steps.H)
-
-    def after_prev(M: Tensor) -> Tensor:
-        """``x_{t-1} M_t`` for every step, ``x_{-1} = x0``: ``(T, B, M.shape[-1])``."""
-        out = x0.new_empty(T, B, M.shape[-1])
-        torch.matmul(x0, M if M.dim() == 2 else M[0], out=out[0])
-        if M.dim() == 2:  # one product over the stacked rows
-            torch.matmul(m_all[:-1].reshape(-1, n), M, out=out[1:].view(-1, M.shape[-1]))
-        else:
-            torch.matmul(m_all[:-1], M[1:], out=out[1:])
-        return out
-
-    mp = ym = None
-    if "predicted_mean" in keep or "measurement_mean" in keep:
-        mp = after_prev(A_all.mT)  # m^-_t = m_{t-1} A_t^T + c_t
-        if c_t is not None:
-            mp += c_t
-        ym = mp @ H_all.mT
-        e = innov_in - ym  # (T, B, m)
-        if d_t is not None:
-            ym += d_t
-    else:  # straight to the innovations: e_t = (y_t - d_t) - m_{t-1} (H A)^T - c_t H^T
-        e = after_prev(A_all.mT @ H_all.mT)
-        if c_t is not None:
-            e += c_t @ H_all.mT
-        torch.sub(innov_in, e, out=e)
+    want_pred = "predicted_mean" in keep or "measurement_mean" in keep
+    mp, ym, e = _innovations(m_all, x0, innov_in, c_t, d_t, A_all, H_all, predicted=want_pred)
     # log-likelihood: whitened innovations, per step while the gains change, then one factor
-    L_h = head["L"]  # (k, [B,] m, m)
-    if one:
-        z_h = torch.linalg.solve_triangular(L_h, e[:k].mT, upper=False)  # (k, m, B)
-        sq = z_h.square_().sum((0, 1))
-    else:
-        z_h = torch.linalg.solve_triangular(L_h, e[:k].unsqueeze(-1), upper=False)
-        sq = z_h.square_().sum((0, 2, 3))
-    logdet = 2.0 * L_h.diagonal(dim1=-2, dim2=-1).log().sum((0, -1))  # () or (B,)
-    if k < T:
-        if L_c.shape[0] == 1:
-            z_c = torch.linalg.solve_triangular(L_c[0], e[k:].reshape(-1, m).mT, upper=False)
-            sq = sq + z_c.square_().reshape(m, T - k, B).sum((0, 1))
-        else:
-            z_c = torch.linalg.solve_triangular(L_c, e[k:].permute(1, 2, 0), upper=False)
-            sq = sq + z_c.square_().sum((1, 2))
-        logdet = logdet + (T - k) * 2.0 * L_c.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-    ll = -0.5 * (sq + logdet + T * m * _LOG_2PI)
+    ll = _riccati_log_likelihood(e, head["L"], L_c if k < T else None, one=one)
     res = {"log_likelihood": ll.reshape(batch)}
     means = {"mean": m_all, "predicted_mean": mp, "measurement_mean": ym, "innovation": e}
     for name, v in means.items():
         if v is not None and (name == "mean" or name in keep):
             res[name] = v.transpose(0, 1).reshape(*batch, T, v.shape[-1])
     for field, name in covs.items():
-        if field not in keep:
-            continue
-        if one:
-            h = head[name]  # (k, d, d)
-            whole = h.new_empty(T, *h.shape[1:])
-            whole[:k] = h
-            whole[k:] = h[-1]
-            res[field] = whole  # shared: assemble expands it over the batch
-        else:
-            whole = direct[field]
-            whole[:, k:] = whole[:, k - 1 : k]
-            res[field] = whole.reshape(*batch, T, *whole.shape[-2:])
+        if field in keep:
+            res[field] = _repeat_tail(head[name] if one else direct[field], k, T, batch, one=one)
     return res
 
 

@@ -6,7 +6,6 @@ The equations are in :mod:`torchfilt.filters.kalman`; the runners of
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import torch
@@ -15,8 +14,6 @@ from torch import Tensor
 from torchfilt.numerics import cholesky_solve, safe_cholesky, solve_tril, symmetrize, tria
 
 __all__ = ["Belief", "Update", "predict", "predict_sqrt", "update", "update_sqrt"]
-
-_LOG_2PI = math.log(2.0 * math.pi)
 
 
 class Belief(NamedTuple):
@@ -182,10 +179,3 @@ def _psd_sqrt_steps(X: Tensor) -> Tensor:
         base = _psd_sqrt(X.select(-3, 0))
         return base.unsqueeze(-3).expand(X.shape)
     return _psd_sqrt(X)
-
-
-def _log_prob(e: Tensor, L: Tensor, k: Tensor | int) -> Tensor:
-    """``log N(e; 0, L L^T)`` counting ``k`` dimensions."""
-    z = solve_tril(L, e.unsqueeze(-1)).squeeze(-1)
-    logdet = 2.0 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-    return -0.5 * ((z * z).sum(-1) + logdet + k * _LOG_2PI)
