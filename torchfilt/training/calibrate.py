@@ -18,10 +18,10 @@ import math
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from torchfilt.exceptions import InputError
 from torchfilt.filters import CKF, coverage, nees, nis
@@ -220,6 +220,78 @@ def calibrate(
     Returns:
         A :class:`CalibrationResult`.
     """
+    _check_options(model, sides, gp)
+    y, u, x0, P0, val = _data(recordings, validation, x0, P0, dtype)
+    cal = _calibrated_model(
+        model, u, x0, sides=sides, gp=gp, inflate_only=inflate_only, dtype=dtype
+    )
+    # the base models' own parameters (GP hyperparameters) stay fixed during the fit and get
+    # their requires_grad flags back afterwards
+    frozen = [
+        p for p in cal.model.parameters() if p.requires_grad and not any(p is q for q in cal.params)
+    ]
+    for p in frozen:
+        p.requires_grad_(False)
+    wrapped = [side for side in cal.sides if isinstance(side, CalibratedModel)]
+
+    def project() -> None:
+        for side in wrapped:
+            side.project_()
+
+    def prepare() -> None:
+        for g in cal.refit.values():
+            g.predictor = g.twin()
+
+    try:
+        fit = fit_likelihood(
+            cal.model,
+            y,
+            u,
+            x0=x0,
+            P0=P0,
+            params=cal.params,
+            window=window,
+            burn_in=burn_in,
+            validation=val,
+            # the default patience (15) with held-out data; without, none, unless one was given
+            patience=(
+                (_C.stopping.patience if val is not None else None)
+                if patience is None or (patience == _C.stopping.patience and val is None)
+                else patience
+            ),
+            rtol=rtol,
+            rtol_window=rtol_window,
+            fixed=fixed,
+            optimizer=optimizer,
+            lr=lr,
+            iterations=iterations,
+            callback=callback,
+            project=project,
+            prepare=prepare if cal.refit else None,
+            all_reduce=all_reduce,
+            progress=progress,
+            dtype=dtype,
+            sqrt=sqrt,
+            compile=compile,
+            checkpoint=checkpoint,
+            checkpoint_every=checkpoint_every,
+            resume=resume,
+        )
+    finally:
+        for p in frozen:
+            p.requires_grad_(True)
+        with torch.no_grad():
+            for g in cal.refit.values():
+                opts = g.freeze_options  # the fit swaps predictors, never the options
+                if opts is None:
+                    g.unfreeze()
+                else:
+                    g.freeze(**opts)
+    return CalibrationResult(cal.model, fit, calibration_entry(cal.model), cal.refit)
+
+
+def _check_options(model: StateSpaceModel, sides: Sequence[str], gp: str) -> None:
+    """Refuse a model that is not a state-space model and unknown ``sides`` or ``gp``."""
     if not isinstance(model, StateSpaceModel):
         raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
     bad = [s for s in sides if s not in ("transition", "measurement")]
@@ -227,6 +299,17 @@ def calibrate(
         raise InputError(f"sides: expected 'transition' and/or 'measurement', got {list(sides)}")
     if gp not in ("none", "noise", "all"):
         raise InputError(f"gp: expected 'none', 'noise' or 'all', got {gp!r}")
+
+
+def _data(
+    recordings: Sequence[Recording] | Sequences,
+    validation: Sequence[Recording] | Sequences | None,
+    x0: Tensor,
+    P0: Tensor,
+    dtype: torch.dtype,
+) -> tuple[Any, Any, Tensor, Tensor, Sequences | None]:
+    """The training sequences ``y, u``, the prior in ``dtype`` (a recording's own prior first) and
+    the held-out :class:`Sequences` (or None)."""
     y, u, rx0, rP0 = _sequences(recordings, "recordings")
     x0 = x0 if rx0 is None else rx0
     P0 = P0 if rP0 is None else rP0
@@ -236,7 +319,32 @@ def calibrate(
     if validation is not None:
         vy, vu, vx0, vP0 = _sequences(validation, "validation")
         val = Sequences(vy, vu, x0 if vx0 is None else vx0, P0 if vP0 is None else vP0)
+    return y, u, x0, P0, val
 
+
+class _Calibrated(NamedTuple):
+    """The model whose calibration is fitted, its two sides, the GP copies refitted with it
+    (by side name) and the parameters the fit moves."""
+
+    model: StateSpaceModel
+    sides: tuple[ConditionalModel, ConditionalModel]
+    refit: dict[str, Any]
+    params: list[nn.Parameter]
+
+
+def _calibrated_model(
+    model: StateSpaceModel,
+    u: Any,
+    x0: Tensor,
+    *,
+    sides: Sequence[str],
+    gp: str,
+    inflate_only: bool,
+    dtype: torch.dtype,
+) -> _Calibrated:
+    """Wrap each side in ``sides`` in a :class:`CalibratedModel` (inside the drift wrappers of a
+    :class:`DriftModel`), copying the GP sides to refit when ``gp`` asks, and list the
+    parameters to fit."""
     base_f, base_h = model.transition.to(dtype), model.measurement.to(dtype)
     drift = model if isinstance(model, DriftModel) else None
     n = model.state_dim if drift is None else drift.base_state_dim
@@ -293,69 +401,7 @@ def calibrate(
             f"gp: {gp!r} refits GP hyperparameters, but no side in {list(sides)} is a GP"
         )
     params += [p for g in refit.values() for p in g.hyperparameter_tensors(gp)]
-    # the base models' own parameters (GP hyperparameters) stay fixed during the fit and get
-    # their requires_grad flags back afterwards
-    frozen = [
-        p for p in calibrated.parameters() if p.requires_grad and not any(p is q for q in params)
-    ]
-    for p in frozen:
-        p.requires_grad_(False)
-    wrapped = [side for side in (f, h) if isinstance(side, CalibratedModel)]
-
-    def project() -> None:
-        for side in wrapped:
-            side.project_()
-
-    def prepare() -> None:
-        for g in refit.values():
-            g.predictor = g.twin()
-
-    try:
-        fit = fit_likelihood(
-            calibrated,
-            y,
-            u,
-            x0=x0,
-            P0=P0,
-            params=params,
-            window=window,
-            burn_in=burn_in,
-            validation=val,
-            # the default patience (15) with held-out data; without, none, unless one was given
-            patience=(
-                (_C.stopping.patience if val is not None else None)
-                if patience is None or (patience == _C.stopping.patience and val is None)
-                else patience
-            ),
-            rtol=rtol,
-            rtol_window=rtol_window,
-            fixed=fixed,
-            optimizer=optimizer,
-            lr=lr,
-            iterations=iterations,
-            callback=callback,
-            project=project,
-            prepare=prepare if refit else None,
-            all_reduce=all_reduce,
-            progress=progress,
-            dtype=dtype,
-            sqrt=sqrt,
-            compile=compile,
-            checkpoint=checkpoint,
-            checkpoint_every=checkpoint_every,
-            resume=resume,
-        )
-    finally:
-        for p in frozen:
-            p.requires_grad_(True)
-        with torch.no_grad():
-            for g in refit.values():
-                opts = g.freeze_options  # the fit swaps predictors, never the options
-                if opts is None:
-                    g.unfreeze()
-                else:
-                    g.freeze(**opts)
-    return CalibrationResult(calibrated, fit, calibration_entry(calibrated), refit)
+    return _Calibrated(calibrated, (f, h), refit, params)
 
 
 def calibration_entry(model: StateSpaceModel) -> dict[str, dict[str, Any]]:
