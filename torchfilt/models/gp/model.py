@@ -29,9 +29,8 @@ from torchfilt.models.base import ConditionalModel, Prediction
 from torchfilt.models.functional import FunctionModel
 from torchfilt.models.gp.config import GPConfig, GroupSpec, resolve_inputs
 from torchfilt.models.gp.data import MIN_POINTS, PairData
+from torchfilt.models.gp.fit_setup import make_groups, noise_levels
 from torchfilt.models.gp.group import GPGroup, GroupPosterior
-from torchfilt.models.gp.noise import neighbour_noise
-from torchfilt.models.gp.noise import noise_floor as auto_floor
 from torchfilt.models.gp.optimize import Callback, load_checkpoint, train_groups
 from torchfilt.models.gp.predictor import (
     AUTO_TOL,
@@ -53,8 +52,6 @@ __all__ = ["STATE_FORMAT", "GPModel"]
 STATE_FORMAT = "torchfilt.gp/1"
 #: Hyperparameters of an exact model are trained on at most this many rows by default.
 DEFAULT_SUBSET = 1000
-#: The initial noise (standardised) is the neighbour estimate, capped at this value.
-INIT_NOISE_MAX = 0.1
 #: Largest accepted learning rate (Adam on log-hyperparameters, natural-gradient step).
 MAX_LR = 1.0
 #: The defaults of :meth:`GPModel.optimize` (see :mod:`torchfilt.optim.options`).
@@ -209,7 +206,7 @@ class GPModel(ConditionalModel):
                 keys.setdefault(key, []).append(j)
             specs = [GroupSpec(tuple(outs), key[0]) for key, outs in keys.items()]
         gen = torch.Generator().manual_seed(seed)
-        fixed, floor, init = _noise_levels(
+        fixed, floor, init = noise_levels(
             specs, valid, z_all, y_all, target_std, noise, noise_floor, gen, d, dtype
         )
         config = GPConfig(
@@ -221,7 +218,7 @@ class GPModel(ConditionalModel):
                 "constant_outputs": tuple(const_out),
             }
         )
-        groups = _make_groups(config, valid, z_all, y_all, floor, init, gen)
+        groups = make_groups(config, valid, z_all, y_all, floor, init, gen)
         return cls(config, groups, input_std, target_std, prior_mean)
 
     @classmethod
@@ -702,19 +699,6 @@ class GPModel(ConditionalModel):
 _ROLES: dict[str, type[GPModel]] = {}
 
 
-def _per_output(value: Any, d: int, name: str, dtype: torch.dtype) -> Tensor:
-    t = torch.as_tensor(value, dtype=dtype).reshape(-1)
-    if t.numel() == 1:
-        t = t.expand(d).clone()
-    if t.numel() != d:
-        raise ShapeError(
-            f"{name}: expected a scalar or {d} values (one per output), got {t.numel()}"
-        )
-    if not bool(torch.isfinite(t).all()) or not bool((t > 0).all()):
-        raise InputError(f"{name}: variances must be positive and finite, got {t.tolist()}")
-    return t
-
-
 def _residual(pairs: PairData, prior_mean: Callable[..., Tensor] | None, increment: bool) -> Tensor:
     """The GP's targets ``(N, d)``: the data's targets less the prior mean, the state or nothing."""
     n, d, dtype = pairs.states.shape[-1], pairs.targets.shape[-1], pairs.states.dtype
@@ -728,75 +712,3 @@ def _residual(pairs: PairData, prior_mean: Callable[..., Tensor] | None, increme
         if not bool(torch.isfinite(base).all()):
             raise InputError("prior_mean returned non-finite values on the training states")
     return pairs.targets if base is None else pairs.targets - base.to(dtype)
-
-
-def _noise_levels(
-    specs: list[GroupSpec],
-    valid: Tensor,
-    z_all: Tensor,
-    y_all: Tensor,
-    target_std: Standardizer,
-    noise: Any,
-    noise_floor: Any,
-    gen: torch.Generator,
-    d: int,
-    dtype: torch.dtype,
-) -> tuple[bool, Tensor, Tensor]:
-    """``(fixed, floor, init)``: is the noise fixed, its floor and initial value ``(d,)``, scaled."""
-    scale2 = target_std.scale.pow(2)
-    est = torch.zeros(d, dtype=dtype)
-    for spec in specs:
-        rows = valid[:, list(spec.outputs)].all(-1)
-        z, outs = z_all[rows][:, list(spec.features)], list(spec.outputs)
-        est[outs] = neighbour_noise(z, y_all[rows][:, outs], gen)
-    fixed = noise is not None
-    if fixed:
-        init = _per_output(noise, d, "noise", dtype) / scale2
-        floor = torch.zeros(d, dtype=dtype)
-    else:
-        if isinstance(noise_floor, str):
-            if noise_floor != "auto":
-                raise InputError(f"noise_floor must be 'auto' or a variance, got {noise_floor!r}")
-            floor = auto_floor(est, dtype)
-        else:
-            floor = _per_output(noise_floor, d, "noise_floor", dtype) / scale2
-        init = torch.minimum(est, torch.full_like(est, INIT_NOISE_MAX)).clamp_min(0.0)
-        init = torch.maximum(torch.nan_to_num(init, nan=INIT_NOISE_MAX), floor)
-    return fixed, floor.masked_fill(target_std.constant, 0.0), init
-
-
-def _make_groups(
-    config: GPConfig,
-    valid: Tensor,
-    z_all: Tensor,
-    y_all: Tensor,
-    floor: Tensor,
-    init: Tensor,
-    gen: torch.Generator,
-) -> list[GPGroup]:
-    """One :class:`GPGroup` per group of ``config``, on the rows observing all its outputs."""
-    target_name, groups = "x_next" if config.role == "transition" else "y", []
-    for spec in config.groups:
-        outs = list(spec.outputs)
-        rows = valid[:, outs].all(-1)
-        if int(rows.sum()) < MIN_POINTS:  # a multitask GP needs every output at a row
-            raise InputError(
-                f"{target_name}: only {int(rows.sum())} rows observe all of outputs {outs}; "
-                f"a multitask GP needs at least {MIN_POINTS}"
-            )
-        groups.append(
-            GPGroup(
-                config.structure,
-                z_all[rows][:, list(spec.features)].contiguous(),
-                y_all[rows][:, outs].T.contiguous(),
-                kernel=config.kernel,
-                floor=floor[outs],
-                noise_init=init[outs],
-                noise_fixed=config.noise_fixed,
-                num_latents=config.num_latents,
-                task_rank=config.task_rank,
-                num_inducing=config.num_inducing,
-                generator=gen,
-            )
-        )
-    return groups

@@ -57,7 +57,7 @@ BATCH = 3
 def _problem(varying, missing, prior, T, seed=5):
     """A model with inputs (time-varying Q when ``varying``), ``BATCH`` sequences, NaN or mask
     missing data, one P0 per sequence or shared."""
-    from test_ckf_linear import make_problem, t64
+    from linear_support import make_problem, t64
 
     from torchfilt import LinearGaussianModel
     from torchfilt.models import TimeVarying
