@@ -33,6 +33,8 @@ from _common import environment, table, write_json
 
 
 def _is_timing(name: str) -> bool:
+    if name.endswith("_per_s"):  # a rate (sequence_steps_per_s), not a time
+        return False
     return name.endswith(("_us", "_s")) or name.startswith(("seconds_per", "us_per"))
 
 
@@ -61,6 +63,14 @@ def run_once(checkout: Path, script: str, args: list[str], out: Path) -> list[di
     cmd = [sys.executable, str(checkout / "scripts" / script), *args, "--out", str(out)]
     subprocess.run(cmd, env=env, check=True, cwd=checkout, stdout=subprocess.DEVNULL)
     return _rows(out)
+
+
+def _commit(checkout: Path) -> str:
+    """The checkout's commit (short hash, ``+dirty`` with uncommitted changes), not its path."""
+    git = ["git", "-C", str(checkout)]
+    head = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    dirty = subprocess.run([*git, "status", "--porcelain"], capture_output=True, text=True)
+    return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
 
 
 def compare(
@@ -112,7 +122,7 @@ def main() -> None:
         for r in range(a.rounds):
             for side, checkout in checkouts.items():
                 out = Path(tmp) / f"{side}-{r}"
-                print(f"round {r + 1}/{a.rounds}: {side} ({checkout})", flush=True)
+                print(f"round {r + 1}/{a.rounds}: {side} ({_commit(checkout)})", flush=True)
                 runs[side].append(run_once(checkout, a.script, args, out))
     result = compare(runs)
     rows = [[r["row"], r["field"], r["before"], r["after"], r["after_over_before"]] for r in result]
@@ -123,7 +133,7 @@ def main() -> None:
             "script": a.script,
             "args": args,
             "rounds": a.rounds,
-            "checkouts": {k: str(v) for k, v in checkouts.items()},
+            "checkouts": {k: _commit(v) for k, v in checkouts.items()},
             "rows": result,
             "environment": environment(),
         },
