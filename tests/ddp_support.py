@@ -62,6 +62,7 @@ def worker(rank: int, world: int, init: str, out: str, measurement_only: bool = 
             "measurements": fit.measurements,
         }
         torch.save(result, Path(out) / f"rank{rank}.pt")
+        dist.barrier()  # no process tears gloo down while its peer is still in a collective
     finally:
         dist.destroy_process_group()
 
@@ -193,5 +194,6 @@ def em_worker(rank: int, world: int, init: str, out: str) -> None:
             "resumed_ll": torch.tensor([h["log_likelihood"] for h in resumed.history]),
         }
         torch.save(result, Path(out) / f"em_rank{rank}.pt")
+        dist.barrier()  # no process tears gloo down while its peer is still in a collective
     finally:
         dist.destroy_process_group()
