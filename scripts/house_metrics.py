@@ -42,7 +42,7 @@ def _lines(path: Path) -> int:
     return len(path.read_text().splitlines())
 
 
-def _body_lines(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+def body_lines(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
     """Lines of a function's body after its docstring (the signature and docstring not counted)."""
     body = node.body
     if (
@@ -55,7 +55,8 @@ def _body_lines(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
     return (node.end_lineno or node.lineno) - body[0].lineno + 1
 
 
-def _raised_name(node: ast.Raise) -> str | None:
+def raised_name(node: ast.Raise) -> str | None:
+    """The name of the class a ``raise`` statement raises (``raise X`` or ``raise X(...)``)."""
     exc = node.exc
     if isinstance(exc, ast.Call):
         exc = exc.func
@@ -76,10 +77,10 @@ def measure(root: Path) -> dict[str, Any]:
         rel = str(path.relative_to(root))
         for node in ast.walk(tree):
             if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
-                length = _body_lines(node)
+                length = body_lines(node)
                 if length > FUNCTION_LIMIT:
                     long_functions[f"{rel}:{node.name}"] = length
-            elif isinstance(node, ast.Raise) and _raised_name(node) in BUILTIN_ERRORS:
+            elif isinstance(node, ast.Raise) and raised_name(node) in BUILTIN_ERRORS:
                 raises[rel] = raises.get(rel, 0) + 1
     top = _top_level_names(pkg / "__init__.py")
     return {

@@ -3,7 +3,12 @@
 import ast
 from pathlib import Path
 
+from script_support import load_script
+
 PKG = Path(__file__).resolve().parents[1] / "torchfilt"
+#: scripts/house_metrics.py: the built-in error classes and the function length, counted as the
+#: closing figures count them
+METRICS = load_script("house_metrics")
 
 #: numerics/optim -> cubature -> models -> filters -> systems/dmc -> io -> training/plots -> pipeline -> cli
 LAYERS = {
@@ -161,37 +166,22 @@ def test_no_private_imports_across_packages():
     assert not bad, "\n".join(bad)
 
 
-#: Built-in exception classes a ``raise`` in the package must not use for a user error: every
-#: user error is a ``TorchfiltError`` subclass (which may also derive from one of these).
-BUILTIN_ERRORS = {
-    "TypeError",
-    "ValueError",
-    "RuntimeError",
-    "KeyError",
-    "IndexError",
-    "NotImplementedError",
-    "OSError",
-    "FileNotFoundError",
-    "LookupError",
-    "AssertionError",
-}
+#: A ``raise`` in the package must not use a built-in exception class (METRICS.BUILTIN_ERRORS)
+#: for a user error: every user error is a ``TorchfiltError`` subclass (which may also derive
+#: from one of these).
 #: The comment that marks a raise of a built-in as a genuine internal-bug check.
 INTERNAL_MARK = "# internal: not a user error"
-#: Files (relative to the package) whose built-in raises are still being converted on other
-#: branches; empty this set as they land (the test fails on an entry that has none left).
-_NOT_YET_CONVERTED: set[str] = set()
 
 
 def _builtin_raises(path: Path) -> list[str]:
     lines = path.read_text().splitlines()
     out = []
     for node in ast.walk(ast.parse("\n".join(lines))):
-        if not isinstance(node, ast.Raise) or node.exc is None:
+        if not isinstance(node, ast.Raise):
             continue
-        exc = node.exc.func if isinstance(node.exc, ast.Call) else node.exc
-        if isinstance(exc, ast.Name) and exc.id in BUILTIN_ERRORS:
-            if INTERNAL_MARK not in lines[node.lineno - 1]:
-                out.append(f"{node.lineno}: raise {exc.id}")
+        name = METRICS.raised_name(node)
+        if name in METRICS.BUILTIN_ERRORS and INTERNAL_MARK not in lines[node.lineno - 1]:
+            out.append(f"{node.lineno}: raise {name}")
     return out
 
 
@@ -199,15 +189,7 @@ def test_no_builtin_raises():
     bad = []
     for path in sorted(PKG.rglob("*.py")):
         rel = path.relative_to(PKG).as_posix()
-        if rel in _NOT_YET_CONVERTED:
-            continue
         bad += [f"torchfilt/{rel}:{where}" for where in _builtin_raises(path)]
-    stale = sorted(
-        rel
-        for rel in _NOT_YET_CONVERTED
-        if not (PKG / rel).is_file() or not _builtin_raises(PKG / rel)
-    )
-    assert not stale, f"remove from _NOT_YET_CONVERTED (no built-in raise left): {stale}"
     assert not bad, (
         "raise a torchfilt.exceptions.TorchfiltError subclass for a user error (or mark an "
         f"internal-bug check with {INTERNAL_MARK!r}):\n" + "\n".join(bad)
@@ -262,20 +244,12 @@ def test_one_module_owns_the_path_decision():
     assert not bad, "\n".join(bad)
 
 
-#: modules over the limit that are being split elsewhere, at their size today (they may shrink,
-#: not grow); every other module stays at MAX_LINES or under
-LONG_MODULES: dict[str, int] = {}
-MAX_LINES = 800
-
-
 def test_no_module_over_800_lines():
     bad = []
     for path in PKG.rglob("*.py"):
-        rel = path.relative_to(PKG).as_posix()
         lines = len(path.read_text().splitlines())
-        limit = LONG_MODULES.get(rel, MAX_LINES)
-        if lines > limit:
-            bad.append(f"{rel}: {lines} lines (limit {limit})")
+        if lines > METRICS.MODULE_LIMIT:
+            bad.append(f"{path.relative_to(PKG).as_posix()}: {lines} lines")
     assert not bad, "\n".join(bad)
 
 
@@ -338,22 +312,9 @@ def test_tests_mirror_the_package():
     assert not bad, "\n".join(bad)
 
 
-#: functions allowed a body (after the docstring) over MAX_FUNCTION_LINES, each with the reason;
+#: functions allowed a body (after the docstring) over METRICS.FUNCTION_LIMIT, each with the reason;
 #: the issue that set the limit allows at most three
 LONG_FUNCTIONS: dict[str, str] = {}
-MAX_FUNCTION_LINES = 100
-
-
-def _body_lines(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
-    body = node.body
-    if (
-        len(body) > 1
-        and isinstance(body[0], ast.Expr)
-        and isinstance(body[0].value, ast.Constant)
-        and isinstance(body[0].value.value, str)
-    ):
-        body = body[1:]
-    return (node.end_lineno or node.lineno) - body[0].lineno + 1
 
 
 def test_no_function_over_100_lines():
@@ -365,7 +326,7 @@ def test_no_function_over_100_lines():
         rel = path.relative_to(PKG).as_posix()
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
-                n = _body_lines(node)
-                if n > MAX_FUNCTION_LINES and f"{rel}:{node.name}" not in LONG_FUNCTIONS:
+                n = METRICS.body_lines(node)
+                if n > METRICS.FUNCTION_LIMIT and f"{rel}:{node.name}" not in LONG_FUNCTIONS:
                     bad.append(f"{rel}:{node.name}: {n} lines")
     assert not bad, "\n".join(bad)
