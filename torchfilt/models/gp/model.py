@@ -10,8 +10,8 @@ Pipeline (all inside the model, so callers see raw units only):
 
 Training maximises the exact log marginal likelihood (or the ELBO of a sparse model) under
 :func:`~torchfilt.models.gp.settings.exact_settings`. :meth:`GPModel.freeze` then caches every
-training-set solve in a :class:`~torchfilt.models.gp.predictor.FrozenGP`, which :meth:`predict`
-uses; before freezing, :meth:`predict` calls GPyTorch (exact settings).
+training-set solve in a :class:`~torchfilt.models.gp.predictor.FrozenGP`, which :meth:`GPModel.predict`
+uses; before freezing, :meth:`GPModel.predict` calls GPyTorch (exact settings).
 """
 
 from __future__ import annotations

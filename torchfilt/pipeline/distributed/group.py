@@ -16,7 +16,7 @@ __all__ = ["GROUP_TIMEOUT"]
 
 
 def _shard_sequences(data: Any, rank: int, world: int) -> Any:
-    """Recordings ``rank::world`` of a list of recordings or a :class:`Sequences`."""
+    """Recordings ``rank::world`` of a list of recordings or a :class:`~torchfilt.training.likelihood.Sequences`."""
     from torchfilt.training.likelihood import Sequences
 
     if isinstance(data, Sequences):
