@@ -1,9 +1,12 @@
-"""Render the package's Sphinx cross-reference roles as links on the documentation site.
+"""griffe extensions of the documentation site: Sphinx roles become links, deprecated aliases
+leave the API pages.
+
+**Roles.**
 
 torchfilt's docstrings cross-reference in Sphinx's spelling (``:func:`~torchfilt.fit_em```,
 ``:class:`FilterResult```, ``:meth:`predict```), which reads well in ``help()`` and in an editor.
 mkdocstrings renders Markdown, where such a role shows literally. This griffe extension, loaded by
-``mkdocs.yml`` (``extensions: [scripts/griffe_roles.py]``), rewrites each role, once the whole
+``mkdocs.yml`` (``extensions: [scripts/griffe_docs.py]``), rewrites each role, once the whole
 package is loaded, into an autorefs cross-reference:
 
 * a leading ``~`` shows only the last component, as in Sphinx; ``:func:`` and ``:meth:`` add
@@ -13,7 +16,11 @@ package is loaded, into an autorefs cross-reference:
   does;
 * the reference is *optional*: a target the site does not render (``torch.Tensor``, a private
   helper) shows as code without a link instead of failing the strict build. Typos are caught by
-  :func:`unresolved`, which ``tests/scripts/test_griffe_roles.py`` requires to be empty.
+  :func:`unresolved`, which ``tests/scripts/test_griffe_docs.py`` requires to be empty.
+
+**Deprecated aliases.** A member whose docstring starts with "Deprecated" (the one-release
+aliases of renamed methods and properties, which warn when used) is left out of the API pages, so
+a reader sees each idea under its current name only; the CHANGELOG lists the old names.
 
 Not part of the package (only the docs build imports it).
 """
@@ -144,3 +151,17 @@ class SphinxRoles(griffe.Extension):
         for obj in _objects(pkg):
             if obj.docstring is not None and ":" in obj.docstring.value:
                 obj.docstring.value = convert(obj, obj.docstring.value)
+
+
+def is_deprecated(obj: griffe.Object) -> bool:
+    """Whether ``obj`` is a deprecated alias: its docstring starts with "Deprecated"."""
+    return obj.docstring is not None and obj.docstring.value.lstrip().startswith("Deprecated")
+
+
+class HideDeprecated(griffe.Extension):
+    """Leave deprecated aliases out of the API pages (see the module docstring)."""
+
+    def on_package(self, *, pkg: griffe.Module, **kwargs: Any) -> None:
+        for obj in list(_objects(pkg)):
+            for name in [n for n, m in obj.members.items() if not m.is_alias and is_deprecated(m)]:
+                del obj.members[name]

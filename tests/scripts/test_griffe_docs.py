@@ -1,6 +1,7 @@
-"""The docs build's role rewriter (scripts/griffe_roles.py): Sphinx roles in docstrings become
-autorefs links resolved as Sphinx would, and no role in the package names something that does
-not exist (a typo would otherwise render silently as plain code)."""
+"""The docs build's griffe extensions (scripts/griffe_docs.py): Sphinx roles in docstrings become
+autorefs links resolved as Sphinx would, no role in the package names something that does not
+exist (a typo would otherwise render silently as plain code), and deprecated aliases leave the
+API pages."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import pytest
 from script_support import load_script
 
 griffe = pytest.importorskip("griffe")
-roles = load_script("griffe_roles")
+roles = load_script("griffe_docs")
 
 
 @pytest.fixture(scope="module")
@@ -49,3 +50,14 @@ def test_a_misspelt_target_is_reported(package):
         ) in roles.unresolved(package)
     finally:
         obj.docstring.value = obj.docstring.value.rsplit("\n\nSee ", 1)[0]
+
+
+def test_deprecated_aliases_leave_the_pages_and_current_names_stay():
+    pkg = griffe.load("torchfilt", search_paths=[str(Path(__file__).resolve().parents[2])])
+    gaussian = pkg["filters.gaussian.GaussianFilter"]
+    assert roles.is_deprecated(gaussian.members["loop_fallback"])
+    roles.HideDeprecated().on_package(pkg=pkg)
+    for old in ("loop_fallback", "prepare", "run", "scan", "step_function", "execution"):
+        assert old not in gaussian.members
+    for current in ("filter", "smooth", "init", "predict", "update"):
+        assert current in gaussian.members
