@@ -289,7 +289,12 @@ def test_upward_references_only_in_deprecated_shims():
 
 
 #: test files that cover the package as a whole and sit at the top of tests/
-CROSS_CUTTING_TESTS = {"test_architecture.py", "test_public_api.py", "test_cuda.py"}
+CROSS_CUTTING_TESTS = {
+    "test_architecture.py",
+    "test_public_api.py",
+    "test_cuda.py",
+    "test_docstrings.py",
+}
 
 
 def test_tests_mirror_the_package():

@@ -72,6 +72,10 @@ def constrained_points(
 
     Returns:
         :class:`ConstrainedPoints` with points ``(..., 2n, n)`` and weights ``(..., 2n)``.
+
+    Raises:
+        InputError: ``theta`` is neither ``"paper"`` nor ``"std"``.
+        ShapeError: ``sqrt`` is not ``(..., n, n)`` or the box's dimension is not ``n``.
     """
     if theta not in ("paper", "std"):
         raise InputError(f"theta must be 'paper' or 'std', got {theta!r}")

@@ -68,7 +68,13 @@ class CubatureRule(ABC):
             device: device of the result.
 
         Returns:
-            ``xi (P, n)``, mean weights ``wm (P,)`` and covariance weights ``wc (P,)``.
+            ``(xi, wm, wc)``: the unit points ``xi``, shape ``(P, n)``, the mean weights ``wm``,
+            shape ``(P,)``, and the covariance weights ``wc``, shape ``(P,)``.
+
+        Raises:
+            InputError: ``n < 1``, or a rule that cannot be built in dimension ``n`` (an
+                unscented rule with ``n + lambda <= 0``, a Gauss-Hermite rule of more than
+                ``10**7`` points).
         """
         if n < 1:
             raise InputError(f"n must be >= 1, got {n}")
@@ -112,6 +118,9 @@ class SphericalRadialRule(CubatureRule):
 
     Args:
         degree: 3 or 5.
+
+    Raises:
+        InputError: ``degree`` is neither 3 nor 5.
     """
 
     def __init__(self, degree: int = 3) -> None:
@@ -160,6 +169,9 @@ class UnscentedRule(CubatureRule):
         alpha: spread (default 1).
         beta: prior-knowledge term (default 0; 2 is optimal for Gaussians with alpha < 1).
         kappa: secondary scaling; ``None`` means ``3 - n``, as in Särkkä & Svensson's examples.
+
+    Raises:
+        InputError: ``alpha`` is not positive.
     """
 
     degree = 3
@@ -195,6 +207,9 @@ class GaussHermiteRule(CubatureRule):
 
     Args:
         order: points per dimension (>= 1).
+
+    Raises:
+        InputError: ``order < 1``.
     """
 
     def __init__(self, order: int = 3) -> None:

@@ -58,7 +58,16 @@ class SampledPlant:
         self.ny, self.nu, self.nv = exact.ny, exact.nu, exact.nv
 
     def output(self, k: int, du: Tensor, dv: Tensor | None = None) -> Tensor:
-        """``y(k)`` from the moves ``du(0..k-1)`` ``(>= k, nu)`` and ``dv(0..k-1)``: shape ``(ny,)``."""
+        """The plant's output ``y(k)`` after the moves up to sample ``k - 1``.
+
+        Args:
+            k: the sample.
+            du: the MV moves ``du(0..k-1)``, shape ``(K, nu)`` with ``K >= k``.
+            dv: the DV changes ``dv(0..k-1)``, shape ``(K, nv)`` with ``K >= k``, or ``None``.
+
+        Returns:
+            ``y(k)``, shape ``(ny,)``.
+        """
         y = torch.einsum("iyu,iu->y", self.Su[:k], du[:k].flip(0)) if k > 0 else None
         out = torch.zeros(self.ny, dtype=self.Su.dtype) if y is None else y
         if dv is not None and self.nv and k > 0:
@@ -109,6 +118,11 @@ def run_closed_loop(
 
     Returns:
         The :class:`ClosedLoopResult`.
+
+    Raises:
+        ShapeError: a predictor model whose channels are not the plant's, or ``v`` or ``noise``
+            of the wrong shape.
+        InputError: more ``steps`` than the plant was built for.
     """
     dt = predictor.model.dtype
     nu, nv, ny = plant.nu, plant.nv, plant.ny

@@ -109,15 +109,22 @@ class DMCController:
         Lambda: move-suppression weights, a scalar or shape ``(nu,)`` (``> 0``).
         W: weights on ``u(k+M-1) - u_t``, a scalar or shape ``(nu,)`` (``>= 0``); default 0.
         u_min: lower input bounds, scalar or ``(nu,)``; ``None`` (or ``-inf``) for none.
-        u_max: upper input bounds, likewise.
+        u_max: upper input bounds, scalar or ``(nu,)``; ``None`` (or ``inf``) for none.
         du_max: move bounds ``|du| <= du_max``, scalar or ``(nu,)`` (``> 0``); ``None`` for none.
         y_min: hard lower CV limits on ``y(k+i|k)``, scalar or ``(ny,)``; ``None`` for none.
-        y_max: hard upper CV limits, likewise.
+        y_max: hard upper CV limits, scalar or ``(ny,)``; ``None`` for none.
         z_min: soft lower CV bounds, scalar or ``(ny,)``; ``None`` for none.
-        z_max: soft upper CV bounds, likewise.
+        z_max: soft upper CV bounds, scalar or ``(ny,)``; ``None`` for none.
         q_lower: weights of the soft lower-bound violations, scalar or ``(ny,)`` (``> 0``).
-        q_upper: weights of the soft upper-bound violations, likewise.
+        q_upper: weights of the soft upper-bound violations, scalar or ``(ny,)`` (``> 0``).
         tol: QP tolerance.
+
+    Raises:
+        InputTypeError: ``model`` is not a :class:`StepResponseModel`, or a weight or bound that
+            is not real numbers.
+        InputError: horizons that are not integers with ``1 <= M <= P``, a weight or bound of the
+            wrong sign or NaN, or a lower bound above its upper bound.
+        ShapeError: a weight or bound that is neither a scalar nor one value per channel.
     """
 
     def __init__(
@@ -240,6 +247,8 @@ class DMCController:
         Raises:
             InfeasibleError: the input/move constraints admit no plan (e.g. ``u(k-1)`` outside the
                 bounds by more than ``M`` moves can recover).
+            ShapeError: an argument whose shape is not the one given above.
+            InputError: an argument with non-finite entries.
         """
         m, dt = self.model, self.model.dtype
         free = torch.as_tensor(free, dtype=dt)
@@ -344,5 +353,20 @@ class DMCController:
         y_target: Tensor | float = 0.0,
         u_target: Tensor | float | None = None,
     ) -> Tensor:
-        """The move ``du(k)`` to apply now, shape ``(..., nu)`` (see :meth:`plan`)."""
+        """The move ``du(k)`` to apply now: the first move of :meth:`plan`.
+
+        Args:
+            free: open-loop predictions, shape ``(..., P', ny)`` with ``P' >= P``.
+            u_prev: ``u(k-1)``, shape ``(..., nu)``.
+            y_target: CV target ``y_t``, scalar or shape ``(..., ny)``.
+            u_target: MV target ``u_t``, shape ``(..., nu)``; default ``u(k-1)``.
+
+        Returns:
+            ``du(k)``, shape ``(..., nu)``.
+
+        Raises:
+            InfeasibleError: the input/move constraints admit no plan.
+            ShapeError: an argument of the wrong shape.
+            InputError: an argument with non-finite entries.
+        """
         return self.plan(free, u_prev, y_target, u_target).du[..., 0, :]

@@ -107,10 +107,19 @@ def _is_diagonal(Q: Tensor) -> bool:
 
 
 def steady_gain(real: Realization, Q_Y: Tensor, Q_y: Tensor) -> Tensor:
-    """Steady-state Kalman gain of a realisation, shape ``(n, ny)``.
+    """Steady-state Kalman gain of a realisation.
 
     When ``Q_Y`` is block-diagonal over the CV blocks and ``Q_y`` diagonal the DARE decouples into one
     small DARE per CV; those are solved as a batch (one per block size), otherwise the full one.
+
+    Args:
+        real: the realisation (:func:`~torchfilt.dmc.realize` or
+            :func:`~torchfilt.dmc.lmg_realization`).
+        Q_Y: state (process) noise covariance, shape ``(n, n)``.
+        Q_y: measurement noise covariance, shape ``(ny, ny)``.
+
+    Returns:
+        The gain, shape ``(n, ny)``.
 
     Raises:
         NotDetectableError: from the DARE solver.
@@ -151,6 +160,10 @@ class OpenLoopPredictor:
 
     Raises:
         NotDetectableError: the realisation with these covariances has no stabilising DARE solution.
+        InputError: ``model`` is not a :class:`StepResponseModel`, both or neither of ``gain`` and
+            the covariances, a non-finite gain, or a covariance that is not real, finite and
+            symmetric.
+        ShapeError: a gain that is not ``(n, ny)``, or a covariance of the wrong size.
 
     Example:
         >>> import torch
@@ -222,6 +235,13 @@ class OpenLoopPredictor:
             h: correction weights, a scalar or a vector with one weight per element of a CV block
                 (length ``N + 1`` or ``N + 2``; all CVs must then use the same layout).
             horizon: model horizon ``N``.
+
+        Returns:
+            The predictor, with the gain that applies ``h`` to each CV's block.
+
+        Raises:
+            InputError: ``model`` is not a :class:`StepResponseModel`, or ``h`` not finite.
+            ShapeError: ``h`` is neither a scalar nor one weight per element of each CV block.
         """
         _check_model(model)
         real = cls._realizer(model, horizon)
@@ -252,10 +272,12 @@ class OpenLoopPredictor:
 
     @property
     def horizon(self) -> int:
+        """The model horizon ``N``."""
         return self.realization.horizon
 
     @property
     def state_dim(self) -> int:
+        """The state dimension ``n`` of the realisation."""
         return self.realization.state_dim
 
     def initial_state(self, level: float | Tensor = 0.0) -> Tensor:
@@ -265,7 +287,10 @@ class OpenLoopPredictor:
             level: a scalar or one value per CV, shape ``(ny,)``.
 
         Returns:
-            Shape ``(n,)``.
+            The state, shape ``(n,)``.
+
+        Raises:
+            InputError: ``level`` not finite.
         """
         lv = _as_tensor(level, "level", self.model.dtype)
         _finite(lv, "level")
@@ -279,11 +304,25 @@ class OpenLoopPredictor:
         return x
 
     def predictions(self, state: Tensor) -> Tensor:
-        """``Y^ol_N(k|k) = [y^ol(k+1|k); ...; y^ol(k+N|k)]`` from states ``(..., n)``: ``(..., N, ny)``."""
+        """The open-loop predictions ``Y^ol_N(k|k) = [y^ol(k+1|k); ...; y^ol(k+N|k)]``.
+
+        Args:
+            state: states ``X(k|k)``, shape ``(..., n)``.
+
+        Returns:
+            The predictions, shape ``(..., N, ny)``.
+        """
         return state[..., self.realization.pred_index]
 
     def current(self, state: Tensor) -> Tensor:
-        """The filtered outputs ``y^ol(k|k)``, shape ``(..., ny)``."""
+        """The filtered outputs ``y^ol(k|k)``.
+
+        Args:
+            state: states ``X(k|k)``, shape ``(..., n)``.
+
+        Returns:
+            The outputs, shape ``(..., ny)``.
+        """
         return state @ self.realization.H.mT
 
     # -------------------------------------------------------------- the filter
@@ -368,6 +407,11 @@ class OpenLoopPredictor:
 
         Returns:
             ``X(k|k)``, shape ``(..., n)``.
+
+        Raises:
+            ShapeError: an argument whose shape is not the one given above, or batch shapes that
+                do not broadcast.
+            InputError: a non-finite state, move or disturbance.
         """
         y, du_t, dv_t = self._inputs(y, du, dv, time=False)
         state = self._state_arg(state, "state", (y.shape[:-1], du_t.shape[:-1], dv_t.shape[:-1]))
@@ -397,6 +441,11 @@ class OpenLoopPredictor:
         Returns:
             A :class:`PredictorRun` with states ``(..., T, n)``, predictions ``(..., T, N, ny)`` and
             innovations ``(..., T, ny)``.
+
+        Raises:
+            ShapeError: an argument whose shape is not the one given above, ``T = 0``, or batch
+                shapes that do not broadcast.
+            InputError: a non-finite ``x0``, move or disturbance.
         """
         y, du_t, dv_t = self._inputs(y, du, dv, time=True)
         lead = (y.shape[:-2], du_t.shape[:-2], dv_t.shape[:-2])
@@ -426,7 +475,16 @@ class OpenLoopPredictor:
         return self._state
 
     def reset(self, state: Tensor | None = None, *, level: float | Tensor = 0.0) -> None:
-        """Restart the online predictor from ``state`` ``(n,)`` or at rest at ``level``."""
+        """Restart the online predictor from ``state`` or at rest at ``level``.
+
+        Args:
+            state: the new ``X(k|k)``, shape ``(n,)``; ``None`` for a state at rest.
+            level: the rest level (when ``state`` is ``None``), a scalar or shape ``(ny,)``.
+
+        Raises:
+            ShapeError: ``state`` is not ``(n,)``.
+            InputError: ``state`` or ``level`` not finite.
+        """
         if state is None:
             self._state = self.initial_state(level)
             return
@@ -447,6 +505,10 @@ class OpenLoopPredictor:
 
         Returns:
             ``Y^ol_N(k|k)``, shape ``(N, ny)``: row ``i - 1`` is ``y^ol(k+i|k)``.
+
+        Raises:
+            ShapeError: ``y``, ``du`` or ``dv`` of the wrong shape.
+            InputError: a non-finite move or disturbance.
         """
         y_t = _as_tensor(y, "y", self.model.dtype)
         if y_t.shape != (self.model.ny,):
@@ -469,6 +531,11 @@ class LMGPredictor(OpenLoopPredictor):
         Q_y: measurement noise, scalar, ``(ny,)`` or ``(ny, ny)``.
         gain: a fixed gain in LMG coordinates ``(n_lmg, ny)`` instead.
         horizon: model horizon ``N``.
+
+    Raises:
+        NotDetectableError: the realisation with these covariances has no stabilising DARE solution.
+        InputError: invalid arguments, as for :class:`OpenLoopPredictor`.
+        ShapeError: a gain or covariance of the wrong size.
     """
 
     _realizer = staticmethod(lmg_realization)

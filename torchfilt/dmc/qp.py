@@ -97,7 +97,7 @@ def solve_qp(
         b: right-hand sides, shape ``(..., m)`` (with ``A``).
         lb: lower bounds, a scalar or shape ``(..., n)``; ``-inf`` entries are dropped (the same
             entries in every batch element).
-        ub: upper bounds, likewise.
+        ub: upper bounds, a scalar or shape ``(..., n)``; ``+inf`` entries are dropped likewise.
         tol: Clarabel's duality-gap and feasibility tolerances.
         max_iter: iteration cap.
 
@@ -107,6 +107,7 @@ def solve_qp(
     Raises:
         ShapeError: inconsistent shapes (names the argument).
         InputError: ``G`` not symmetric positive definite, or non-finite data.
+        InputTypeError: ``G`` or ``c`` is not a tensor.
     """
     if not isinstance(G, Tensor) or not isinstance(c, Tensor):
         raise InputTypeError(

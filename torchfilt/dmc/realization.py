@@ -77,6 +77,7 @@ class Realization(NamedTuple):
 
     @property
     def state_dim(self) -> int:
+        """The state dimension ``n``."""
         return int(self.A.shape[-1])
 
 
@@ -122,6 +123,10 @@ def realize(model: StepResponseModel, horizon: int | None = None) -> Realization
 
     Returns:
         A :class:`Realization` with ``n = sum_j L_j`` states, ``L_j = N + 1`` or ``N + 2``.
+
+    Raises:
+        InputTypeError: ``model`` is not a :class:`StepResponseModel`.
+        InputError: ``horizon`` is not a positive integer.
     """
     N = _check_horizon(model, horizon)
     model = _with_horizon(model, N)
@@ -157,6 +162,10 @@ def lmg_realization(model: StepResponseModel, horizon: int | None = None) -> Rea
     Returns:
         A :class:`Realization` with ``n = sum_j (L_j + 1)`` states (prediction vector plus ``x_p``
         per CV) and ``embedding`` ``T`` (``x_LMG = T x_ours``) set.
+
+    Raises:
+        InputTypeError: ``model`` is not a :class:`StepResponseModel`.
+        InputError: ``horizon`` is not a positive integer.
     """
     N = _check_horizon(model, horizon)
     model = _with_horizon(model, N)

@@ -187,11 +187,20 @@ class MultiPriorityTarget:
         u_max: upper MV bounds, scalar or ``(nu,)``.
         du_ss_max: bound on ``|u_ss - u(k-1)|``, scalar or ``(nu,)``; ``None`` for none.
         y_min: hard lower CV limits, scalar or ``(ny,)``; ``None`` for none.
-        y_max: hard upper CV limits, likewise.
+        y_max: hard upper CV limits, scalar or ``(ny,)``; ``None`` for none.
         cost: MV costs ``h``, shape ``(nu,)``; ``None`` for no economic term.
         minimum_move: indices of the minimum-move MVs (cost ``h_i |du_i,ss|``).
         J_min: the economic value aimed at.
         economic_weight: ``w_J``.
+
+    Raises:
+        InputError: an integrating model or one that is no :class:`StepResponseModel`, a lower
+            bound above its upper bound, a negative ``du_ss_max`` or ``economic_weight``, a
+            non-finite cost or ``J_min``, an MV index out of range, no rows, or a row with an
+            unknown variable or kind, a non-positive ``concern`` or an invalid priority.
+        InputTypeError: a row field or number of the wrong type.
+        ShapeError: a bound or cost that is neither a scalar nor one value per channel, or linear
+            weights that are not ``(ny + nu,)``.
     """
 
     def __init__(
@@ -400,11 +409,19 @@ class MultiPriorityTarget:
 
     # ------------------------------------------------------------------ the calculation
     def solve(self, y_ss: Tensor, u_prev: Tensor) -> SSTCResult:
-        """Targets from the steady-state open-loop prediction ``(ny,)`` and ``u(k-1)`` ``(nu,)``.
+        """Targets from the steady-state open-loop prediction and the last input.
+
+        Args:
+            y_ss: the steady-state open-loop prediction ``y^ol(k+N|k)``, shape ``(ny,)``.
+            u_prev: ``u(k-1)``, shape ``(nu,)``.
+
+        Returns:
+            The :class:`SSTCResult`: the targets and the stages' diagnostics.
 
         Raises:
             InfeasibleError: the hard constraints admit no steady state.
             ShapeError: wrong input shapes.
+            InputError: non-finite inputs.
         """
         y0, up = _finite_vector(y_ss, self.ny, "y_ss"), _finite_vector(u_prev, self.nu, "u_prev")
         lo, hi = self._box(up)

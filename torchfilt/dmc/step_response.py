@@ -48,11 +48,26 @@ class DiscreteModel(Protocol):
     """
 
     def step(self, x: Tensor, w: Tensor) -> Tensor:
-        """Next state, ``(..., n), (..., nu + nv) -> (..., n)``."""
+        """Next state.
+
+        Args:
+            x: states ``x_k``, shape ``(..., n)``.
+            w: held inputs ``w_k = [u; v]``, shape ``(..., nu + nv)``.
+
+        Returns:
+            ``x_{k+1}``, shape ``(..., n)``.
+        """
         ...
 
     def output(self, x: Tensor) -> Tensor:
-        """CVs, ``(..., n) -> (..., ny)``."""
+        """CVs of a state.
+
+        Args:
+            x: states ``x_k``, shape ``(..., n)``.
+
+        Returns:
+            ``y_k``, shape ``(..., ny)``.
+        """
         ...
 
 
@@ -228,6 +243,13 @@ class StepResponseModel:
 
         Returns:
             The model, with ``L = horizon + 1`` coefficients.
+
+        Raises:
+            InputError: a non-positive ``dt`` or ``horizon``, or the stable layout asked for a CV
+                with an integrating entry.
+            InputTypeError: ``Gu`` or ``Gv`` not a list of rows of entries.
+            ShapeError: ragged rows, ``Gu`` and ``Gv`` with different numbers of rows, or
+                ``integrating`` without one flag per CV.
         """
         if not dt > 0:
             raise InputError(f"dt (sampling period) must be positive, got {dt}")
@@ -311,6 +333,7 @@ class StepResponseModel:
         Raises:
             ShapeError: ``x0``/``w0``/``nu`` inconsistent, or the model returns wrong shapes.
             ModelError: a linear measurement with a feed-through matrix ``D`` (not strictly proper).
+            InputError: a non-positive ``horizon``, or an amplitude that is zero or not finite.
         """
         dm = _as_discrete_model(model)
         x0 = torch.as_tensor(x0)
@@ -375,6 +398,7 @@ class StepResponseModel:
 
     @property
     def dtype(self) -> torch.dtype:
+        """The coefficients' dtype."""
         return self.Su.dtype
 
     def coefficients(self, count: int, channel: str = "u") -> Tensor:
@@ -391,6 +415,9 @@ class StepResponseModel:
 
         Returns:
             Coefficients, shape ``(count, ny, nu)`` or ``(count, ny, nv)``.
+
+        Raises:
+            InputError: ``channel`` is neither ``"u"`` nor ``"v"``, or ``count < 1``.
         """
         if channel not in ("u", "v"):
             raise InputError(f"channel must be 'u' or 'v', got {channel!r}")
@@ -405,14 +432,27 @@ class StepResponseModel:
     def steady_gain(self, channel: str = "u") -> Tensor:
         """Steady-state gain ``S_N`` (stable CVs) or settled slope ``S_{N+1} - S_N`` (integrating).
 
+        Args:
+            channel: ``"u"`` (MVs) or ``"v"`` (DVs).
+
         Returns:
-            Shape ``(ny, nu)`` or ``(ny, nv)``.
+            The gains, shape ``(ny, nu)`` or ``(ny, nv)``.
+
+        Raises:
+            InputError: ``channel`` is neither ``"u"`` nor ``"v"``.
         """
         S = self.coefficients(self.horizon + 1, channel)
         return torch.where(self.integrating[:, None], S[-1] - S[-2], S[-2])
 
     def with_layout(self, integrating: Sequence[bool] | Tensor) -> StepResponseModel:
-        """The same coefficients with another per-CV layout (e.g. a stable CV in the integrating one)."""
+        """The same coefficients with another per-CV layout (e.g. a stable CV in the integrating one).
+
+        Args:
+            integrating: the per-CV layout flags, shape ``(ny,)``.
+
+        Returns:
+            The new model.
+        """
         return StepResponseModel.from_arrays(
             self.Su,
             self.Sv,

@@ -46,7 +46,12 @@ TARGET_REGULARISATION = 1e-6
 
 
 class Target(NamedTuple):
-    """A steady-state target: ``y`` shape ``(ny,)``, ``u`` shape ``(nu,)``."""
+    """A steady-state target.
+
+    Attributes:
+        y: the controlled variables' target, shape ``(ny,)``.
+        u: the inputs' target, shape ``(nu,)``.
+    """
 
     y: Tensor
     u: Tensor
@@ -61,7 +66,12 @@ class SteadyStateTarget(Protocol):
 
 
 class FixedTarget:
-    """Constant setpoints ``(y_t, u_t)`` (``u_t`` defaults to ``u(k-1)``, i.e. no input target)."""
+    """Constant setpoints ``(y_t, u_t)`` (``u_t`` defaults to ``u(k-1)``, i.e. no input target).
+
+    Args:
+        y: the setpoints ``y_t``, a scalar (the same for every CV) or shape ``(ny,)``.
+        u: the input targets ``u_t``, a scalar or shape ``(nu,)``; ``None`` holds ``u(k-1)``.
+    """
 
     def __init__(self, y: Tensor | float, u: Tensor | float | None = None) -> None:
         self.y = torch.as_tensor(y, dtype=torch.float64)
@@ -193,6 +203,15 @@ class WeightedTarget:
         u_min: lower input bounds, scalar or ``(nu,)``.
         u_max: upper input bounds, scalar or ``(nu,)``.
         du_ss_max: bound on ``|u_ss - u(k-1)|``, scalar or ``(nu,)``; ``None`` for none.
+
+    Raises:
+        InputTypeError: ``model`` is not a :class:`StepResponseModel`, or a row field or bound of
+            the wrong type.
+        InputError: an integrating model, ``u_min > u_max``, a negative ``du_ss_max``, no rows,
+            or a row with an unknown variable or kind, a non-positive ``concern`` or a priority
+            that is not a positive integer.
+        ShapeError: a bound that is neither a scalar nor ``(nu,)``, or linear weights that are
+            not ``(ny + nu,)``.
     """
 
     def __init__(

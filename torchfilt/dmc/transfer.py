@@ -69,6 +69,11 @@ class FOPDT:
         K: steady-state gain.
         tau: time constant (``>= 0``; ``0`` is a pure gain with dead time).
         theta: dead time (``>= 0``), any real value, not only multiples of the sampling period.
+
+    Raises:
+        InputTypeError: a parameter that is not a real number.
+        InputError: a parameter that is not finite, a negative ``tau`` or ``theta``, or
+            ``tau = theta = 0`` with ``K != 0`` (a direct feed-through, not strictly proper).
     """
 
     K: float
@@ -90,7 +95,14 @@ class FOPDT:
             )
 
     def step(self, t: Tensor) -> Tensor:
-        """Continuous step response ``s(t)`` at times ``t`` (any shape), same dtype as ``t``."""
+        """Continuous step response ``s(t)``.
+
+        Args:
+            t: times, any shape.
+
+        Returns:
+            ``s(t)``, of ``t``'s shape (any shape) and dtype.
+        """
         tp = (t - self.theta).clamp_min(0.0)
         if self.tau == 0.0:
             return torch.where(t >= self.theta, torch.full_like(t, self.K), torch.zeros_like(t))
@@ -105,6 +117,10 @@ class IPDT:
         K: integrating gain (slope of the step response once settled, per unit time).
         tau: time constant of the lag (``>= 0``; ``0`` is a pure integrator with dead time).
         theta: dead time (``>= 0``), any real value.
+
+    Raises:
+        InputTypeError: a parameter that is not a real number.
+        InputError: a parameter that is not finite, or a negative ``tau`` or ``theta``.
     """
 
     K: float
@@ -121,7 +137,14 @@ class IPDT:
         )
 
     def step(self, t: Tensor) -> Tensor:
-        """Continuous step response ``s(t)`` at times ``t`` (any shape), same dtype as ``t``."""
+        """Continuous step response ``s(t)``.
+
+        Args:
+            t: times, any shape.
+
+        Returns:
+            ``s(t)``, of ``t``'s shape (any shape) and dtype.
+        """
         tp = (t - self.theta).clamp_min(0.0)
         if self.tau == 0.0:
             return self.K * tp

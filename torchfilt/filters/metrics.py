@@ -43,6 +43,10 @@ def nees(x_true: Tensor, mean: Tensor, cov: Tensor) -> Tensor:
 
     Returns:
         NEES per step, shape ``(..., T)``; chi-square with ``n`` degrees of freedom when consistent.
+
+    Raises:
+        ShapeError: ``x_true``, ``mean`` and ``cov`` are not ``(..., n)``, ``(..., n)`` and
+            ``(..., n, n)`` for one ``n``.
     """
     if mean.shape[-1] != x_true.shape[-1] or cov.shape[-2:] != (mean.shape[-1],) * 2:
         raise ShapeError(
@@ -75,6 +79,10 @@ def rmse(x_true: Tensor, mean: Tensor, dim: int | tuple[int, ...] = -2) -> Tenso
 
     Returns:
         RMSE, shape of the input with ``dim`` reduced (default ``(..., n)``).
+
+    Raises:
+        InputError: ``x_true`` or ``mean`` is not a tensor.
+        ShapeError: ``x_true`` and ``mean`` do not broadcast.
     """
     _check_pair(x_true, mean)
     return ((x_true - mean) ** 2).mean(dim=dim).sqrt()
@@ -91,6 +99,11 @@ def coverage(x_true: Tensor, mean: Tensor, cov: Tensor, level: float = 0.95) -> 
 
     Returns:
         Empirical coverage per state, shape ``(..., n)``; ``level`` when the filter is calibrated.
+
+    Raises:
+        InputError: ``level`` outside (0, 1), or ``x_true`` or ``mean`` is not a tensor.
+        ShapeError: ``x_true`` and ``mean`` do not broadcast, or ``cov`` is not
+            ``(..., T, n, n)`` for ``mean`` of shape ``(..., T, n)``.
     """
     if not 0.0 < level < 1.0:
         raise InputError(f"level must be in (0, 1), got {level}")

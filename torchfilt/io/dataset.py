@@ -44,21 +44,34 @@ class Dataset:
     manifest_path: Path
 
     def split(self, name: str) -> list[Recording]:
-        """The recordings of one split (``"train"``, ``"validation"`` or ``"test"``)."""
+        """The recordings of one split.
+
+        Args:
+            name: ``"train"``, ``"validation"`` or ``"test"``.
+
+        Returns:
+            The split's recordings, in manifest order.
+
+        Raises:
+            InputError: ``name`` is not a split.
+        """
         if name not in SPLITS:
             raise InputError(f"split must be one of {SPLITS}, got {name!r}")
         return [r for r, s in zip(self.recordings, self.splits, strict=True) if s == name]
 
     @property
     def state_dim(self) -> int:
+        """The number of state channels."""
         return len(self.manifest.names("state"))
 
     @property
     def input_dim(self) -> int:
+        """The number of input channels."""
         return len(self.manifest.names("input"))
 
     @property
     def obs_dim(self) -> int:
+        """The number of measurement channels."""
         return len(self.manifest.names("measurement"))
 
     def fingerprint(self) -> dict[str, Any]:
@@ -116,7 +129,16 @@ class Dataset:
         obs_dim: int | None = None,
         input_dim: int | None = None,
     ) -> None:
-        """Raise :class:`DataError` if the dataset's channels do not fit a model's dimensions."""
+        """Check that the dataset's channels fit a model's dimensions.
+
+        Args:
+            state_dim: the model's state dimension ``n`` (``None``: not checked).
+            obs_dim: its measurement dimension ``m`` (``None``: not checked).
+            input_dim: its input dimension ``nu`` (``None``: not checked).
+
+        Raises:
+            DataError: a dimension that is not the number of channels of its role.
+        """
         for what, want, have, role in (
             ("states", state_dim, self.state_dim, "state"),
             ("measurements", obs_dim, self.obs_dim, "measurement"),

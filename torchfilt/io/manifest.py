@@ -70,7 +70,17 @@ class Manifest:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def names(self, role: str) -> list[str]:
-        """Names of the channels with ``role``, in order."""
+        """Names of the channels with ``role``, in order.
+
+        Args:
+            role: ``"state"``, ``"input"`` or ``"measurement"``.
+
+        Returns:
+            The channel names.
+
+        Raises:
+            InputError: ``role`` is not a channel role.
+        """
         if role not in ROLES:
             raise InputError(f"role must be one of {ROLES}, got {role!r}")
         return [c.name for c in self.channels if c.role == role]
@@ -156,7 +166,18 @@ class Manifest:
 
     @classmethod
     def load(cls, path: str | Path) -> Manifest:
-        """Read a manifest JSON file."""
+        """Read a manifest JSON file.
+
+        Args:
+            path: the manifest file.
+
+        Returns:
+            The validated manifest.
+
+        Raises:
+            DataError: the file is missing, is not JSON, or is not a valid manifest (the message
+                names the file and the key).
+        """
         path = Path(path)
         if not path.is_file():
             raise DataError("manifest not found", path=path)

@@ -57,7 +57,17 @@ class Recording:
         return self.path.stem if self.path is not None else "recording"
 
     def column(self, name: str) -> np.ndarray:
-        """One channel, shape ``(T,)``."""
+        """One channel.
+
+        Args:
+            name: the channel's name.
+
+        Returns:
+            Its values, shape ``(T,)``.
+
+        Raises:
+            MissingKeyError: the recording has no channel ``name``.
+        """
         for i, c in enumerate(self.channels):
             if c.name == name:
                 return self.data[:, i]
@@ -66,20 +76,51 @@ class Recording:
         )
 
     def names(self, role: str) -> list[str]:
-        """Channel names with ``role``."""
+        """Channel names with ``role``.
+
+        Args:
+            role: ``"state"``, ``"input"`` or ``"measurement"``.
+
+        Returns:
+            The names, in column order.
+
+        Raises:
+            InputError: ``role`` is not a channel role.
+        """
         if role not in ROLES:
             raise InputError(f"role must be one of {ROLES}, got {role!r}")
         return [c.name for c in self.channels if c.role == role]
 
     def role(self, role: str) -> np.ndarray:
-        """Columns with ``role``, shape ``(T, k)`` (``k`` may be 0)."""
+        """Columns with ``role``.
+
+        Args:
+            role: ``"state"``, ``"input"`` or ``"measurement"``.
+
+        Returns:
+            The columns, shape ``(T, k)`` (``k`` may be 0).
+
+        Raises:
+            InputError: ``role`` is not a channel role.
+        """
         idx = [i for i, c in enumerate(self.channels) if c.role == role]
         if role not in ROLES:
             raise InputError(f"role must be one of {ROLES}, got {role!r}")
         return self.data[:, idx]
 
     def tensor(self, role: str, dtype: torch.dtype = torch.float64) -> Tensor:
-        """Columns with ``role`` as a tensor, shape ``(T, k)``."""
+        """Columns with ``role`` as a tensor.
+
+        Args:
+            role: ``"state"``, ``"input"`` or ``"measurement"``.
+            dtype: the tensor's dtype.
+
+        Returns:
+            The columns, shape ``(T, k)`` (``k`` may be 0).
+
+        Raises:
+            InputError: ``role`` is not a channel role.
+        """
         return torch.as_tensor(self.role(role), dtype=dtype)
 
     @property
@@ -107,7 +148,21 @@ class Recording:
         *,
         time_column: str = "time",
     ) -> Recording:
-        """Build a recording from arrays (one ``(T,)`` array per channel name)."""
+        """Build a recording from arrays.
+
+        Args:
+            time: the time of each row, shape ``(T,)``, finite and strictly increasing.
+            channels: the channels, in column order.
+            columns: one array or tensor per channel name, each of shape ``(T,)``.
+            time_column: name of the time column.
+
+        Returns:
+            The recording (with no file).
+
+        Raises:
+            DataError: a channel without data, a column whose shape is not the time's, or a time
+                that is not finite and strictly increasing.
+        """
         t = np.asarray(torch.as_tensor(time).detach().cpu(), dtype=np.float64)
         cols = []
         for c in channels:

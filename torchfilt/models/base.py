@@ -41,6 +41,9 @@ class TimeVarying:
 
     Args:
         values: covariances, shape ``(..., T, d, d)``.
+
+    Raises:
+        ShapeError: ``values`` is not ``(..., T, d, d)``.
     """
 
     def __init__(self, values: Tensor) -> None:
@@ -52,10 +55,12 @@ class TimeVarying:
 
     @property
     def dim(self) -> int:
+        """The dimension ``d`` of the covariances."""
         return int(self.values.shape[-1])
 
     @property
     def steps(self) -> int:
+        """The number of steps ``T``."""
         return int(self.values.shape[-3])
 
     def __call__(self, step: int) -> Tensor:
@@ -64,6 +69,7 @@ class TimeVarying:
         return self.values[..., step, :, :]
 
     def to(self, *args: Any, **kwargs: Any) -> TimeVarying:
+        """A copy with the values moved or cast by ``Tensor.to(*args, **kwargs)``."""
         return TimeVarying(self.values.to(*args, **kwargs))
 
 
@@ -93,14 +99,28 @@ class ConditionalModel(nn.Module):
         """
 
     def predict_mean(self, x: Tensor, u: Tensor | None = None) -> Tensor:
-        """The predictive mean alone, ``(..., P, d)``: all that an optimiser over ``x`` needs (the
-        constrained CKF's reconciliation calls it many times per step). Equal to
-        ``predict(x, u).mean``; models whose variance costs extra override it to skip that work.
+        """The predictive mean alone: all that an optimiser over ``x`` needs (the constrained
+        CKF's reconciliation calls it many times per step). Equal to ``predict(x, u).mean``;
+        models whose variance costs extra override it to skip that work.
+
+        Args:
+            x: points, shape ``(..., P, n)``.
+            u: inputs aligned with the points, shape ``(..., P, nu)``, or ``None``.
+
+        Returns:
+            The predictive mean, shape ``(..., P, d)``.
         """
         return self.predict(x, u).mean
 
     def noise_cov(self, step: int | None = None) -> Tensor | None:
-        """Additive noise covariance at ``step`` (``(..., d, d)``), or ``None`` for none."""
+        """Additive noise covariance at ``step``.
+
+        Args:
+            step: the step (0-based) of a time-varying noise; ``None`` for a constant one.
+
+        Returns:
+            The covariance, shape ``(..., d, d)``, or ``None`` for no additive noise.
+        """
         return None
 
     @property
@@ -109,6 +129,15 @@ class ConditionalModel(nn.Module):
         return False
 
     def forward(self, x: Tensor, u: Tensor | None = None) -> Prediction:
+        """Same as :meth:`predict` (calling the module).
+
+        Args:
+            x: points, shape ``(..., P, n)``.
+            u: inputs aligned with the points, shape ``(..., P, nu)``, or ``None``.
+
+        Returns:
+            A :class:`Prediction` with mean ``(..., P, d)``.
+        """
         return self.predict(x, u)
 
 
@@ -163,7 +192,7 @@ def check_output(out: Any, x: Tensor, out_dim: int, name: str) -> Tensor:
         name: the model's name, for the message.
 
     Returns:
-        ``out`` (cast to ``x.dtype`` if needed).
+        ``out``, shape ``(..., P, d)`` (cast to ``x.dtype`` if needed).
 
     Raises:
         ModelError: ``out`` is not a tensor, is not floating point, or has the wrong shape.

@@ -62,6 +62,10 @@ class CalibratedModel(ConditionalModel):
     Attributes:
         log_scale: learnable ``log s``, shape ``(d,)``.
         log_floor: learnable ``log f``, shape ``(d,)``.
+
+    Raises:
+        InputError: ``min_scale`` negative or not finite, or ``scale`` / ``floor`` not finite and
+            positive, of the wrong size, or a scale below ``min_scale``.
     """
 
     def __init__(
@@ -95,7 +99,7 @@ class CalibratedModel(ConditionalModel):
 
     @property
     def scale(self) -> Tensor:
-        """Variance scales ``s (d,)``."""
+        """Variance scales ``s``, shape ``(d,)``."""
         return self.log_scale.exp()
 
     @torch.no_grad()
@@ -106,7 +110,7 @@ class CalibratedModel(ConditionalModel):
 
     @property
     def floor(self) -> Tensor:
-        """Noise floor ``f (d,)``."""
+        """Noise floor ``f``, shape ``(d,)``."""
         return self.log_floor.exp()
 
     def predict(self, x: Tensor, u: Tensor | None = None) -> Prediction:

@@ -55,6 +55,17 @@ class _NoiseMixin:
         self.register_buffer("_noise", value)  # type: ignore[attr-defined]
 
     def noise_cov(self, step: int | None = None) -> Tensor | None:
+        """Additive noise covariance at ``step``.
+
+        Args:
+            step: the step (0-based) of a time-varying noise; ``None`` for a constant one.
+
+        Returns:
+            The covariance, shape ``(..., d, d)``, or ``None`` for no additive noise.
+
+        Raises:
+            InputError: the noise is time-varying and ``step`` is ``None``.
+        """
         if self.noise_param is not None:
             return self.noise_param()
         noise: Tensor | None = self._noise  # type: ignore[attr-defined]
@@ -88,6 +99,11 @@ class FunctionModel(_NoiseMixin, ConditionalModel):
         in_dim: input (state) dimension, if known, for shape checks.
         name: name used in error messages (``"transition"``, ``"measurement"``).
         noise_name: name of the noise argument in error messages (``"Q"``, ``"R"``).
+
+    Raises:
+        InputError: ``fn`` is not callable, ``noise`` is not a valid covariance, or neither
+            ``out_dim`` nor ``noise`` gives the output size.
+        ShapeError: ``noise`` is not ``(..., d, d)``, or its size is not ``out_dim``.
     """
 
     def __init__(
@@ -122,6 +138,19 @@ class FunctionModel(_NoiseMixin, ConditionalModel):
         self._two_args = _positional_arity(fn) >= 2
 
     def predict(self, x: Tensor, u: Tensor | None = None) -> Prediction:
+        """Predictive distribution at points: ``fn``'s value, with no per-point variance.
+
+        Args:
+            x: points, shape ``(..., P, n)``.
+            u: inputs aligned with the points, shape ``(..., P, nu)``, or ``None``.
+
+        Returns:
+            A :class:`Prediction` with mean ``(..., P, d)``.
+
+        Raises:
+            ModelError: ``fn`` returned something other than a floating tensor of shape
+                ``(..., P, d)``.
+        """
         out = self._fn(x, u) if self._two_args else self._fn(x)
         return Prediction(check_output(out, x, self.out_dim, self.name))
 
@@ -163,7 +192,22 @@ def as_conditional(
     noise_name: str,
     in_dim: int | None = None,
 ) -> ConditionalModel:
-    """Turn a callable (plus its noise) or a model (plus optional extra noise) into a model."""
+    """Turn a callable (plus its noise) or a model (plus optional extra noise) into a model.
+
+    Args:
+        obj: a :class:`ConditionalModel`, or a callable ``fn(x, u)`` (see :class:`FunctionModel`).
+        noise: the callable's additive noise (required), or extra noise added to the model's.
+        name: the model's name in error messages (``"transition"``, ``"measurement"``).
+        noise_name: the noise argument's name in error messages (``"Q"``, ``"R"``).
+        in_dim: input (state) dimension of a callable, if known, for shape checks.
+
+    Returns:
+        The model.
+
+    Raises:
+        InputError: ``obj`` is a callable and ``noise`` is ``None``, or an invalid argument of
+            :class:`FunctionModel`.
+    """
     if isinstance(obj, ConditionalModel):
         return obj if noise is None else WithNoise(obj, noise, noise_name)
     if noise is None:
@@ -193,6 +237,11 @@ class StateSpaceModel(torch.nn.Module):
             :func:`torchfilt.fit_likelihood`); required for a callable transition, optional (extra
             noise) for a model.
         R: measurement noise, ``(..., m, m)`` or :class:`TimeVarying`; likewise.
+
+    Raises:
+        ShapeError: the transition does not map ``n`` states to ``n``, the measurement expects
+            another state dimension, or a noise of the wrong size.
+        InputError: a callable without its noise, or an invalid noise covariance.
 
     Example:
         >>> import torch, torchfilt

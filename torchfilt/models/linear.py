@@ -60,6 +60,10 @@ def linear_system(model: StateSpaceModel) -> LinearSystem | None:
 
     Returns:
         A :class:`LinearSystem`, or ``None`` for a model that is not known to be linear.
+
+    Raises:
+        ModelError: the model's ``linear_system()`` returns something other than a
+            :class:`LinearSystem` or ``None``.
     """
     declared = getattr(model, "linear_system", None)
     if callable(declared):
@@ -103,6 +107,11 @@ class LinearModel(FunctionModel):
         noise: covariance, ``(..., d, d)`` or :class:`TimeVarying`.
         D: optional input matrix, shape ``(..., d, nu)``.
         name: name used in error messages.
+        noise_name: name of the noise argument in error messages (default: from ``name``).
+
+    Raises:
+        ShapeError: ``D`` has not the rows of ``C``, or ``noise`` is not ``(..., d, d)``.
+        InputError: a matrix that is not a real tensor, or an invalid noise covariance.
     """
 
     C: Tensor
@@ -151,6 +160,20 @@ class LinearModel(FunctionModel):
         return out
 
     def predict(self, x: Tensor, u: Tensor | None = None) -> Prediction:
+        """Predictive distribution at points: ``x C^T + u D^T``, with no per-point variance.
+
+        Args:
+            x: points, shape ``(..., P, n)``.
+            u: inputs aligned with the points, shape ``(..., P, nu)``; required when the model
+                has an input matrix ``D``.
+
+        Returns:
+            A :class:`Prediction` with mean ``(..., P, d)``.
+
+        Raises:
+            InputError: the model has an input matrix and ``u`` is ``None``.
+            ShapeError: ``u``'s last dimension is not ``D``'s ``nu``.
+        """
         return Prediction(self._linear(x, u))
 
 
@@ -167,6 +190,11 @@ class LinearGaussianModel(StateSpaceModel):
         R: measurement noise, ``(..., m, m)`` or :class:`TimeVarying`.
         B: optional input matrix, shape ``(..., n, nu)``.
         D: optional feed-through matrix, shape ``(..., m, nu)``.
+
+    Raises:
+        ShapeError: ``A`` not square, ``H`` not ``(..., m, n)``, or a noise or input matrix of
+            the wrong size.
+        InputError: a matrix that is not a real tensor, or an invalid noise covariance.
     """
 
     def __init__(
@@ -195,16 +223,20 @@ class LinearGaussianModel(StateSpaceModel):
 
     @property
     def A(self) -> Tensor:
+        """The transition matrix, shape ``(..., n, n)``."""
         return self.transition.C  # type: ignore[return-value]
 
     @property
     def H(self) -> Tensor:
+        """The measurement matrix, shape ``(..., m, n)``."""
         return self.measurement.C  # type: ignore[return-value]
 
     @property
     def B(self) -> Tensor | None:
+        """The input matrix, shape ``(..., n, nu)``, or ``None``."""
         return self.transition.D  # type: ignore[return-value]
 
     @property
     def D(self) -> Tensor | None:
+        """The feed-through matrix, shape ``(..., m, nu)``, or ``None``."""
         return self.measurement.D  # type: ignore[return-value]

@@ -57,6 +57,7 @@ class CovarianceParameter(nn.Module):
     dim: int
 
     def forward(self) -> Tensor:  # pragma: no cover - abstract
+        """The covariance, shape ``(..., d, d)``, symmetric positive definite."""
         raise NotImplementedError  # internal: not a user error (each subclass defines forward)
 
     @property
@@ -72,6 +73,9 @@ class ScalarCovariance(CovarianceParameter):
         init: initial variance ``s > 0``, a scalar or a batch ``(...,)``.
         dim: dimension ``d``.
         dtype: dtype of the parameter (default: that of ``init``, or torch's default).
+
+    Raises:
+        InputError: ``init`` is not finite or not positive, or ``dim < 1``.
     """
 
     def __init__(self, init: Tensor | float, dim: int, *, dtype: torch.dtype | None = None) -> None:
@@ -85,6 +89,7 @@ class ScalarCovariance(CovarianceParameter):
         self.raw = nn.Parameter(s.log())
 
     def forward(self) -> Tensor:
+        """The covariance ``s I``, shape ``(..., d, d)``."""
         eye = torch.eye(self.dim, dtype=self.raw.dtype, device=self.raw.device)
         return self.raw.exp()[..., None, None] * eye
 
@@ -96,6 +101,10 @@ class DiagonalCovariance(CovarianceParameter):
         init: initial variances ``(..., d)``, all positive, or a diagonal matrix ``(..., d, d)``
             (its diagonal is taken).
         dtype: dtype of the parameter.
+
+    Raises:
+        ShapeError: ``init`` is a scalar (no dimension ``d``).
+        InputError: ``init`` is not finite, or some variance is not positive.
     """
 
     def __init__(self, init: Tensor | list[float], *, dtype: torch.dtype | None = None) -> None:
@@ -116,6 +125,7 @@ class DiagonalCovariance(CovarianceParameter):
         return self.raw.exp()
 
     def forward(self) -> Tensor:
+        """The covariance ``diag(exp(r))``, shape ``(..., d, d)``."""
         return torch.diag_embed(self.raw.exp())
 
 
@@ -126,8 +136,12 @@ class CholeskyCovariance(CovarianceParameter):
     exactly one raw value.
 
     Args:
-        init: initial covariance ``(..., d, d)``, symmetric positive definite.
+        init: initial covariance, shape ``(..., d, d)``, symmetric positive definite.
         dtype: dtype of the parameter.
+
+    Raises:
+        ShapeError: ``init`` is not a square matrix ``(..., d, d)``.
+        InputError: ``init`` is not finite or not positive definite.
     """
 
     _rows: Tensor
@@ -151,7 +165,7 @@ class CholeskyCovariance(CovarianceParameter):
 
     @property
     def factor(self) -> Tensor:
-        """The lower-triangular factor ``L (..., d, d)``."""
+        """The lower-triangular factor ``L``, shape ``(..., d, d)``."""
         d = self.dim
         batch = torch.broadcast_shapes(self.raw_diag.shape[:-1], self.raw_lower.shape[:-1])
         L = self.raw_diag.new_zeros(*batch, d, d)
@@ -159,6 +173,7 @@ class CholeskyCovariance(CovarianceParameter):
         return L + torch.diag_embed(self.raw_diag.exp())
 
     def forward(self) -> Tensor:
+        """The covariance ``L L^T``, shape ``(..., d, d)``."""
         L = self.factor
         return L @ L.mT
 
@@ -172,9 +187,12 @@ class Positive(nn.Module):
     """A positive parameter ``softplus(r) + low`` (a drag constant, a gain, a time constant).
 
     Args:
-        init: initial value(s), all ``> low``.
+        init: initial value(s), all ``> low``: a scalar or any shape (the parameter's shape).
         low: lower bound (default 0).
         dtype: dtype of the parameter.
+
+    Raises:
+        InputError: ``init`` is not finite or not above ``low``, or ``low`` is not finite.
     """
 
     def __init__(
@@ -190,11 +208,12 @@ class Positive(nn.Module):
         self.raw = nn.Parameter(_softplus_inv(v - low))
 
     def forward(self) -> Tensor:
+        """The constrained value ``softplus(r) + low``, of ``init``'s shape (any shape)."""
         return F.softplus(self.raw) + self.low
 
     @property
     def value(self) -> Tensor:
-        """The constrained value (same as calling the module)."""
+        """The constrained value, of ``init``'s shape (any shape; same as calling the module)."""
         return self()
 
 
@@ -202,9 +221,15 @@ class Bounded(nn.Module):
     """A parameter in ``(low, high)``: ``low + (high - low) sigmoid(r)`` (logit transform).
 
     Args:
-        init: initial value(s), strictly inside ``(low, high)``.
-        low, high: the bounds, finite, ``low < high``.
+        init: initial value(s), strictly inside ``(low, high)``: a scalar or any shape (the
+            parameter's shape).
+        low: the lower bound, finite.
+        high: the upper bound, finite, ``low < high``.
         dtype: dtype of the parameter.
+
+    Raises:
+        InputError: bounds that are not finite with ``low < high``, or ``init`` not finite or
+            not strictly inside them.
     """
 
     def __init__(
@@ -221,9 +246,11 @@ class Bounded(nn.Module):
         self.raw = nn.Parameter(torch.log(p) - torch.log1p(-p))
 
     def forward(self) -> Tensor:
+        """The constrained value ``low + (high - low) sigmoid(r)``, of ``init``'s shape (any
+        shape)."""
         return self.low + (self.high - self.low) * torch.sigmoid(self.raw)
 
     @property
     def value(self) -> Tensor:
-        """The constrained value (same as calling the module)."""
+        """The constrained value, of ``init``'s shape (any shape; same as calling the module)."""
         return self()

@@ -44,6 +44,11 @@ class AffineSensor(ConditionalModel):
     Attributes:
         log_scale: ``(c,)``, the log of the gains' magnitudes.
         bias: ``(c,)``, the offsets.
+
+    Raises:
+        InputError: a callable ``base`` without ``out_dim``, ``channels`` that are not distinct
+            indices in ``0..m-1``, or a zero or non-finite scale or non-finite bias.
+        ShapeError: ``scale`` or ``bias`` neither one value nor one per channel.
     """
 
     sign: Tensor

@@ -208,6 +208,12 @@ class UncertainParameters(StateSpaceModel):
 
     Attributes:
         state_dim: ``n + p``; ``base_state_dim`` is ``n``.
+
+    Raises:
+        InputError: ``model`` or ``posterior`` of the wrong type, a name that is no parameter of
+            the model's maps, or a posterior that is not finite, symmetric and positive definite.
+        ShapeError: the posterior's ``mean`` is not ``(p,)`` or its ``cov`` not ``(p, p)`` for
+            the ``p`` values its names hold.
     """
 
     def __init__(self, model: StateSpaceModel, posterior: ParameterPosterior) -> None:
@@ -247,11 +253,18 @@ class UncertainParameters(StateSpaceModel):
         self.posterior = posterior
 
     def prior(self, x0: Tensor, P0: Tensor) -> tuple[Tensor, Tensor]:
-        """The joint prior ``(z0, Pz0)``: ``x0 (..., n)`` and ``P0 (..., n, n)`` with the
-        parameters' mean and covariance appended (independent of the state a priori).
+        """The joint prior ``(z0, Pz0)``: the state's prior with the parameters' mean and
+        covariance appended (independent of the state a priori).
+
+        Args:
+            x0: the state's prior mean, shape ``(..., n)``.
+            P0: the state's prior covariance, shape ``(..., n, n)``.
 
         Returns:
             ``z0`` of shape ``(..., n + p)`` and ``Pz0`` of shape ``(..., n + p, n + p)``.
+
+        Raises:
+            ShapeError: ``x0`` is not ``(..., n)`` or ``P0`` not ``(..., n, n)``.
         """
         n = self.base_state_dim
         if x0.shape[-1:] != (n,) or P0.shape[-2:] != (n, n):
@@ -268,12 +281,27 @@ class UncertainParameters(StateSpaceModel):
         return z0, Pz
 
     def state_marginal(self, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
-        """The state's part of a joint estimate: ``(..., n + p) -> (..., n)`` and
-        ``(..., n + p, n + p) -> (..., n, n)``."""
+        """The state's part of a joint estimate.
+
+        Args:
+            mean: joint means, shape ``(..., n + p)``.
+            cov: joint covariances, shape ``(..., n + p, n + p)``.
+
+        Returns:
+            The state's means, shape ``(..., n)``, and covariances, shape ``(..., n, n)``.
+        """
         n = self.base_state_dim
         return mean[..., :n], cov[..., :n, :n]
 
     def parameter_marginal(self, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
-        """The parameters' part of a joint estimate: ``(..., p)`` and ``(..., p, p)``."""
+        """The parameters' part of a joint estimate.
+
+        Args:
+            mean: joint means, shape ``(..., n + p)``.
+            cov: joint covariances, shape ``(..., n + p, n + p)``.
+
+        Returns:
+            The parameters' means, shape ``(..., p)``, and covariances, shape ``(..., p, p)``.
+        """
         n = self.base_state_dim
         return mean[..., n:], cov[..., n:, n:]

@@ -117,7 +117,17 @@ class Box:
         return out
 
     def unsqueeze(self, dim: int) -> Box:
-        """A box whose bounds gain a size-1 batch dimension at ``dim`` (counted in ``(..., n)``)."""
+        """A box whose bounds gain a size-1 batch dimension at ``dim`` (counted in ``(..., n)``).
+
+        Args:
+            dim: where the new dimension goes, negative and before the last (state) dimension.
+
+        Returns:
+            The new :class:`Box`.
+
+        Raises:
+            InputError: ``dim`` is not negative, or is -1 (the state dimension).
+        """
         if dim >= 0 or dim == -1:
             raise InputError("unsqueeze: give a negative dim before the last (state) dimension")
         out = Box.__new__(Box)
@@ -132,8 +142,8 @@ class Box:
             x: points, shape ``(..., n)`` broadcastable with the bounds.
 
         Returns:
-            The projected points (differentiable; the gradient flows to ``x`` where it is inside
-            and to the active bound where it is clipped).
+            The projected points, shape ``(..., n)`` (differentiable; the gradient flows to ``x``
+            where it is inside and to the active bound where it is clipped).
         """
         return torch.clamp(x, min=self.lower.to(x), max=self.upper.to(x))
 

@@ -63,12 +63,12 @@ def check_real_tensor(value: Tensor, name: str, *, integers: bool = False) -> Te
     """Apply the dtype rule to a tensor argument (metadata only, no host synchronisation).
 
     Args:
-        value: the argument.
+        value: the argument, any shape.
         name: the argument's name, for the message.
         integers: accept integer tensors too (arguments that are cast to the other data's dtype).
 
     Returns:
-        ``value``, unchanged.
+        ``value``, unchanged (any shape).
 
     Raises:
         InputError: ``value`` is float16 / bfloat16, complex, bool, or an integer tensor where

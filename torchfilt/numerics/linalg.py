@@ -64,7 +64,8 @@ def safe_cholesky(
     jitter ``eps(dtype) * mean|diag(A)| * 10**k`` for ``k = 1..max_tries``; a
     :class:`~torchfilt.exceptions.CholeskyJitterWarning` reports that jitter was used and how much.
     Elements that still fail (or contain non-finite values) are set to NaN (``on_failure="nan"``,
-    the default, so one bad sequence does not stop a batch) or raise ``ValueError``.
+    the default, so one bad sequence does not stop a batch) or raise
+    :class:`~torchfilt.exceptions.InputError` (a ``ValueError``).
 
     Inside ``torch.compile`` and :func:`~torchfilt.settings.sync_free` (CUDA-graph capture) the retries (which need a
     host synchronisation) are skipped and failed factors are NaN.
@@ -79,6 +80,10 @@ def safe_cholesky(
 
     Returns:
         Lower-triangular ``L`` with ``L L^T = A (+ jitter I)``, shape ``(..., n, n)``.
+
+    Raises:
+        InputError: ``on_failure="raise"`` and some matrix is not positive definite (or not
+            finite) even with jitter.
     """
     L, info = small.cholesky_ex(A)
     if no_host_sync():

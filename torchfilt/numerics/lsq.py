@@ -128,7 +128,10 @@ def batched_jacobian(
         create_graph: keep the graph of the Jacobian (for higher derivatives).
 
     Returns:
-        ``(fn(x), J)`` with ``J`` of shape ``(..., k, n)``.
+        ``(fn(x), J)``: the values, shape ``(..., k)``, and ``J``, shape ``(..., k, n)``.
+
+    Raises:
+        ShapeError: ``fn`` returns values whose batch shape is not that of ``x``.
     """
     with torch.enable_grad():
         xr = x if create_graph and x.requires_grad else x.detach().requires_grad_(True)

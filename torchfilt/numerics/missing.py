@@ -26,6 +26,6 @@ def observed(y: Tensor) -> Tensor:
         y: measurements, shape ``(..., m)``.
 
     Returns:
-        Bool tensor of ``y``'s shape, ``True`` where the component is used.
+        Bool tensor of ``y``'s shape ``(..., m)``, ``True`` where the component is used.
     """
     return torch.isfinite(y)

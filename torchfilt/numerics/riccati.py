@@ -227,6 +227,8 @@ def solve_dare(
         NotDetectableError: ``(A, C)`` not detectable or ``(A, Q^{1/2})`` not stabilisable, or the
             solver found no stabilising solution.
         ShapeError: inconsistent shapes (the message names the argument).
+        InputError: a matrix that is not a real float tensor, has non-finite entries, or ``Q`` or
+            ``R`` not symmetric, ``R`` not positive definite or ``Q`` not positive semi-definite.
     """
     A, C, Q, R = _check_inputs(A, C, Q, R)
     if check:
@@ -346,6 +348,8 @@ def steady_state_kalman(
 
     Raises:
         NotDetectableError: no stabilising solution (non-detectable or non-stabilisable pair).
+        ShapeError: inconsistent shapes (the message names the argument).
+        InputError: invalid matrices, as in :func:`solve_dare`.
     """
     A, C, Q, R = _check_inputs(A, C, Q, R)
     if check:

@@ -81,12 +81,16 @@ def chi2_quantile(p: float | Tensor, dof: float | Tensor, *, iters: int = 200) -
     """Quantile of the chi-square distribution, by bisection on the regularised gamma function.
 
     Args:
-        p: probabilities in (0, 1), any shape broadcastable with ``dof``.
-        dof: degrees of freedom (> 0).
+        p: probabilities in (0, 1), a scalar or any shape broadcastable with ``dof``.
+        dof: degrees of freedom (> 0), a scalar or any shape broadcastable with ``p``.
         iters: bisection iterations (200 reaches float64 resolution).
 
     Returns:
-        ``x`` with ``P(chi2_dof <= x) = p``, float64, broadcast shape of ``p`` and ``dof``.
+        ``x`` with ``P(chi2_dof <= x) = p``, float64, of the broadcast shape of ``p`` and ``dof``
+        (any shape; a scalar for scalar arguments).
+
+    Raises:
+        InputError: some ``p`` outside (0, 1) or some ``dof`` not positive.
     """
     p_t = torch.as_tensor(p, dtype=torch.float64)
     k = torch.as_tensor(dof, dtype=torch.float64)

@@ -35,7 +35,7 @@ def plot_errors(
     where no run is left.
 
     Args:
-        errors: ``{filter name: errors}``.
+        errors: ``{filter name: errors}``, each of shape ``(runs, T, n)`` or ``(T, n)``.
         times: sample times ``(T,)``.
         state_names: names of the states.
         units: units per state.
@@ -45,6 +45,9 @@ def plot_errors(
 
     Returns:
         The figure.
+
+    Raises:
+        ShapeError: error arrays of different ``(T, n)``, or ``state_names`` not ``n`` names.
     """
     arrays = {k: np.abs(to_numpy(v)) for k, v in errors.items()}
     arrays = {k: (v[None] if v.ndim == 2 else v) for k, v in arrays.items()}

@@ -56,6 +56,9 @@ def plot_estimates(
 
     Returns:
         The figure.
+
+    Raises:
+        ShapeError: a result of more than one sequence, or ``state_names`` not ``n`` names.
     """
     smoothed = isinstance(result, SmootherResult)
     mean = to_numpy(result.mean)
@@ -189,6 +192,9 @@ def plot_nis(
 
     Returns:
         The figure; the legend reports the fraction of steps inside the band.
+
+    Raises:
+        ShapeError: a result of more than one sequence.
     """
     T = result.innovation.shape[-2]
     t = np.arange(T, dtype=float) if times is None else to_numpy(times)

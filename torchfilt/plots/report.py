@@ -41,15 +41,22 @@ def plot_recording(
     Args:
         filtered: the filter result of one sequence (``mean (T, n)``).
         smoothed: the smoother result of the same sequence, if any.
-        times: times of the ``T`` steps.
+        times: times of the ``T`` steps, shape ``(T,)``; default ``0..T-1``.
         truth: true states ``(T, n)``; rows that are all NaN are not drawn.
         measurements: the measurements ``(T, m)`` (NaN where missing).
-        state_names, state_units, measurement_names, measurement_units: labels.
+        state_names: names of the states (default ``x1..xn``).
+        state_units: units per state, for axis labels.
+        measurement_names: names of the measurement channels (default ``y1..ym``).
+        measurement_units: units per measurement channel.
         time_unit: unit of ``times``.
         title: figure title.
 
     Returns:
         The figure.
+
+    Raises:
+        ShapeError: a result of more than one sequence, or names that are not one per state or
+            measurement channel.
     """
     mean = to_numpy(filtered.mean)
     if mean.ndim != 2:

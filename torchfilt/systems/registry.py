@@ -55,7 +55,17 @@ class SystemSpec:
     nominal: Callable[..., Callable[..., Tensor]] | None = None
 
     def nominal_transition(self, **params: float) -> Callable[..., Tensor]:
-        """The transition with its physical parameters replaced by ``params``."""
+        """The transition with its physical parameters replaced by ``params``.
+
+        Args:
+            **params: the physical parameters to change, by name (``gamma=...``).
+
+        Returns:
+            The transition ``f(x, u)``, mapping ``(..., n)`` to ``(..., n)``.
+
+        Raises:
+            InputError: the system has no nominal model, or a parameter it does not take.
+        """
         if self.nominal is None:
             raise InputError(f"system {self.name!r} has no nominal model with parameters")
         try:
@@ -140,7 +150,17 @@ SYSTEMS: dict[str, SystemSpec] = {
 
 
 def get_system(name: str) -> SystemSpec:
-    """Look a built-in system up by name (clear error listing the known ones)."""
+    """Look a built-in system up by name.
+
+    Args:
+        name: ``"reentry"``, ``"reaction"`` or ``"pendulum"``.
+
+    Returns:
+        The system's :class:`SystemSpec`.
+
+    Raises:
+        InputError: an unknown name (the message lists the known ones).
+    """
     try:
         return SYSTEMS[name]
     except KeyError:

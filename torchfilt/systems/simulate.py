@@ -77,6 +77,9 @@ def simulate(
     Returns:
         A :class:`Simulation` with ``initial (..., n)``, ``states (..., T, n)`` and
         ``measurements (..., T, m)``.
+
+    Raises:
+        ShapeError: ``x0`` is not ``(..., n)``, or ``u`` has not ``T`` steps.
     """
     n = model.state_dim
     x0 = torch.as_tensor(x0)
