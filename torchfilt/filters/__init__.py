@@ -16,6 +16,7 @@ from torchfilt.filters.constrained import (
     constrained_predict,
     constrained_update,
 )
+from torchfilt.filters.forecast import Forecast, free_run, k_step_ahead
 from torchfilt.filters.gaussian import CKF, FilterState, GaussianFilter
 from torchfilt.filters.graphed import GraphedFilter
 from torchfilt.filters.inputs import FilterInputs
@@ -48,6 +49,7 @@ __all__ = [
     "FilterInputs",
     "FilterResult",
     "FilterState",
+    "Forecast",
     "GaussianFilter",
     "GraphedFilter",
     "KalmanFilterResult",
@@ -62,7 +64,9 @@ __all__ = [
     "constrained_predict",
     "constrained_update",
     "coverage",
+    "free_run",
     "iterated_smoother",
+    "k_step_ahead",
     "kalman_filter",
     "kalman_smoother",
     "nees",
