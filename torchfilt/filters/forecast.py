@@ -12,9 +12,8 @@ measurements:
   measurements up to ``t - k``: each filtered belief is propagated ``k`` prediction steps, all
   ``t`` at once.
 
-Both follow the input convention of the filters (see :mod:`torchfilt.filters`): the step that
-predicts ``x_t`` from ``x_{t-1}`` is driven by ``u[..., t, :]``, and ``y_t`` is mapped with
-``u[..., t, :]`` as well. A linear model takes the closed form (``A x + B u``, ``A P A^T + Q``,
+Input convention (:mod:`torchfilt.filters`): the step that predicts ``x_t`` from ``x_{t-1}``
+takes the input row ``u[..., t, :]``, and so does the output ``y_t``. A linear model takes the closed form (``A x + B u``, ``A P A^T + Q``,
 ``H x + D u``, ``H P H^T + R``); any other model the cubature prediction of
 :func:`~torchfilt.filters.predict` and the cubature measurement mapping of
 :func:`~torchfilt.filters.update` (with no component observed), with the filter's rule.
@@ -61,8 +60,8 @@ def free_run(
     simulation from the prior ``N(x0, P0)``, the belief about ``x_{-1}``); the output moments
     are those of ``y_t`` under that belief. The measurements after the burn-in are not used (they
     only fix ``T``: to predict past the data, pad ``y`` with NaN and give ``u`` for those steps).
-    Inputs follow the filters' convention (see :mod:`torchfilt.filters`): ``u[..., t, :]``
-    drives the prediction of ``x_t`` from ``x_{t-1}`` and the output ``y_t``.
+    Input convention (:mod:`torchfilt.filters`): the step that predicts ``x_t`` from ``x_{t-1}``
+    takes the input row ``u[..., t, :]``, and so does the output ``y_t``.
 
     Args:
         model: the state-space model (linear: the exact Kalman path; else the cubature rule).
@@ -121,9 +120,9 @@ def k_step_ahead(
     the filtered belief mapped to the output, ``k = 1`` the filter's one-step prediction; a step
     ``t < k`` is conditioned on no measurement (the prior ``N(x0, P0)``, the belief about
     ``x_{-1}``, predicted ``t + 1`` steps). The recording is filtered once and every filtered
-    belief propagated ``k`` steps, all times at once. Inputs follow the filters' convention (see
-    :mod:`torchfilt.filters`): ``u[..., t, :]`` drives the prediction of ``x_t`` from
-    ``x_{t-1}`` and the output ``y_t``.
+    belief propagated ``k`` steps, all times at once. Input convention
+    (:mod:`torchfilt.filters`): the step that predicts ``x_t`` from ``x_{t-1}`` takes the input
+    row ``u[..., t, :]``, and so does the output ``y_t``.
 
     Args:
         model: the state-space model (linear: the exact Kalman path; else the cubature rule).

@@ -294,8 +294,10 @@ class GaussianFilter(nn.Module):
     ) -> FilterResult:
         """Filter measurement sequences.
 
-        Step ``t`` predicts from ``x_{t-1}`` with ``u[..., t, :]`` (the prior ``N(x0, P0)`` is
-        ``x_{-1}``) and then updates with ``y[..., t, :]``.
+        Input convention (:mod:`torchfilt.filters`): step ``t`` predicts ``x_t`` from
+        ``x_{t-1}`` with the input row ``u[..., t, :]`` and updates with ``y[..., t, :]``,
+        passing the same row to the measurement; the prior ``N(x0, P0)`` is the belief about
+        ``x_{-1}``.
 
         Args:
             y: measurements, shape ``(..., T, m)``. Non-finite entries (NaN) are missing.
@@ -595,7 +597,8 @@ class GaussianFilter(nn.Module):
         Args:
             state: from :meth:`init` or :meth:`update` (or :meth:`predict`: predicting twice skips
                 a measurement).
-            u: inputs ``(..., nu)`` driving this step, or ``None``.
+            u: the input row of the step being predicted (``u[..., t + 1, :]`` of a recording,
+                the input convention of :mod:`torchfilt.filters`), ``(..., nu)``, or ``None``.
 
         Returns:
             The predicted :class:`FilterState` at ``t + 1``.
@@ -630,7 +633,8 @@ class GaussianFilter(nn.Module):
             state: the predicted :class:`FilterState` (from :meth:`predict`).
             y: measurement ``(..., m)``; NaN components are missing (an all-NaN ``y`` leaves the
                 state as predicted).
-            u: the inputs ``(..., nu)`` of this step, if the measurement model takes them.
+            u: the input row of this step (the one :meth:`predict` took), ``(..., nu)``, if the
+                measurement model takes it.
             mask: optional bool ``(..., m)``; ``False`` marks a component missing.
 
         Returns:
