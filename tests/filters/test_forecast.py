@@ -219,6 +219,57 @@ def test_k0_is_filtered_and_k1_is_the_filters_prediction(model: str) -> None:
     torch.testing.assert_close(k1.output_cov, filt.innovation_cov, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("path", ["kalman", "cubature"])
+def test_time_varying_noise_is_read_at_the_predicted_step(path: str) -> None:
+    """Per-step Q and R: the free run equals the filter on NaN measurements after the burn-in,
+    which reads Q_t and R_t at step t."""
+    p = _linear()
+    T = 12
+    scale = torch.linspace(0.2, 3.0, T, dtype=D)[:, None, None]
+    t = {k: torch.tensor(v, dtype=D) for k, v in p.items()}
+    model = LinearGaussianModel(
+        A=t["A"],
+        H=t["H"],
+        Q=torchfilt.models.TimeVarying(scale * t["Q"]),
+        R=torchfilt.models.TimeVarying(scale.flip(0) * t["R"]),
+        B=t["B"],
+        D=t["D"],
+    )
+    yn, un = _data(T=T, batch=2)
+    y, u = torch.tensor(yn), torch.tensor(un)
+    ckf = CKF(model)
+    res = ckf.free_run(y, u, burn_in=4, path=path, **_args(p))
+    y_nan = y.clone()
+    y_nan[:, 4:] = math.nan
+    old = ckf.filter(y_nan, u, path=path, **_args(p))
+    torch.testing.assert_close(res.cov, old.cov, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(res.output_cov[:, 4:], old.innovation_cov[:, 4:])
+    ahead = ckf.k_step_ahead(y, u, horizon=1, path=path, **_args(p))
+    full = ckf.filter(y, u, path=path, **_args(p))
+    torch.testing.assert_close(ahead.cov, full.predicted_cov, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(ahead.output_cov, full.innovation_cov, rtol=1e-12, atol=1e-12)
+
+
+def test_mask_is_missing_data() -> None:
+    p = _linear()
+    yn, un = _data(T=10, batch=2)
+    y, u = torch.tensor(yn), torch.tensor(un)
+    mask = torch.ones(10, 2, dtype=torch.bool)
+    mask[5, 1] = False
+    mask[6] = False
+    y_nan = y.clone()
+    y_nan[..., ~mask] = math.nan
+    for kw in ({"horizon": 2}, {"horizon": 0}):
+        a = k_step_ahead(_model(p), y, u, mask=mask, **kw, **_args(p))
+        b = k_step_ahead(_model(p), y_nan, u, **kw, **_args(p))
+        for x, z in zip(a, b, strict=True):
+            torch.testing.assert_close(x, z, rtol=0, atol=0)
+    a = free_run(_model(p), y, u, mask=mask, burn_in=8, **_args(p))
+    b = free_run(_model(p), y_nan, u, burn_in=8, **_args(p))
+    for x, z in zip(a, b, strict=True):
+        torch.testing.assert_close(x, z, rtol=0, atol=0)
+
+
 def test_batched_model_and_prior() -> None:
     """A model whose matrices carry a batch dimension, with a batched prior, matches per-batch
     runs."""
