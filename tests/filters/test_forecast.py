@@ -451,3 +451,21 @@ def _fuzz(data: st.DataObject) -> None:
 test_fuzz_forecast_arguments, test_fuzz_forecast_arguments_long = property_tests(
     _fuzz, short=40, long=600
 )
+
+
+@pytest.mark.parametrize("path", ["auto", "cubature"])
+def test_differentiable_in_the_model_parameters(path: str) -> None:
+    """The forecast moments are differentiable (gradcheck against finite differences)."""
+    p = _linear()
+    t = {k: torch.tensor(v, dtype=D) for k, v in p.items()}
+    yn, un = _data(T=9, batch=1)
+    y, u = torch.tensor(yn), torch.tensor(un)
+
+    def fn(a: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        model = LinearGaussianModel(A=a * t["A"], H=t["H"], Q=t["Q"], R=t["R"], B=t["B"], D=t["D"])
+        ahead = k_step_ahead(model, y, u, horizon=2, path=path, **_args(p))
+        sim = free_run(model, y, u, burn_in=3, path=path, **_args(p))
+        return ahead.output_mean, ahead.output_cov, sim.output_mean, sim.cov
+
+    a = torch.tensor(0.9, dtype=D, requires_grad=True)
+    assert torch.autograd.gradcheck(fn, (a,))

@@ -26,6 +26,7 @@ from torchfilt.filters.plan import Path, exact_path
 from torchfilt.filters.results import FilterResult
 from torchfilt.filters.steps import Belief, Noise, PointVariance, UnitPoints
 from torchfilt.models import LinearSystem, StateSpaceModel, linear_system
+from torchfilt.numerics import symmetrize
 
 __all__ = ["Forecast", "ForecastFilter", "free_run_with", "k_step_ahead_with"]
 
@@ -86,6 +87,11 @@ class ForecastFilter(Protocol):
         ...
 
 
+def _mv(M: Tensor, v: Tensor) -> Tensor:
+    """``M v`` for ``M (..., a, b)``, ``v (..., b)``, batch dimensions broadcast."""
+    return (M @ v.unsqueeze(-1)).squeeze(-1)
+
+
 def _time_leading(x: Tensor, event: int, batch: int) -> Tensor:
     """``x (*b, T, *event)`` as ``(T, 1.., *b, *event)`` with ``batch`` batch dimensions."""
     x = x.movedim(-event - 1, 0)
@@ -133,7 +139,7 @@ class _Propagator:
         u, Q = self._u(t), self.Q.index_select(0, t)
         if self.system is not None:
             A, B = self.system.A, self.system.B
-            c = None if B is None or u is None else kalman_steps._mv(B, u)
+            c = None if B is None or u is None else _mv(B, u)
             exact, _ = kalman_steps.predict(kalman_steps.Belief(belief.mean, belief.cov), A, c, Q)
             return Belief(exact.mean, exact.cov)
         assert self.points is not None
@@ -153,11 +159,10 @@ class _Propagator:
         u, R = self._u(t), self.R.index_select(0, t)
         if self.system is not None:
             H, D = self.system.H, self.system.D
-            y_mean = kalman_steps._mv(H, belief.mean)
+            y_mean = _mv(H, belief.mean)
             if D is not None and u is not None:
-                y_mean = y_mean + kalman_steps._mv(D, u)
-            free = H @ belief.cov @ H.mT
-            free = 0.5 * (free + free.mT)
+                y_mean = y_mean + _mv(D, u)
+            free = symmetrize(H @ belief.cov @ H.mT)
             return y_mean, free + R, free
         assert self.points is not None
         m = self.model.obs_dim
