@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from torchfilt import CKF, LinearGaussianModel, StateSpaceModel
-from torchfilt.filters import free_run, k_step_ahead
+from torchfilt.filters import free_run, iterated_smoother, k_step_ahead
 from torchfilt.models.gp.data import measurement_pairs, transition_pairs
 from torchfilt.systems import simulate
 
@@ -79,6 +79,17 @@ def test_filter_uses_row_t_for_step_t(model: str, kw: dict) -> None:
     mean, out = _expected()
     torch.testing.assert_close(res.predicted_mean, mean, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(res.measurement_mean, out, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("parallel", [False, True])
+def test_smoothers_use_row_t_for_step_t(parallel: bool) -> None:
+    """With nothing measured the smoothed means are the predicted ones: the impulse at step J."""
+    y = torch.full((T, 1), math.nan, dtype=D)
+    mean, _ = _expected()
+    sm = CKF(_nonlinear()).smooth(y, _impulse(), **PRIOR)
+    torch.testing.assert_close(sm.mean, mean, rtol=1e-10, atol=1e-10)
+    it = iterated_smoother(_nonlinear(), y, _impulse(), **PRIOR, parallel=parallel)
+    torch.testing.assert_close(it.mean, mean, rtol=1e-10, atol=1e-10)
 
 
 def test_online_steps_use_the_row_of_the_step() -> None:
