@@ -7,6 +7,21 @@ constrained CKF, :func:`constrained_predict` and :func:`constrained_update`), ov
 (exact Kalman or cubature; eager, compiled or graphed; which exact runner) is decided in one place,
 :func:`torchfilt.filters.plan.plan`, and carried out by the engines of
 :mod:`torchfilt.filters.engine`, which run any step of its ``Step`` protocol.
+:func:`free_run` and :func:`k_step_ahead` predict ahead (a :class:`Forecast` of the state and the
+output).
+
+Input convention (every filter, smoother, fit and prediction of torchfilt follows it, and every
+docstring that mentions input rows refers here): step ``t`` predicts ``x_t`` from ``x_{t-1}``
+with the input row ``u[..., t, :]`` and updates with ``y[..., t, :]``, passing the same row to
+the measurement::
+
+    x_t = f(x_{t-1}, u_t) + w_t,   y_t = h(x_t, u_t) + v_t,   u_t = u[..., t, :]
+
+The prior ``N(x0, P0)`` is the belief about ``x_{-1}``, the state before the first step. In a log
+whose row 0 is the prior's time (states ``x[0..T]``), input row ``k`` drives the step from row
+``k`` to row ``k + 1``: filter it with ``y = measurements[1:]`` and ``u = inputs[:-1]``; the GP
+transition pairs ``(x[k], u[k]) -> x[k+1]`` of :func:`torchfilt.models.gp.data.transition_pairs`
+are that pairing.
 """
 
 from torchfilt.filters.constrained import (
@@ -16,6 +31,7 @@ from torchfilt.filters.constrained import (
     constrained_predict,
     constrained_update,
 )
+from torchfilt.filters.forecast import Forecast, free_run, k_step_ahead
 from torchfilt.filters.gaussian import CKF, FilterState, GaussianFilter
 from torchfilt.filters.graphed import GraphedFilter
 from torchfilt.filters.inputs import FilterInputs
@@ -48,6 +64,7 @@ __all__ = [
     "FilterInputs",
     "FilterResult",
     "FilterState",
+    "Forecast",
     "GaussianFilter",
     "GraphedFilter",
     "KalmanFilterResult",
@@ -62,7 +79,9 @@ __all__ = [
     "constrained_predict",
     "constrained_update",
     "coverage",
+    "free_run",
     "iterated_smoother",
+    "k_step_ahead",
     "kalman_filter",
     "kalman_smoother",
     "nees",

@@ -52,7 +52,8 @@ class CubatureStep:
             points: the rule's unit points in the run's dtype and device.
             belief: the filtered belief about ``x_{t-1}``, ``mean (..., n)``, ``cov (..., n, n)``.
             y: measurement ``(..., m)``, missing entries set to 0. obs: bool ``(..., m)``.
-            u: inputs ``(..., nu)`` or ``None``.
+            u: the input row of the step, ``(..., nu)`` (to ``f`` and ``h`` alike: the input
+                convention of :mod:`torchfilt.filters`), or ``None``.
             Q: process noise of the step. R: measurement noise of the step.
 
         Returns:

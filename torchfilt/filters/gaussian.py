@@ -22,6 +22,7 @@ from torchfilt.cubature import CubatureRule, SphericalRadialRule
 from torchfilt.exceptions import InputError, InputTypeError, ShapeError
 from torchfilt.filters.cubature_step import CubatureStep
 from torchfilt.filters.engine import Engine, OnlineStep, StepFunction, TraceFailure, records_grad
+from torchfilt.filters.forecast_core import Forecast, free_run_with, k_step_ahead_with
 from torchfilt.filters.inputs import FilterInputs, check_inputs, check_prior, observed
 from torchfilt.filters.kalman import _keep, kalman_filter, kalman_smoother, select_outputs
 from torchfilt.filters.plan import (
@@ -293,8 +294,10 @@ class GaussianFilter(nn.Module):
     ) -> FilterResult:
         """Filter measurement sequences.
 
-        Step ``t`` predicts from ``x_{t-1}`` with ``u[..., t, :]`` (the prior ``N(x0, P0)`` is
-        ``x_{-1}``) and then updates with ``y[..., t, :]``.
+        Input convention (:mod:`torchfilt.filters`): step ``t`` predicts ``x_t`` from
+        ``x_{t-1}`` with the input row ``u[..., t, :]`` and updates with ``y[..., t, :]``,
+        passing the same row to the measurement; the prior ``N(x0, P0)`` is the belief about
+        ``x_{-1}``.
 
         Args:
             y: measurements, shape ``(..., T, m)``. Non-finite entries (NaN) are missing.
@@ -384,6 +387,73 @@ class GaussianFilter(nn.Module):
                 self.model, y, u, x0=x0, P0=P0, mask=mask, sqrt=self.sqrt, parallel=parallel
             )
         return rts_smooth(self.filter(y, u, x0=x0, P0=P0, mask=mask, path="cubature"))
+
+    def free_run(
+        self,
+        y: Tensor,
+        u: Tensor | None = None,
+        *,
+        x0: Tensor,
+        P0: Tensor,
+        burn_in: int = 0,
+        mask: Tensor | None = None,
+        path: Path = "auto",
+    ) -> Forecast:
+        """Free-run simulation after filtering ``burn_in`` measurements, with this filter's rule
+        and options: :func:`~torchfilt.filters.free_run`.
+
+        Args:
+            y: measurements ``(..., T, m)``; NaN entries are missing.
+            u: inputs ``(..., T, nu)`` or ``None``.
+            x0: prior mean ``(..., n)``.
+            P0: prior covariance ``(..., n, n)``.
+            burn_in: how many leading measurements are filtered, ``0 <= burn_in <= T``.
+            mask: optional bool ``(..., T, m)``; ``False`` marks a component missing.
+            path: ``"auto"``, ``"kalman"`` or ``"cubature"``, as in :meth:`filter`.
+
+        Returns:
+            A :class:`~torchfilt.filters.Forecast`: state ``(..., T, n)``, ``(..., T, n, n)``
+            and output ``(..., T, m)``, ``(..., T, m, m)`` moments.
+
+        Raises:
+            InputError: ``burn_in`` negative or over ``T``, or bad inputs.
+            ModelError: a filter with a step of its own (the constrained CKF).
+        """
+        return free_run_with(self, y, u, x0=x0, P0=P0, burn_in=burn_in, mask=mask, path=path)
+
+    def k_step_ahead(
+        self,
+        y: Tensor,
+        u: Tensor | None = None,
+        *,
+        x0: Tensor,
+        P0: Tensor,
+        horizon: int,
+        mask: Tensor | None = None,
+        path: Path = "auto",
+    ) -> Forecast:
+        """For every time ``t`` the prediction of ``x_t`` and ``y_t`` from the measurements up
+        to ``t - horizon``, with this filter's rule and options:
+        :func:`~torchfilt.filters.k_step_ahead`.
+
+        Args:
+            y: measurements ``(..., T, m)``; NaN entries are missing.
+            u: inputs ``(..., T, nu)`` or ``None``.
+            x0: prior mean ``(..., n)``.
+            P0: prior covariance ``(..., n, n)``.
+            horizon: ``k >= 0``, the number of prediction steps ahead.
+            mask: optional bool ``(..., T, m)``; ``False`` marks a component missing.
+            path: ``"auto"``, ``"kalman"`` or ``"cubature"``, as in :meth:`filter`.
+
+        Returns:
+            A :class:`~torchfilt.filters.Forecast`: state ``(..., T, n)``, ``(..., T, n, n)``
+            and output ``(..., T, m)``, ``(..., T, m, m)`` moments.
+
+        Raises:
+            InputError: ``horizon`` negative, or bad inputs.
+            ModelError: a filter with a step of its own (the constrained CKF).
+        """
+        return k_step_ahead_with(self, y, u, x0=x0, P0=P0, horizon=horizon, mask=mask, path=path)
 
     # ------------------------------------------------------------------ deprecated engine names
     def prepare(
@@ -527,7 +597,8 @@ class GaussianFilter(nn.Module):
         Args:
             state: from :meth:`init` or :meth:`update` (or :meth:`predict`: predicting twice skips
                 a measurement).
-            u: inputs ``(..., nu)`` driving this step, or ``None``.
+            u: the input row of the step being predicted (``u[..., t + 1, :]`` of a recording,
+                the input convention of :mod:`torchfilt.filters`), ``(..., nu)``, or ``None``.
 
         Returns:
             The predicted :class:`FilterState` at ``t + 1``.
@@ -562,7 +633,8 @@ class GaussianFilter(nn.Module):
             state: the predicted :class:`FilterState` (from :meth:`predict`).
             y: measurement ``(..., m)``; NaN components are missing (an all-NaN ``y`` leaves the
                 state as predicted).
-            u: the inputs ``(..., nu)`` of this step, if the measurement model takes them.
+            u: the input row of this step (the one :meth:`predict` took), ``(..., nu)``, if the
+                measurement model takes it.
             mask: optional bool ``(..., m)``; ``False`` marks a component missing.
 
         Returns:

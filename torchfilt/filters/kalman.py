@@ -317,9 +317,9 @@ def kalman_filter(
 ) -> FilterResult:
     """The closed-form Kalman filter of a linear-Gaussian model (see the module docstring).
 
-    Step ``t`` predicts from ``x_{t-1}`` with ``u[..., t, :]`` (the prior ``N(x0, P0)`` is
-    ``x_{-1}``) and updates with ``y[..., t, :]``, as :meth:`GaussianFilter.filter
-    <torchfilt.filters.GaussianFilter.filter>` does.
+    Input convention (:mod:`torchfilt.filters`): step ``t`` predicts ``x_t`` from ``x_{t-1}``
+    with the input row ``u[..., t, :]`` and updates with ``y[..., t, :]``, passing the same row
+    to the measurement; the prior ``N(x0, P0)`` is the belief about ``x_{-1}``.
 
     Args:
         model: a linear model (:func:`~torchfilt.models.linear_system` returns its matrices).

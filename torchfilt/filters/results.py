@@ -28,8 +28,9 @@ __all__ = [
 class FilterResult(NamedTuple):
     """Output of a Gaussian filter over ``T`` steps.
 
-    The filter starts from the prior ``N(x0, P0)`` at time 0; step ``t`` (0-based) predicts with
-    ``u[..., t, :]`` and updates with ``y[..., t, :]``.
+    Input convention (:mod:`torchfilt.filters`): step ``t`` predicts ``x_t`` from ``x_{t-1}``
+    with the input row ``u[..., t, :]`` and updates with ``y[..., t, :]``, passing the same row
+    to the measurement; the prior ``N(x0, P0)`` is the belief about ``x_{-1}``.
 
     Attributes:
         mean: filtered means ``E[x_t | y_{1:t}]``, shape ``(..., T, n)``.

@@ -221,13 +221,12 @@ def as_conditional(
 class StateSpaceModel(torch.nn.Module):
     """A nonlinear Gaussian state-space model.
 
-        x_k = f(x_{k-1}, u_{k-1}) + w_{k-1},   w ~ N(0, Q + V_f(x, u))
-        y_k = h(x_k, u_k) + v_k,               v ~ N(0, R + V_h(x, u))
+        x_t = f(x_{t-1}, u_t) + w_t,   w ~ N(0, Q + V_f(x, u))
+        y_t = h(x_t, u_t) + v_t,       v ~ N(0, R + V_h(x, u))
 
     ``V_f``, ``V_h`` are the per-point variances a learned (GP) model reports; plain callables have
-    none. Indexing in the filters: step ``k`` passes the same row ``u[..., k, :]`` of the inputs to
-    ``f`` (predicting ``x_k`` from ``x_{k-1}``) and to ``h``; for a recording whose row 0 is the
-    prior's time, :func:`~torchfilt.pipeline.filter_recordings` passes ``inputs[:-1]``.
+    none. ``u_t`` is the input row ``u[..., t, :]``, the same row for ``f`` and ``h`` (the input
+    convention of :mod:`torchfilt.filters`).
 
     Args:
         transition: ``f(x, u)``, ``(..., n) -> (..., n)``, or a :class:`ConditionalModel`.

@@ -217,7 +217,8 @@ class InducingTransition(ConditionalModel):
         Args:
             states: ``(N, n)`` logged states ``x_t``.
             next_states: ``(N, n)`` the logged states ``x_{t+1}`` that followed them.
-            inputs: ``(N, nu)`` the inputs ``u_t`` between them, or ``None``.
+            inputs: ``(N, nu)`` the input rows that drove each step from ``states`` to
+                ``next_states`` (the input convention of :mod:`torchfilt.filters`), or ``None``.
             noise: the residual noise variance, a float or ``(n,)`` (e.g. the process noise).
         """
         n, M = self.out_dim, self.num_inducing

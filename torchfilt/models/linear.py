@@ -180,8 +180,10 @@ class LinearModel(FunctionModel):
 class LinearGaussianModel(StateSpaceModel):
     """Linear-Gaussian state-space model.
 
-        x_k = A x_{k-1} + B u_{k-1} + w,   w ~ N(0, Q)
-        y_k = H x_k + D u_k + v,           v ~ N(0, R)
+        x_t = A x_{t-1} + B u_t + w,   w ~ N(0, Q)
+        y_t = H x_t + D u_t + v,       v ~ N(0, R)
+
+    ``u_t`` is the input row ``u[..., t, :]`` (the input convention of :mod:`torchfilt.filters`).
 
     Args:
         A: transition matrix, shape ``(..., n, n)``.

@@ -59,10 +59,11 @@ def simulate(
     batch_shape: tuple[int, ...] = (),
     generator: torch.Generator | None = None,
 ) -> Simulation:
-    """Simulate ``x_t = f(x_{t-1}, u_{t-1}) + w``, ``y_t = h(x_t, u_{t-1}) + v`` for ``t = 1..T``.
+    """Simulate ``x_t = f(x_{t-1}, u_t) + w``, ``y_t = h(x_t, u_t) + v`` for ``t = 0..T-1``.
 
-    Input ``u[..., t, :]`` drives the transition into ``x_{t+1}`` and the measurement ``y_{t+1}``,
-    matching the filters' convention. Noise comes from the model's additive covariances plus any
+    ``x_{-1}`` is the initial state and ``u_t`` the input row ``u[..., t, :]``: the input
+    convention of :mod:`torchfilt.filters` (a filter started at ``initial`` with ``u`` runs the
+    same steps). Noise comes from the model's additive covariances plus any
     per-point variance it reports (a GP model's predictive variance).
 
     Args:

@@ -390,8 +390,9 @@ def fit_likelihood(
 ) -> LikelihoodFit:
     """Maximise the CKF's innovation log-likelihood over a model's parameters.
 
-    The step convention is the filter's: step ``k`` predicts with ``u[k]`` from ``x_{k-1}`` (the
-    prior ``N(x0, P0)`` is the state just before the first step) and updates with ``y[k]``.
+    Input convention (:mod:`torchfilt.filters`): step ``t`` predicts ``x_t`` from ``x_{t-1}``
+    with the input row ``u[..., t, :]`` and updates with ``y[..., t, :]``, passing the same row
+    to the measurement; the prior ``N(x0, P0)`` is the belief about ``x_{-1}``.
 
     Args:
         model: the state-space model; converted to ``dtype`` in place. It ends holding the best

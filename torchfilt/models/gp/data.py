@@ -1,6 +1,9 @@
 """Training pairs for GP models, from flat arrays or lists of recordings, with input checks.
 
-A transition learns ``(x_k, u_k) -> x_{k+1}``; pairs never cross a recording boundary. A
+A transition learns ``(x_k, u_k) -> x_{k+1}``, where input row ``k`` is the one that drove the
+step from ``x_k`` to ``x_{k+1}`` (the input convention of :mod:`torchfilt.filters`: in a recording
+``x[0..T]`` whose row 0 is the prior's time, row ``k`` of the ``T`` inputs); pairs never cross a
+recording boundary. A
 measurement learns ``(x_k, u_k) -> y_k``; NaN entries of ``y`` are missing measurements and are
 dropped per output when fitting.
 """
