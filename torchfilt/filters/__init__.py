@@ -7,7 +7,18 @@ constrained CKF, :func:`constrained_predict` and :func:`constrained_update`), ov
 (exact Kalman or cubature; eager, compiled or graphed; which exact runner) is decided in one place,
 :func:`torchfilt.filters.plan.plan`, and carried out by the engines of
 :mod:`torchfilt.filters.engine`, which run any step of its ``Step`` protocol.
+
+Every name exported here is for users. The engines' own types (``Step``, ``OnlineStep``, the
+engines, ``ExecutionPlan``, ``TraceFailure``, ``CubatureStep``) stay in
+:mod:`torchfilt.filters.engine`, :mod:`torchfilt.filters.plan` and
+:mod:`torchfilt.filters.cubature_step`, with the records only their ``Step`` protocol passes
+(:class:`torchfilt.filters.results.StepRecord`, :class:`torchfilt.filters.inputs.FilterInputs`):
+a user who writes a step of their own imports them from there.
 """
+
+import importlib
+import warnings
+from typing import Any
 
 from torchfilt.filters.constrained import (
     ConstrainedCKF,
@@ -18,7 +29,6 @@ from torchfilt.filters.constrained import (
 )
 from torchfilt.filters.gaussian import CKF, FilterState, GaussianFilter
 from torchfilt.filters.graphed import GraphedFilter
-from torchfilt.filters.inputs import FilterInputs
 from torchfilt.filters.iterated import iterated_smoother
 from torchfilt.filters.kalman import kalman_filter, kalman_smoother
 from torchfilt.filters.metrics import coverage, nees, nis, rmse
@@ -27,7 +37,6 @@ from torchfilt.filters.results import (
     KalmanFilterResult,
     ParallelFilterResult,
     SmootherResult,
-    StepRecord,
 )
 from torchfilt.filters.smoother import rts_smooth
 from torchfilt.filters.steps import (
@@ -45,7 +54,6 @@ __all__ = [
     "Belief",
     "ConstrainedCKF",
     "ConstrainedInfo",
-    "FilterInputs",
     "FilterResult",
     "FilterState",
     "GaussianFilter",
@@ -56,7 +64,6 @@ __all__ = [
     "PredictCache",
     "SmootherResult",
     "SolverInfo",
-    "StepRecord",
     "UnitPoints",
     "UpdateStats",
     "constrained_predict",
@@ -72,3 +79,25 @@ __all__ = [
     "rts_smooth",
     "update",
 ]
+
+
+#: Engine records once exported here (deprecated here; remove in the next release): their
+#: modules.
+_ENGINE_RECORDS = {
+    "FilterInputs": "torchfilt.filters.inputs",
+    "StepRecord": "torchfilt.filters.results",
+}
+
+
+def __getattr__(name: str) -> Any:
+    """The deprecated names of :data:`_ENGINE_RECORDS`, with a ``DeprecationWarning``."""
+    if name in _ENGINE_RECORDS:
+        module = _ENGINE_RECORDS[name]
+        warnings.warn(
+            f"torchfilt.filters.{name} is deprecated (a record of the engines' Step protocol); "
+            f"use {module}.{name}",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return getattr(importlib.import_module(module), name)
+    raise AttributeError(f"module 'torchfilt.filters' has no attribute {name!r}")
