@@ -260,3 +260,32 @@ def test_calibrate_default_budget_is_the_recipes():
         stopping=StoppingOptions(rtol=0.0),
     ).fit  # fmt: skip
     assert fit.iterations == 100 and math.isfinite(fit.log_likelihood)
+
+
+def test_the_table_of_the_options_module_is_true():
+    """The table of where the fits' defaults differ (``torchfilt.optim.options``) says what
+    ``DEFAULTS`` holds."""
+    import torchfilt.optim.options as module
+
+    doc = module.__doc__ or ""
+    rows = doc.split("================  =========")[2].strip().splitlines()[1:]
+    table = {row.split()[0]: row.split() for row in rows if row.strip() and "=" not in row}
+    assert set(table) == set(DEFAULTS)
+
+    def shown(v: object) -> str:
+        return "auto" if v is None else f"{v:g}" if isinstance(v, float) else str(v)
+
+    for fit in ("likelihood", "calibrate", "measurement_only"):
+        d = DEFAULTS[fit]
+        _, opt, lr, its, window, burn_in, patience, every = table[fit]
+        assert opt == d.optimizer.optimizer and lr == shown(d.optimizer.lr), fit
+        assert int(its) == d.iterations and window == str(d.windows.window), fit
+        assert int(burn_in) == d.windows.burn_in and int(patience) == d.stopping.patience, fit
+        assert int(every) == d.checkpoint.every, fit
+    em, gp = table["em"], table["gp"]
+    assert int(next(t for t in em if t.isdigit())) == DEFAULTS["em"].iterations
+    assert int(em[-1]) == DEFAULTS["em"].checkpoint.every
+    assert (
+        gp[1] == DEFAULTS["gp"].optimizer.optimizer and float(gp[2]) == DEFAULTS["gp"].optimizer.lr
+    )
+    assert int(gp[3]) == DEFAULTS["gp"].iterations

@@ -4,6 +4,7 @@ recipe table becomes the fit's option groups without a hand-written mapping."""
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 
 import pytest
@@ -58,6 +59,16 @@ def test_every_option_key_defaults_to_its_fits_default(section):
         if want is not None:
             assert keys[key].default == shown(want), (section, key, keys[key].default)
     assert CALIBRATE_DEFAULTS["iterations"] == 100  # what `torchfilt train` has always run
+
+
+@pytest.mark.parametrize("section", ["transition", "measurement"])
+def test_the_gp_sections_budget_and_rate_are_the_gp_fits(section):
+    from torchfilt.models.gp import GPModel
+
+    keys = {k.name: k for k in RECIPE_SCHEMA[section]}
+    assert keys["iterations"].default == shown(python_default("gp", "iterations")) == "`200`"
+    assert keys["lr"].default == shown(python_default("gp", "lr")) == "`0.05`"
+    assert inspect.signature(GPModel.optimize).parameters["iterations"].default is None
 
 
 def test_the_reference_shows_each_option_field_with_its_doc():

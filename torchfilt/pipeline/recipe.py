@@ -175,8 +175,13 @@ def _gp_keys() -> tuple[Key, ...]:
         Key("num_latents", "`1`", "number of latent GPs of a multitask model", kind="posint"),
         Key("task_rank", "`1`", "rank of each latent's task covariance (multitask)", kind="posint"),
         Key("num_inducing", "`256`", "inducing points per output (sparse)", kind="posint"),
-        Key("iterations", "`200`", "Adam iterations", kind="posint"),
-        Key("lr", "`0.05`", "Adam learning rate", kind="posfloat"),
+        Key(
+            "iterations",
+            f"`{option_default('gp', 'iterations')}`",
+            "Adam iterations",
+            kind="posint",
+        ),
+        Key("lr", f"`{option_default('gp', 'lr')}`", "Adam learning rate", kind="posfloat"),
         Key(
             "natural_lr",
             "`0.1`",

@@ -175,6 +175,10 @@ def calibrate(
     variance scales (start just above 1) and diagonal floor (start ``FLOOR_INIT`` x the side's mean variance)
     are fitted; the other side is left as it is.
 
+    The flat keywords of before (``window``, ``burn_in``, ``lr``, ``patience``, ``rtol``,
+    ``rtol_window``, ``checkpoint_every``, ``resume``, ``all_reduce``) still work for one
+    release, with a ``DeprecationWarning`` naming their new spelling.
+
     Args:
         model: the model to calibrate (typically GP transition and measurement). It is not
             modified; the result shares its base models.
@@ -220,10 +224,6 @@ def calibrate(
             kept, rebuilt from the hyperparameters before every likelihood evaluation); the GPs
             are copied, and frozen again with their own options at the end. Independent exact
             GPs only. ``"none"`` (default): the GPs are left as they are.
-
-        The flat keywords of before (``window``, ``burn_in``, ``lr``, ``patience``, ``rtol``,
-        ``rtol_window``, ``checkpoint_every``, ``resume``, ``all_reduce``) still work for one
-        release, with a ``DeprecationWarning`` naming their new spelling.
 
     Returns:
         A :class:`CalibrationResult`.

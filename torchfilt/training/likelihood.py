@@ -380,6 +380,11 @@ def fit_likelihood(
     The step convention is the filter's: step ``k`` predicts with ``u[k]`` from ``x_{k-1}`` (the
     prior ``N(x0, P0)`` is the state just before the first step) and updates with ``y[k]``.
 
+    The flat keywords of before (``params``, ``lr``, ``window``, ``burn_in``, ``start``,
+    ``refresh_every``, ``patience``, ``validate_every``, ``tol``, ``rtol``, ``rtol_window``,
+    ``checkpoint_every``, ``resume``, ``project``, ``prepare``, ``all_reduce``) still work for
+    one release, with a ``DeprecationWarning`` naming their new spelling.
+
     Args:
         model: the state-space model; converted to ``dtype`` in place. It ends holding the best
             parameters found (by held-out likelihood when ``validation`` is given, else by
@@ -436,11 +441,6 @@ def fit_likelihood(
         rule: cubature rule (default the third-degree spherical-radial rule).
         compile: compile the filter step with ``torch.compile`` (pays on one or a few long
             windows; see ``scripts/bench_calibrate.py``).
-
-        The flat keywords of before (``params``, ``lr``, ``window``, ``burn_in``, ``start``,
-        ``refresh_every``, ``patience``, ``validate_every``, ``tol``, ``rtol``, ``rtol_window``,
-        ``checkpoint_every``, ``resume``, ``project``, ``prepare``, ``all_reduce``) still work
-        for one release, with a ``DeprecationWarning`` naming their new spelling.
 
     Returns:
         A :class:`LikelihoodFit`.

@@ -317,6 +317,10 @@ def fit_em(
 ) -> EMFit:
     """Expectation-maximisation with the cubature RTS smoother (see the module docstring).
 
+    The flat keywords of before (``tol``, ``rtol``, ``rtol_window``, ``checkpoint_every``,
+    ``resume``, ``all_reduce``) still work for one release, with a ``DeprecationWarning`` naming
+    their new spelling.
+
     Args:
         model: the model to fit. A :class:`~torchfilt.models.LinearGaussianModel` (or any model
             :func:`~torchfilt.models.linear_system` recognises, with constant noise) gets the
@@ -367,10 +371,6 @@ def fit_em(
             before it is undone (0: undone at once) and the next block of the M-step is tried:
             the joint step, then the maps alone, then the noises alone (an iteration where none
             raises the likelihood stops the fit with ``"no improvement"``).
-
-        The flat keywords of before (``tol``, ``rtol``, ``rtol_window``, ``checkpoint_every``,
-        ``resume``, ``all_reduce``) still work for one release, with a ``DeprecationWarning``
-        naming their new spelling.
 
     Returns:
         An :class:`EMFit` (log-likelihoods and ``measurements`` summed over the processes).
@@ -507,6 +507,10 @@ def fit_measurement_only(
     """Learn a state-space model from measurements alone (no states), by EM or by the filter's
     likelihood (see the module docstring).
 
+    The flat keywords of before (``window``, ``burn_in``, ``lr``, ``tol``, ``rtol``,
+    ``rtol_window``, ``checkpoint_every``, ``resume``, ``all_reduce``) still work for one
+    release, with a ``DeprecationWarning`` naming their new spelling.
+
     Args:
         model: the model, with the gauge fixed: the maps of ``known_channels`` must not depend on
             learned parameters. For ``"likelihood"`` its learnable parameters are those with
@@ -539,10 +543,6 @@ def fit_measurement_only(
         method: ``"em"`` (:func:`fit_em`) or ``"likelihood"``
             (:func:`~torchfilt.training.fit_likelihood`).
         learn_measurement_noise, m_step_iterations: of :func:`fit_em` (``"em"`` only).
-
-        The flat keywords of before (``window``, ``burn_in``, ``lr``, ``tol``, ``rtol``,
-        ``rtol_window``, ``checkpoint_every``, ``resume``, ``all_reduce``) still work for one
-        release, with a ``DeprecationWarning`` naming their new spelling.
 
     Returns:
         A :class:`MeasurementOnlyFit`.

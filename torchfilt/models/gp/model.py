@@ -235,7 +235,7 @@ class GPModel(ConditionalModel):
     def _fit(cls, pairs: PairData, options: dict[str, Any]) -> GPModel:
         """Shared body of the ``fit`` class methods: build, train, freeze."""
         train_keys: tuple[str, ...] = ("iterations", "lr", "natural_lr", "subset", "batch_size")
-        train_keys += ("callback", "progress", "resume")
+        train_keys += ("optimizer", "callback", "progress", "resume")
         freeze_keys = ("variance", "rank", "tol", "chunk_size")
         train = {k: options.pop(k) for k in train_keys if k in options}
         if "lr" in train:  # the flat ``lr`` of ``fit`` (and of a recipe's GP table)

@@ -218,8 +218,9 @@ def _group_error(
         )
     else:
         hint = (
-            f"run the same call again with resume=True to continue from the checkpoints in "
-            f"{checkpoint} (every rank restarts from the latest iteration all of them saved)"
+            "run the same call again with checkpoint=CheckpointOptions(DIR, resume=True) to "
+            f"continue from the checkpoints in DIR = {checkpoint} (every rank restarts from the "
+            "latest iteration all of them saved)"
         )
     return WorkerError(f"{caller}: {what}; the other ranks were stopped; {hint}")
 
