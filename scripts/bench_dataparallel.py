@@ -39,6 +39,7 @@ from _common import environment, table, write_json
 
 import torchfilt
 from torchfilt.models import CholeskyCovariance, InducingTransition, LinearModel
+from torchfilt.optim import OptimizerOptions, StoppingOptions, WindowOptions
 from torchfilt.pipeline import calibrate_ray, fit_measurement_only_ray
 from torchfilt.pipeline.distributed import ray_session
 from torchfilt.systems import pendulum
@@ -97,14 +98,15 @@ def main(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     cal_seqs = Sequences(sim.measurements)
     cal_kw: dict[str, Any] = dict(
-        x0=x0p, P0=0.1 * torch.eye(2, dtype=DT), sides=("transition",), window=100, burn_in=20,
-        iterations=its, lr=0.2,
+        x0=x0p, P0=0.1 * torch.eye(2, dtype=DT), sides=("transition",),
+        windows=WindowOptions(window=100, burn_in=20), iterations=its,
+        optimizer=OptimizerOptions(lr=0.2),
     )  # fmt: skip
     y = linear_data(R, T)
     y_gp = y[:, : max(T // 2, 2)]
     em_kw: dict[str, Any] = dict(
         x0=torch.zeros(2, dtype=DT), P0=torch.eye(2, dtype=DT), known_channels=[0], method="em",
-        tol=0.0,
+        stopping=StoppingOptions(tol=0.0),
     )  # fmt: skip
 
     def local(kind: str) -> tuple[Any, list[dict[str, Any]], float]:

@@ -69,6 +69,7 @@ from _common import environment, table, write_json
 import torchfilt
 from torchfilt.io.plaza import PlazaData, load_plaza
 from torchfilt.models.gp import GPMeasurement, GPTransition
+from torchfilt.optim import OptimizerOptions, WindowOptions
 from torchfilt.plots import plot_errors, style
 from torchfilt.plots.style import MEASUREMENT_COLOR, PALETTE, TRUTH_COLOR
 
@@ -578,10 +579,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     cal_kw: dict[str, Any] = dict(
         x0=x0_train,
         P0=P0_train,
-        window=args.cal_window,
-        burn_in=args.cal_burn_in,
+        windows=WindowOptions(window=args.cal_window, burn_in=args.cal_burn_in),
         iterations=args.cal_iterations,
-        lr=args.cal_lr,
+        optimizer=OptimizerOptions(lr=args.cal_lr),
         progress=args.progress,
     )
     cal = torchfilt.calibrate(

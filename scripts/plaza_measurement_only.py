@@ -44,6 +44,7 @@ from _common import environment, write_json
 import torchfilt
 from torchfilt.io.plaza import load_plaza
 from torchfilt.models import AffineSensor, DiagonalCovariance, FunctionModel, StateSpaceModel
+from torchfilt.optim import WindowOptions
 
 DT = torch.float64
 
@@ -134,8 +135,10 @@ def main(argv: list[str] | None = None) -> int:
             known_channels=list(range(int(beacons.shape[0]))),
             method=method,  # type: ignore[arg-type]
             iterations=iters,
-            window=args.window if method == "likelihood" else None,
-            burn_in=args.burn_in if method == "likelihood" else 0,
+            windows=WindowOptions(
+                window=args.window if method == "likelihood" else None,
+                burn_in=args.burn_in if method == "likelihood" else 0,
+            ),
         )
         timings[f"fit {method}"] = time.perf_counter() - t0
         with torch.no_grad():  # the same score for both methods: the whole training part

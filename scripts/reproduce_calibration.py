@@ -48,6 +48,7 @@ from _common import environment, table, write_json
 import torchfilt
 from torchfilt.models.drift import DriftModel, with_sensor_drift
 from torchfilt.models.gp import GPMeasurement, GPTransition
+from torchfilt.optim import OptimizerOptions, WindowOptions
 from torchfilt.plots import PALETTE, style
 from torchfilt.plots.style import TRUTH_COLOR
 
@@ -201,10 +202,9 @@ def main(argv: list[str] | None = None) -> int:
         torchfilt.training.Sequences(train["y"], train["u"]),
         x0=train["x"][:, 0],
         P0=(P0_SD**2) * torch.eye(N, dtype=DT),
-        window=CAL_WINDOW,
-        burn_in=CAL_BURN_IN,
         iterations=CAL_ITERATIONS,
-        lr=CAL_LR,
+        windows=WindowOptions(window=CAL_WINDOW, burn_in=CAL_BURN_IN),
+        optimizer=OptimizerOptions(lr=CAL_LR),
     )
     cal_s = time.perf_counter() - t0
     # the same, with a drift state on the tank-2 sensor (time constant and sd fitted too)
@@ -216,10 +216,9 @@ def main(argv: list[str] | None = None) -> int:
         torchfilt.training.Sequences(train["y"], train["u"]),
         x0=dx0,
         P0=dP0,
-        window=CAL_WINDOW,
-        burn_in=CAL_BURN_IN,
         iterations=CAL_ITERATIONS,
-        lr=CAL_LR,
+        windows=WindowOptions(window=CAL_WINDOW, burn_in=CAL_BURN_IN),
+        optimizer=OptimizerOptions(lr=CAL_LR),
     )
     cal_d_s = time.perf_counter() - t0
     true_model = torchfilt.StateSpaceModel(

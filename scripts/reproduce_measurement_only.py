@@ -61,6 +61,7 @@ from torchfilt.models import (
     ScalarCovariance,
     StateSpaceModel,
 )
+from torchfilt.optim import OptimizerOptions
 from torchfilt.systems import reaction, reentry
 
 DT = torch.float64
@@ -372,7 +373,7 @@ def reentry_case(train_runs: int, test_runs: int, seed: int, iterations: int) ->
             known_channels=[0],
             method=method,  # type: ignore[arg-type]
             iterations=iterations,
-            lr=0.01 if method == "likelihood" else None,
+            optimizer=OptimizerOptions("lbfgs", lr=0.01 if method == "likelihood" else None),
         )
         fits[method] = {
             "log_likelihood": fit.log_likelihood,

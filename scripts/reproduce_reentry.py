@@ -62,6 +62,7 @@ from _common import environment, table, write_json
 import torchfilt
 from torchfilt.filters import FilterResult
 from torchfilt.models import StateSpaceModel
+from torchfilt.optim import OptimizerOptions, WindowOptions
 from torchfilt.pipeline import load_bundle, load_model, save_bundle
 from torchfilt.plots import PALETTE, plot_errors, style
 from torchfilt.plots.style import MEASUREMENT_COLOR, TRUTH_COLOR
@@ -114,11 +115,10 @@ def calibrated_variant(
         torchfilt.training.Sequences(cal_y),
         x0=torch.tensor(reentry.PRIOR_MEAN, dtype=torch.float64),
         P0=reentry.prior_cov(),
-        window=None,
-        burn_in=CAL_BURN_IN,
         iterations=args.cal_iterations,
-        lr=CAL_LR,
         progress=args.progress,
+        windows=WindowOptions(window=None, burn_in=CAL_BURN_IN),
+        optimizer=OptimizerOptions(lr=CAL_LR),
     )
     info = {
         **cal.parameters,

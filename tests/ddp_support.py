@@ -10,13 +10,24 @@ import torch.distributed as dist
 
 import torchfilt
 from torchfilt.models.params import ScalarCovariance
+from torchfilt.optim import (
+    CheckpointOptions,
+    FitHooks,
+    OptimizerOptions,
+    StoppingOptions,
+    WindowOptions,
+)
 
 DT = torch.float64
 RECORDINGS = 6
 #: fit options shared by the single-process and the data-parallel fit
-OPTIONS = dict(window=20, burn_in=5, iterations=15, refresh_every=5, lr=0.1)
+OPTIONS = dict(
+    windows=WindowOptions(window=20, burn_in=5, refresh_every=5),
+    iterations=15,
+    optimizer=OptimizerOptions(lr=0.1),
+)
 #: the same through fit_measurement_only (L-BFGS: several collectives per iteration)
-MO_OPTIONS = dict(window=20, burn_in=5, iterations=4)
+MO_OPTIONS = dict(windows=WindowOptions(window=20, burn_in=5), iterations=4)
 
 
 def problem() -> tuple[torchfilt.StateSpaceModel, torch.Tensor, tuple[ScalarCovariance, ...]]:
@@ -42,7 +53,9 @@ def worker(rank: int, world: int, init: str, out: str, measurement_only: bool = 
     try:
         model, y, (Q, R) = problem()
         kw = dict(
-            x0=torch.zeros(1, dtype=DT), P0=torch.eye(1, dtype=DT), all_reduce=dist.all_reduce
+            x0=torch.zeros(1, dtype=DT),
+            P0=torch.eye(1, dtype=DT),
+            hooks=FitHooks(all_reduce=dist.all_reduce),
         )
         if measurement_only:
             fit = torchfilt.fit_measurement_only(
@@ -75,12 +88,18 @@ def _resume_apart(rank: int, world: int, y: torch.Tensor, out: Path, kw: dict) -
     a, b = out / "lik_a", out / "lik_b"
     a.mkdir(exist_ok=True)
     b.mkdir(exist_ok=True)
-    opts = dict(OPTIONS, checkpoint_every=5)
+    opts = dict(OPTIONS)
 
     def fit(iterations: int, path: Path) -> torch.Tensor:
         model, _, (Q, R) = problem()
         opts["iterations"] = iterations
-        torchfilt.fit_likelihood(model, y[rank::world], checkpoint=path, resume=True, **opts, **kw)
+        torchfilt.fit_likelihood(
+            model,
+            y[rank::world],
+            **opts,
+            **kw,
+            checkpoint=CheckpointOptions(path, every=5, resume=True),
+        )
         with torch.no_grad():
             return torch.stack([Q().reshape(()), R().reshape(())])
 
@@ -101,7 +120,12 @@ A_EM_INIT = torch.tensor([[0.5, 0.2], [-0.1, 0.4]], dtype=DT)
 #: recordings of different lengths: a shard pads to its own longest, the whole set to 60
 EM_LENGTHS = (60, 45, 60, 50)
 GP_LENGTHS = (40, 30, 40, 35)
-EM_KW = dict(x0=torch.zeros(2, dtype=DT), P0=torch.eye(2, dtype=DT), known_channels=[0], tol=0.0)
+EM_KW = dict(
+    x0=torch.zeros(2, dtype=DT),
+    P0=torch.eye(2, dtype=DT),
+    known_channels=[0],
+    stopping=StoppingOptions(tol=0.0),
+)
 GP_KW = dict(EM_KW, m_step_iterations=3)
 
 
@@ -157,7 +181,7 @@ def em_worker(rank: int, world: int, init: str, out: str) -> None:
     torch.set_num_threads(1)
     dist.init_process_group("gloo", init_method=init, rank=rank, world_size=world)
     try:
-        red = dict(all_reduce=dist.all_reduce)
+        red = dict(hooks=FitHooks(all_reduce=dist.all_reduce))
         y = em_data(EM_LENGTHS)[rank::world]
         lin = torchfilt.fit_em(em_linear(), y, iterations=6, **EM_KW, **red)
         gp_model = em_gp()
@@ -181,9 +205,13 @@ def em_worker(rank: int, world: int, init: str, out: str) -> None:
             shutil.copy(c / "rank0.pt", b / "rank0.pt")  # rank 0 saved iteration 3
         dist.barrier()
         resumed = torchfilt.fit_em(
-            em_linear(), y, iterations=6, checkpoint=b / f"rank{rank}.pt", resume=True,
-            **EM_KW, **red,
-        )  # fmt: skip
+            em_linear(),
+            y,
+            iterations=6,
+            **EM_KW,
+            **red,
+            checkpoint=CheckpointOptions(b / f"rank{rank}.pt", resume=True),
+        )
         result = {
             "linear": linear_values(lin.model),
             "linear_ll": torch.tensor([h["log_likelihood"] for h in lin.history]),

@@ -335,3 +335,80 @@ def test_no_function_over_100_lines():
                 if n > METRICS.FUNCTION_LIMIT and f"{rel}:{node.name}" not in LONG_FUNCTIONS:
                     bad.append(f"{rel}:{node.name}: {n} lines")
     assert not bad, "\n".join(bad)
+
+
+def test_every_public_name_of_filters_is_for_users():
+    """No name of ``torchfilt.filters.__all__`` exists only for the engines. The rule: none is
+    defined in the engine modules (``Step``, ``OnlineStep``, the engines, ``ExecutionPlan``,
+    ``TraceFailure``, ``CubatureStep`` live in ``torchfilt.filters.engine`` / ``plan`` /
+    ``cubature_step``), none is a type that only the engines' ``Step`` protocol passes (named in
+    its signatures but in no signature of an exported function or class), and each has a
+    docstring. The records the protocol alone passes warn when reached through
+    ``torchfilt.filters`` and live in their modules."""
+    import inspect
+    import re
+    import warnings
+
+    import pytest
+
+    import torchfilt.filters as filters
+    from torchfilt.filters import engine
+
+    protocol = {n for n in dir(engine.OnlineStep) if not n.startswith("_")}
+
+    def names_in_signatures(objs: list[object], skip: frozenset[str] = frozenset()) -> set[str]:
+        """The identifiers in the signatures of ``objs`` and of their public methods, less the
+        methods named in ``skip`` and the deprecated ones."""
+        found: set[str] = set()
+        for obj in objs:
+            members = [obj]
+            if inspect.isclass(obj):
+                members += [
+                    m
+                    for n, m in vars(obj).items()
+                    if (not n.startswith("_") or n == "__init__") and n not in skip
+                ]
+            for m in members:
+                if (inspect.getdoc(m) or "").startswith("Deprecated"):
+                    continue
+                m = getattr(m, "__func__", m)
+                if isinstance(m, property):
+                    m = m.fget
+                if not callable(m):
+                    continue
+                try:
+                    sig = inspect.signature(m)
+                except (TypeError, ValueError):
+                    continue
+                text = " ".join(
+                    [str(p.annotation) for p in sig.parameters.values()]
+                    + [str(sig.return_annotation)]
+                )
+                found |= set(re.findall(r"[A-Za-z_]\w*", text))
+        return found
+
+    engine_modules = {
+        "torchfilt.filters.engine",
+        "torchfilt.filters.plan",
+        "torchfilt.filters.cubature_step",
+    }
+    public = [getattr(filters, name) for name in filters.__all__]
+    # a public filter implements the protocol's methods (``GaussianFilter.step``): those do not
+    # make the records they pass user-facing
+    protocol_only = names_in_signatures([engine.Step, engine.OnlineStep]) - names_in_signatures(
+        public, skip=frozenset(protocol)
+    )
+    for name, obj in zip(filters.__all__, public, strict=True):
+        assert getattr(obj, "__module__", "") not in engine_modules, name
+        assert name not in protocol_only, f"{name}: only the engines' Step protocol uses it"
+        assert inspect.getdoc(obj), f"{name}: no docstring says how a user uses it"
+    assert {"StepRecord", "FilterInputs"} <= protocol_only  # the rule sees them
+    for name, module in (
+        ("StepRecord", "torchfilt.filters.results"),
+        ("FilterInputs", "torchfilt.filters.inputs"),
+    ):
+        with pytest.warns(DeprecationWarning, match=f"use {module}.{name}"):
+            alias = getattr(filters, name)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert alias is getattr(__import__(module, fromlist=[name]), name)

@@ -25,6 +25,7 @@ from torchfilt.models import (
     ScalarCovariance,
     StateSpaceModel,
 )
+from torchfilt.optim import OptimizerOptions
 from torchfilt.systems import reaction, reentry
 from torchfilt.training import check_gauge, fit_likelihood, fit_measurement_only
 
@@ -113,7 +114,7 @@ def test_radar_gain_offset_and_drag_constant_from_ranges_alone(radar):
         known_channels=[0],
         method="likelihood",
         iterations=30,
-        lr=0.01,
+        optimizer=OptimizerOptions("lbfgs", lr=0.01),
     )
     h = model.measurement.base
     gamma = float(model.transition._fn.log_gamma.detach().exp())

@@ -17,6 +17,7 @@ from torchfilt.io import atomic_write
 from torchfilt.optim import (
     DEFAULTS,
     CheckpointFile,
+    CheckpointOptions,
     EarlyStopping,
     FitLoop,
     GuardedStep,
@@ -60,7 +61,7 @@ def fit(
 ) -> tuple[str, torch.Tensor, FitLoop, EarlyStopping]:
     A, b, _ = problem()
     x = torch.zeros(3, dtype=torch.float64, requires_grad=True)
-    guarded = GuardedStep([x], OptimizerOptions(optimizer, lr=lr, iterations=iterations))  # type: ignore[arg-type]
+    guarded = GuardedStep([x], OptimizerOptions(optimizer, lr=lr))  # type: ignore[arg-type]
     early = EarlyStopping(StoppingOptions(patience=patience), score, lambda: snapshot([x]))
     ck = None
     if checkpoint is not None:
@@ -262,7 +263,9 @@ def test_options_are_checked_and_defaults_differ_where_documented():
     assert OptimizerOptions("lbfgs").learning_rate == 1.0
     assert DEFAULTS["likelihood"].checkpoint.every == 10
     assert DEFAULTS["measurement_only"].checkpoint.every == 1
-    assert DEFAULTS["calibrate"].window.window == 100 and DEFAULTS["calibrate"].window.burn_in == 20
+    assert (
+        DEFAULTS["calibrate"].windows.window == 100 and DEFAULTS["calibrate"].windows.burn_in == 20
+    )
     assert DEFAULTS["measurement_only"].optimizer.optimizer == "lbfgs"
 
 
@@ -273,14 +276,19 @@ def test_fit_likelihood_early_stopped_stays_stopped_on_resume(tmp_path):
 
     from torchfilt.training import Sequences, fit_likelihood
 
-    def run(**kw: Any) -> Any:
+    def run(resume: bool = False) -> Any:
         model, y, (Q, R) = ddp_support.problem()
         fit = fit_likelihood(
-            model, y[:4], x0=torch.zeros(1, dtype=torch.float64),
-            P0=torch.eye(1, dtype=torch.float64), validation=Sequences(y[4:]),
-            lr=0.5, iterations=40, patience=2, checkpoint=tmp_path / "lik.ckpt",
-            checkpoint_every=100, **kw,
-        )  # fmt: skip
+            model,
+            y[:4],
+            x0=torch.zeros(1, dtype=torch.float64),
+            P0=torch.eye(1, dtype=torch.float64),
+            validation=Sequences(y[4:]),
+            iterations=40,
+            optimizer=OptimizerOptions(lr=0.5),
+            stopping=StoppingOptions(patience=2),
+            checkpoint=CheckpointOptions(tmp_path / "lik.ckpt", every=100, resume=resume),
+        )
         return fit, torch.stack([Q().detach().reshape(()), R().detach().reshape(())])
 
     fit, values = run()

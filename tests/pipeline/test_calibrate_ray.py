@@ -13,12 +13,18 @@ import torch
 import torchfilt
 from torchfilt.exceptions import InputError, WorkerError
 from torchfilt.models.params import ScalarCovariance
+from torchfilt.optim import CheckpointOptions, OptimizerOptions, WindowOptions
 from torchfilt.pipeline import calibrate_ray, fit_measurement_only_ray
 from torchfilt.systems import pendulum
 from torchfilt.training.likelihood import Sequences
 
 DT = torch.float64
-OPTIONS = dict(sides=("transition",), window=40, burn_in=5, iterations=12, lr=0.2)
+OPTIONS = dict(
+    sides=("transition",),
+    windows=WindowOptions(window=40, burn_in=5),
+    iterations=12,
+    optimizer=OptimizerOptions(lr=0.2),
+)
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +57,13 @@ def test_two_actors_calibrate_like_one_process(ray_local, data, tmp_path):
     assert sorted(p.name for p in (tmp_path / "ck").iterdir()) == ["rank0.ckpt", "rank1.ckpt"]
     # resuming a finished job from its checkpoints gives the same result
     again = calibrate_ray(
-        model, seqs, x0=x0, P0=P0, workers=2, checkpoint=tmp_path / "ck", resume=True, **OPTIONS
+        model,
+        seqs,
+        x0=x0,
+        P0=P0,
+        workers=2,
+        checkpoint=CheckpointOptions(tmp_path / "ck", resume=True),
+        **OPTIONS,
     )
     assert again.parameters == dist.parameters
 
@@ -141,7 +153,8 @@ def test_em_on_two_actors_survives_a_lost_actor(ray_local, tmp_path):
     assert time.perf_counter() - t0 < 30  # bounded: the group fails, never hangs
     done = [torch.load(ck / f"rank{r}.ckpt", weights_only=True)["iteration"] for r in (0, 1)]
     assert max(done) < kw["iterations"]
-    res = fit_measurement_only_ray(ddp_support.em_linear(), Sequences(y), resume=True, **ray_kw)
+    ray_kw["checkpoint"] = CheckpointOptions(ck, resume=True)
+    res = fit_measurement_only_ray(ddp_support.em_linear(), Sequences(y), **ray_kw)
     got, want = ddp_support.linear_values(res.model), ddp_support.linear_values(local.model)
     assert torch.allclose(got, want, rtol=1e-9, atol=1e-12), (got, want)
     ll = [h["log_likelihood"] for h in res.history]
@@ -182,5 +195,6 @@ def test_hung_actor_fails_after_the_timeout_and_a_foreign_checkpoint_is_refused(
         )
     assert time.perf_counter() - t0 < 60
     with pytest.raises(torchfilt.exceptions.RunError, match="another fit") as info:
-        fit_measurement_only_ray(ddp_support.em_linear(), Sequences(y[:3]), resume=True, **kw)
+        kw["checkpoint"] = CheckpointOptions(tmp_path / "ck", resume=True)
+        fit_measurement_only_ray(ddp_support.em_linear(), Sequences(y[:3]), **kw)
     assert not isinstance(info.value, WorkerError)

@@ -18,6 +18,7 @@ from torchfilt.models.params import (
     Positive,
     ScalarCovariance,
 )
+from torchfilt.optim import CheckpointOptions, OptimizerOptions, StoppingOptions, WindowOptions
 from torchfilt.training.likelihood import Sequences, fit_likelihood, window_data
 
 DT = torch.float64
@@ -80,10 +81,9 @@ def test_calibration_moves_nees_into_the_band(drift_model):
         x0=torch.zeros(N, dtype=DT),
         P0=0.1 * torch.eye(N, dtype=DT),
         sides=("transition",),
-        window=50,
-        burn_in=10,
         iterations=40,
-        lr=0.15,
+        windows=WindowOptions(window=50, burn_in=10),
+        optimizer=OptimizerOptions(lr=0.15),
     )
     calibrated = _test_nees(cal.model)
     assert not NEES_BAND[0] <= uncal <= NEES_BAND[1], uncal
@@ -164,8 +164,11 @@ def _linear_problem(seed: int = 0, T: int = 60):
 
 
 def test_resume_equals_uninterrupted(tmp_path):
-    kw = dict(x0=torch.zeros(1, dtype=DT), P0=torch.eye(1, dtype=DT), window=20, burn_in=5)
-    kw.update(iterations=12, refresh_every=4, checkpoint_every=3, lr=0.1)
+    kw = dict(x0=torch.zeros(1, dtype=DT), P0=torch.eye(1, dtype=DT), iterations=12)
+    kw.update(
+        windows=WindowOptions(window=20, burn_in=5, refresh_every=4),
+        optimizer=OptimizerOptions(lr=0.1),
+    )
     model, y, (Q, R) = _linear_problem()
     full = fit_likelihood(model, y, **kw)
     with torch.no_grad():
@@ -181,16 +184,18 @@ def test_resume_equals_uninterrupted(tmp_path):
     model2, y2, _ = _linear_problem()
     ck = tmp_path / "fit.ckpt"
     with pytest.raises(Killed):
-        fit_likelihood(model2, y2, checkpoint=ck, callback=kill, **kw)
+        fit_likelihood(model2, y2, checkpoint=CheckpointOptions(ck, every=3), callback=kill, **kw)
     model3, y3, (Q3, R3) = _linear_problem()
-    resumed = fit_likelihood(model3, y3, checkpoint=ck, resume=True, **kw)
+    resumed = fit_likelihood(
+        model3, y3, **kw, checkpoint=CheckpointOptions(ck, every=3, resume=True)
+    )
     with torch.no_grad():
         assert torch.equal(Q3(), want[0]) and torch.equal(R3(), want[1])
     assert [h["loss"] for h in resumed.history] == [h["loss"] for h in full.history]
     # a checkpoint of another fit is refused
     model4, y4, _ = _linear_problem(seed=1)
     with pytest.raises(RunError, match="another fit"):
-        fit_likelihood(model4, y4, checkpoint=ck, resume=True, **kw)
+        fit_likelihood(model4, y4, **kw, checkpoint=CheckpointOptions(ck, every=3, resume=True))
 
 
 def test_early_stopping_and_callback():
@@ -203,9 +208,9 @@ def test_early_stopping_and_callback():
         x0=x0,
         P0=P0,
         iterations=300,
-        lr=0.2,
-        patience=3,
         validation=Sequences(y[2:]),
+        optimizer=OptimizerOptions(lr=0.2),
+        stopping=StoppingOptions(patience=3),
     )
     assert fit.stopped == "early stopping" and fit.iterations < 300
     assert fit.validation is not None
@@ -228,11 +233,11 @@ def test_fit_likelihood_input_errors():
     with pytest.raises(InputError, match="optimizer"):
         fit_likelihood(model, y, x0=x0, P0=P0, optimizer="sgd")  # type: ignore[arg-type]
     with pytest.raises(InputError, match="lr"):
-        fit_likelihood(model, y, x0=x0, P0=P0, lr=math.nan)
+        fit_likelihood(model, y, x0=x0, P0=P0, optimizer=OptimizerOptions(lr=math.nan))
     with pytest.raises(torchfilt.exceptions.ShapeError, match="x0"):
         fit_likelihood(model, y, x0=torch.zeros(2, dtype=DT), P0=P0)
     with pytest.raises(InputError, match="nothing to fit"):
-        fit_likelihood(model, y, x0=x0, P0=P0, params=[])
+        fit_likelihood(model, y, x0=x0, P0=P0, parameters=[])
     with pytest.raises(InputError, match="no measurement"):
         fit_likelihood(model, torch.full_like(y, math.nan), x0=x0, P0=P0)
 
@@ -290,7 +295,14 @@ def test_sensor_drift_states_equal_the_hand_written_augmented_model():
     torch.testing.assert_close(a_res.cov, b_res.cov, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(a_res.log_likelihood, b_res.log_likelihood, rtol=1e-10, atol=0)
     # the drift parameters are fitted with the calibration (and reported)
-    cal = torchfilt.calibrate(drift, Sequences(y), x0=x0, P0=P0, window=None, iterations=3)
+    cal = torchfilt.calibrate(
+        drift,
+        Sequences(y),
+        x0=x0,
+        P0=P0,
+        iterations=3,
+        windows=WindowOptions(window=None, burn_in=20),
+    )
     assert set(cal.parameters) == {"transition", "measurement", "drift"}
     assert cal.parameters["drift"]["channels"] == [1]
     assert cal.parameters["drift"]["time_constant"][0] != tau  # moved

@@ -13,6 +13,7 @@ import torch
 import torchfilt
 from torchfilt.exceptions import InputError
 from torchfilt.models.gp import GPTransition
+from torchfilt.optim import CheckpointOptions, OptimizerOptions
 from torchfilt.training.likelihood import Sequences
 
 DT = torch.float64
@@ -160,7 +161,9 @@ def test_gp_all_refits_a_wrong_lengthscale(data):
     states, the noise refit alone does not."""
     _, Y, f = data
     bad = _corrupted(f, lengthscale=0.02)
-    kw = dict(x0=X0, P0=P0, sides=("transition",), iterations=60, lr=0.2)
+    kw = dict(
+        x0=X0, P0=P0, sides=("transition",), iterations=60, optimizer=OptimizerOptions(lr=0.2)
+    )
     noise_only = torchfilt.calibrate(_model(bad), Sequences(Y), gp="noise", **kw)
     every = torchfilt.calibrate(_model(bad), Sequences(Y), gp="all", **kw)
     Xt, _ = simulate(4, 100, seed=5)
@@ -178,7 +181,7 @@ def test_gp_all_refits_a_wrong_lengthscale(data):
 def test_gp_refit_resumes_equal_to_uninterrupted(data, tmp_path):
     _, Y, f = data
     bad = _corrupted(f, noise=30.0)
-    kw = dict(x0=X0, P0=P0, sides=("transition",), iterations=8, checkpoint_every=3, gp="all")
+    kw = dict(x0=X0, P0=P0, sides=("transition",), iterations=8, gp="all")
     full = torchfilt.calibrate(_model(bad), Sequences(Y), **kw)
 
     class Killed(Exception):
@@ -190,10 +193,18 @@ def test_gp_refit_resumes_equal_to_uninterrupted(data, tmp_path):
 
     ck = tmp_path / "cal.ckpt"
     with pytest.raises(Killed):
-        torchfilt.calibrate(_model(bad), Sequences(Y), checkpoint=ck, callback=kill, **kw)
+        torchfilt.calibrate(
+            _model(bad),
+            Sequences(Y),
+            checkpoint=CheckpointOptions(ck, every=3),
+            callback=kill,
+            **kw,
+        )
     # the killed fit left the input model as it was
     assert torch.equal(bad.noise_variance, _corrupted(f, noise=30.0).noise_variance)
-    resumed = torchfilt.calibrate(_model(bad), Sequences(Y), checkpoint=ck, resume=True, **kw)
+    resumed = torchfilt.calibrate(
+        _model(bad), Sequences(Y), **kw, checkpoint=CheckpointOptions(ck, every=3, resume=True)
+    )
     assert [h["loss"] for h in resumed.fit.history] == [h["loss"] for h in full.fit.history]
     a, b = full.refit["transition"], resumed.refit["transition"]
     for (k, v), (_, w) in zip(a.state_dict().items(), b.state_dict().items(), strict=True):

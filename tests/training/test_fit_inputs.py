@@ -13,6 +13,7 @@ import torchfilt
 from torchfilt.exceptions import InputError, InputTypeError
 from torchfilt.models import InducingTransition
 from torchfilt.models.params import ScalarCovariance
+from torchfilt.optim import CheckpointOptions
 from torchfilt.training import fit_em, fit_likelihood
 
 DT = torch.float64
@@ -72,9 +73,19 @@ def test_zero_iterations_is_an_input_error():
 
 def test_resume_without_checkpoint_is_an_input_error():
     with pytest.raises(InputError, match="resume=True needs checkpoint="):
-        fit_likelihood(model(), data(), x0=X0, P0=P0, iterations=2, resume=True)
+        fit_likelihood(
+            model(), data(), x0=X0, P0=P0, iterations=2, checkpoint=CheckpointOptions(resume=True)
+        )
     with pytest.raises(InputError, match="resume=True needs checkpoint="):
-        fit_em(model(), data(), x0=X0, P0=P0, known_channels=[0], iterations=2, resume=True)
+        fit_em(
+            model(),
+            data(),
+            x0=X0,
+            P0=P0,
+            known_channels=[0],
+            iterations=2,
+            checkpoint=CheckpointOptions(resume=True),
+        )
 
 
 @pytest.mark.parametrize("name", ["y", "list", "x0", "P0"])

@@ -19,7 +19,7 @@ from torchfilt.exceptions import ConvergenceWarning, InputError
 from torchfilt.io.progress import ProgressBar
 from torchfilt.models import LinearGaussianModel
 from torchfilt.models.params import ScalarCovariance
-from torchfilt.optim import FitLoop, Outcome, StoppingOptions
+from torchfilt.optim import FitLoop, OptimizerOptions, Outcome, StoppingOptions, WindowOptions
 from torchfilt.training import Sequences, calibrate, fit_em, fit_likelihood
 
 DT = torch.float64
@@ -81,16 +81,26 @@ def test_loop_stops_when_the_loss_stopped_moving():
 def test_fit_likelihood_stops_by_default_where_the_loss_is_flat():
     y = simulate(0.9, 0.3, 0.5, 150, seed=3)
     model = ar1()
-    fit = fit_likelihood(model, y, x0=X0, P0=P0, iterations=2000, lr=0.05)
+    fit = fit_likelihood(
+        model, y, x0=X0, P0=P0, iterations=2000, optimizer=OptimizerOptions(lr=0.05)
+    )
     assert fit.stopped == "converged" and fit.iterations < 2000
-    again = fit_likelihood(ar1(), y, x0=X0, P0=P0, iterations=30, rtol=0)
+    again = fit_likelihood(ar1(), y, x0=X0, P0=P0, iterations=30, stopping=StoppingOptions(rtol=0))
     assert again.stopped == "iterations" and again.iterations == 30
 
 
 def test_em_stops_by_the_window_rule_too():
     y = simulate(1.0, 0.1, 0.5, 120, seed=5)
     lg = LinearGaussianModel(torch.eye(1, dtype=DT), torch.eye(1, dtype=DT), P0, P0)
-    fit = fit_em(lg, y, x0=X0, P0=P0, known_channels=[0], iterations=500, tol=0, rtol=1e-6)
+    fit = fit_em(
+        lg,
+        y,
+        x0=X0,
+        P0=P0,
+        known_channels=[0],
+        iterations=500,
+        stopping=StoppingOptions(tol=0, rtol=1e-6),
+    )
     assert fit.stopped == "converged" and fit.iterations < 500
     assert all("loss" in r for r in fit.history)
 
@@ -98,7 +108,7 @@ def test_em_stops_by_the_window_rule_too():
 def test_patience_without_validation_warns():
     y = simulate(0.9, 0.3, 0.5, 60, seed=1)
     with pytest.warns(ConvergenceWarning, match="patience=5 was given but there is no held-out"):
-        fit_likelihood(ar1(), y, x0=X0, P0=P0, iterations=2, patience=5)
+        fit_likelihood(ar1(), y, x0=X0, P0=P0, iterations=2, stopping=StoppingOptions(patience=5))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         fit_likelihood(ar1(), y, x0=X0, P0=P0, iterations=2)  # the default: no warning
@@ -166,9 +176,15 @@ def test_fixed_A_is_bit_identical_and_Q_R_reach_the_reference_optimum():
     model = ar1(0.8)
     A_before = model.transition._fn.A.detach().clone()
     fit = fit_likelihood(
-        model, y, x0=X0, P0=P0, optimizer="lbfgs", iterations=60, tol=1e-13, rtol=0,
+        model,
+        y,
+        x0=X0,
+        P0=P0,
+        optimizer="lbfgs",
+        iterations=60,
         fixed=["transition._fn.A"],
-    )  # fmt: skip
+        stopping=StoppingOptions(tol=1e-13, rtol=0),
+    )
     assert fit.stopped in ("converged", "iterations")
     assert torch.equal(model.transition._fn.A.detach(), A_before)
     q_ref, r_ref = _sm_q_r(y, 0.8)
@@ -182,8 +198,16 @@ def test_em_with_A_fixed_keeps_it_and_re_estimates_Q_and_R():
     y = simulate(1.0, 0.1, 0.5, 150, seed=11)
     A = torch.tensor([[0.97]], dtype=DT)
     lg = LinearGaussianModel(A.clone(), torch.eye(1, dtype=DT), 0.5 * P0, 2.0 * P0)
-    fit = fit_em(lg, y, x0=X0, P0=P0, known_channels=[0], iterations=200, tol=1e-12, rtol=0,
-                 fixed=["A"])  # fmt: skip
+    fit = fit_em(
+        lg,
+        y,
+        x0=X0,
+        P0=P0,
+        known_channels=[0],
+        iterations=200,
+        fixed=["A"],
+        stopping=StoppingOptions(tol=1e-12, rtol=0),
+    )
     m = fit.model
     assert isinstance(m, LinearGaussianModel)
     assert torch.equal(m.A, A)
@@ -203,14 +227,34 @@ def test_calibrate_holds_fixed_parameters():
         lambda x, u: 0.9 * x, lambda x, u: x, Q=0.3 * P0.clone(), R=0.5 * P0.clone()
     )
     y = simulate(0.9, 0.6, 0.5, 120, seed=2).unsqueeze(0)
-    free = calibrate(base, Sequences(y), x0=X0, P0=P0, window=None,
-                               iterations=5)  # fmt: skip
+    free = calibrate(
+        base,
+        Sequences(y),
+        x0=X0,
+        P0=P0,
+        iterations=5,
+        windows=WindowOptions(window=None, burn_in=20),
+    )
     names = dict(free.model.named_parameters())
     held = next(n for n in names if n.startswith("transition") and "scale" in n)
-    cal = calibrate(base, Sequences(y), x0=X0, P0=P0, window=None,
-                              iterations=5, fixed=[held])  # fmt: skip
-    longer = calibrate(base, Sequences(y), x0=X0, P0=P0, window=None, iterations=9,
-                       fixed=[held])  # fmt: skip
+    cal = calibrate(
+        base,
+        Sequences(y),
+        x0=X0,
+        P0=P0,
+        iterations=5,
+        fixed=[held],
+        windows=WindowOptions(window=None, burn_in=20),
+    )
+    longer = calibrate(
+        base,
+        Sequences(y),
+        x0=X0,
+        P0=P0,
+        iterations=9,
+        fixed=[held],
+        windows=WindowOptions(window=None, burn_in=20),
+    )
     after, later = dict(cal.model.named_parameters()), dict(longer.model.named_parameters())
     assert torch.equal(after[held], later[held])  # both still the start, bit for bit
     assert not torch.equal(after[held], names[held])  # the free fit moves it

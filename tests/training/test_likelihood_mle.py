@@ -14,6 +14,7 @@ from statsmodels.tsa.statespace import mlemodel as sm_mlemodel
 
 import torchfilt
 from torchfilt.models.params import CholeskyCovariance, DiagonalCovariance, ScalarCovariance
+from torchfilt.optim import StoppingOptions
 from torchfilt.training.likelihood import fit_likelihood
 
 DT = torch.float64
@@ -122,7 +123,15 @@ def test_mle_equals_statsmodels(case, n, m, q_full, r_full):
         else CholeskyCovariance(torch.eye(m, dtype=DT))
     )
     model = torchfilt.StateSpaceModel(lambda x, u: x @ A.mT, lambda x, u: x @ H.mT, Q=Q, R=R)
-    fit = fit_likelihood(model, y, x0=x0, P0=P0, optimizer="lbfgs", iterations=60, tol=1e-13)
+    fit = fit_likelihood(
+        model,
+        y,
+        x0=x0,
+        P0=P0,
+        optimizer="lbfgs",
+        iterations=60,
+        stopping=StoppingOptions(tol=1e-13),
+    )
     assert fit.stopped in ("converged", "iterations")
     # statsmodels from the same start (identity Q, R: zero raw parameters)
     start = np.zeros(_n_params(n, q_full) + _n_params(m, r_full))

@@ -27,6 +27,7 @@ from torchfilt.models import (
     LinearModel,
     StateSpaceModel,
 )
+from torchfilt.optim import CheckpointOptions, OptimizerOptions, StoppingOptions, WindowOptions
 from torchfilt.training import check_gauge, fit_em, fit_measurement_only
 
 DT = torch.float64
@@ -112,7 +113,13 @@ def learnable_linear() -> StateSpaceModel:
 @pytest.fixture(scope="module")
 def em_fit(data):
     return fit_em(
-        initial_linear(), data, x0=X0, P0=P0, known_channels=[0], iterations=100, tol=1e-9
+        initial_linear(),
+        data,
+        x0=X0,
+        P0=P0,
+        known_channels=[0],
+        iterations=100,
+        stopping=StoppingOptions(tol=1e-9),
     )
 
 
@@ -142,9 +149,8 @@ def test_likelihood_method_recovers_linear_system(data, reference):
         P0=P0,
         known_channels=[0],
         method="likelihood",
-        window=50,
-        burn_in=10,
         iterations=12,
+        windows=WindowOptions(window=50, burn_in=10),
     )
     f = model.transition.base
     assert isinstance(f, InducingTransition)
@@ -174,9 +180,8 @@ def test_likelihood_method_moves_towards_the_mle(data, reference):
         P0=P0,
         known_channels=[0],
         method="likelihood",
-        window=50,
-        burn_in=10,
         iterations=3,
+        windows=WindowOptions(window=50, burn_in=10),
     )
     assert fit.log_likelihood > fit.detail.initial_log_likelihood + 20
     assert gap() < 0.5 * before
@@ -198,12 +203,35 @@ def test_em_gp_transition_improves_likelihood(data):
 
 def test_em_reproducible_and_resume_equals_uninterrupted(data, tmp_path):
     y = data[:200]
-    full = fit_em(initial_linear(), y, x0=X0, P0=P0, known_channels=[0], iterations=12, tol=0)
-    again = fit_em(initial_linear(), y, x0=X0, P0=P0, known_channels=[0], iterations=12, tol=0)
+    full = fit_em(
+        initial_linear(),
+        y,
+        x0=X0,
+        P0=P0,
+        known_channels=[0],
+        iterations=12,
+        stopping=StoppingOptions(tol=0),
+    )
+    again = fit_em(
+        initial_linear(),
+        y,
+        x0=X0,
+        P0=P0,
+        known_channels=[0],
+        iterations=12,
+        stopping=StoppingOptions(tol=0),
+    )
     assert again.log_likelihood == full.log_likelihood
     ck = tmp_path / "em.pt"
     part = fit_em(
-        initial_linear(), y, x0=X0, P0=P0, known_channels=[0], iterations=5, tol=0, checkpoint=ck
+        initial_linear(),
+        y,
+        x0=X0,
+        P0=P0,
+        known_channels=[0],
+        iterations=5,
+        checkpoint=ck,
+        stopping=StoppingOptions(tol=0),
     )
     assert part.iterations == 5
     resumed = fit_em(
@@ -213,9 +241,8 @@ def test_em_reproducible_and_resume_equals_uninterrupted(data, tmp_path):
         P0=P0,
         known_channels=[0],
         iterations=12,
-        tol=0,
-        checkpoint=ck,
-        resume=True,
+        stopping=StoppingOptions(tol=0),
+        checkpoint=CheckpointOptions(ck, resume=True),
     )
     assert resumed.iterations == 12
     assert resumed.log_likelihood == full.log_likelihood
@@ -239,18 +266,17 @@ def test_likelihood_method_resume_equals_uninterrupted(data, tmp_path):
             known_channels=[0],
             method="likelihood",
             optimizer="adam",
-            window=40,
-            burn_in=5,
             iterations=iterations,
             **kw,
+            windows=WindowOptions(window=40, burn_in=5),
         )
         return torch.cat([p.detach().reshape(-1) for p in model.parameters()])
 
     full = run(10)
     assert torch.equal(run(10), full)  # reproducible
     ck = tmp_path / "lik.pt"
-    run(4, checkpoint=ck, checkpoint_every=2)
-    assert torch.equal(run(10, checkpoint=ck, checkpoint_every=2, resume=True), full)
+    run(4, checkpoint=CheckpointOptions(ck, every=2))
+    assert torch.equal(run(10, checkpoint=CheckpointOptions(ck, every=2, resume=True)), full)
 
 
 def test_no_gauge_refused(data):
@@ -312,17 +338,22 @@ def test_em_gp_resume_equals_uninterrupted(data, tmp_path):
         h = LinearModel(H, CholeskyCovariance(torch.eye(1, dtype=DT)), name="measurement")
         return StateSpaceModel(f, h, Q=CholeskyCovariance(0.3 * torch.eye(2, dtype=DT)))
 
-    y, kw = data[:80], dict(x0=X0, P0=P0, known_channels=[0], tol=0.0, m_step_iterations=3)
+    y, kw = (
+        data[:80],
+        dict(
+            x0=X0, P0=P0, known_channels=[0], stopping=StoppingOptions(tol=0.0), m_step_iterations=3
+        ),
+    )
     full = fit_em(model(), y, iterations=4, **kw)
     ck = tmp_path / "em_gp.pt"
     fit_em(model(), y, iterations=2, checkpoint=ck, **kw)
-    resumed = fit_em(model(), y, iterations=4, checkpoint=ck, resume=True, **kw)
+    resumed = fit_em(model(), y, iterations=4, **kw, checkpoint=CheckpointOptions(ck, resume=True))
     assert resumed.log_likelihood == full.log_likelihood
     assert [h["log_likelihood"] for h in resumed.history] == [
         h["log_likelihood"] for h in full.history
     ]
     with pytest.raises(torchfilt.exceptions.RunError, match="another fit"):
-        fit_em(model(), y[:60], iterations=4, checkpoint=ck, resume=True, **kw)
+        fit_em(model(), y[:60], iterations=4, **kw, checkpoint=CheckpointOptions(ck, resume=True))
 
 
 def test_em_with_inputs_recovers_B_under_the_full_gauge():
@@ -385,11 +416,9 @@ def test_likelihood_method_learns_inducing_inputs_and_outputs(data):
         P0=P0,
         known_channels=[0],
         method="likelihood",
-        optimizer="adam",
-        lr=0.02,
-        window=40,
-        burn_in=5,
         iterations=15,
+        optimizer=OptimizerOptions("adam", lr=0.02),
+        windows=WindowOptions(window=40, burn_in=5),
     )
     assert fit.log_likelihood > fit.detail.initial_log_likelihood
     assert not torch.equal(f.inducing_inputs.detach(), Z0)
@@ -398,10 +427,12 @@ def test_likelihood_method_learns_inducing_inputs_and_outputs(data):
 
 def test_em_resume_of_a_converged_fit_stays_converged(data, tmp_path):
     y, ck = data[:150], tmp_path / "em_conv.pt"
-    kw = dict(x0=X0, P0=P0, known_channels=[0], tol=1e-3)
+    kw = dict(x0=X0, P0=P0, known_channels=[0], stopping=StoppingOptions(tol=1e-3))
     full = fit_em(initial_linear(), y, iterations=200, **kw)
     assert full.stopped == "converged" and full.iterations < 200
-    fit_em(initial_linear(), y, iterations=200, checkpoint=ck, checkpoint_every=50, **kw)
-    again = fit_em(initial_linear(), y, iterations=200, checkpoint=ck, resume=True, **kw)
+    fit_em(initial_linear(), y, iterations=200, **kw, checkpoint=CheckpointOptions(ck, every=50))
+    again = fit_em(
+        initial_linear(), y, iterations=200, **kw, checkpoint=CheckpointOptions(ck, resume=True)
+    )
     assert again.stopped == "converged" and again.iterations == full.iterations
     assert again.log_likelihood == full.log_likelihood

@@ -22,7 +22,18 @@ whose row 0 is the prior's time (states ``x[0..T]``), input row ``k`` drives the
 ``k`` to row ``k + 1``: filter it with ``y = measurements[1:]`` and ``u = inputs[:-1]``; the GP
 transition pairs ``(x[k], u[k]) -> x[k+1]`` of :func:`torchfilt.models.gp.data.transition_pairs`
 are that pairing.
+
+Every name exported here is for users. The engines' own types (``Step``, ``OnlineStep``, the
+engines, ``ExecutionPlan``, ``TraceFailure``, ``CubatureStep``) stay in
+:mod:`torchfilt.filters.engine`, :mod:`torchfilt.filters.plan` and
+:mod:`torchfilt.filters.cubature_step`, with the records only their ``Step`` protocol passes
+(:class:`torchfilt.filters.results.StepRecord`, :class:`torchfilt.filters.inputs.FilterInputs`):
+a user who writes a step of their own imports them from there.
 """
+
+import importlib
+import warnings
+from typing import Any
 
 from torchfilt.filters.constrained import (
     ConstrainedCKF,
@@ -34,7 +45,6 @@ from torchfilt.filters.constrained import (
 from torchfilt.filters.forecast import Forecast, free_run, k_step_ahead
 from torchfilt.filters.gaussian import CKF, FilterState, GaussianFilter
 from torchfilt.filters.graphed import GraphedFilter
-from torchfilt.filters.inputs import FilterInputs
 from torchfilt.filters.iterated import iterated_smoother
 from torchfilt.filters.kalman import kalman_filter, kalman_smoother
 from torchfilt.filters.metrics import coverage, nees, nis, rmse
@@ -43,7 +53,6 @@ from torchfilt.filters.results import (
     KalmanFilterResult,
     ParallelFilterResult,
     SmootherResult,
-    StepRecord,
 )
 from torchfilt.filters.smoother import rts_smooth
 from torchfilt.filters.steps import (
@@ -61,7 +70,6 @@ __all__ = [
     "Belief",
     "ConstrainedCKF",
     "ConstrainedInfo",
-    "FilterInputs",
     "FilterResult",
     "FilterState",
     "Forecast",
@@ -73,7 +81,6 @@ __all__ = [
     "PredictCache",
     "SmootherResult",
     "SolverInfo",
-    "StepRecord",
     "UnitPoints",
     "UpdateStats",
     "constrained_predict",
@@ -91,3 +98,25 @@ __all__ = [
     "rts_smooth",
     "update",
 ]
+
+
+#: Engine records once exported here (deprecated here; remove in the next release): their
+#: modules.
+_ENGINE_RECORDS = {
+    "FilterInputs": "torchfilt.filters.inputs",
+    "StepRecord": "torchfilt.filters.results",
+}
+
+
+def __getattr__(name: str) -> Any:
+    """The deprecated names of :data:`_ENGINE_RECORDS`, with a ``DeprecationWarning``."""
+    if name in _ENGINE_RECORDS:
+        module = _ENGINE_RECORDS[name]
+        warnings.warn(
+            f"torchfilt.filters.{name} is deprecated (a record of the engines' Step protocol); "
+            f"use {module}.{name}",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return getattr(importlib.import_module(module), name)
+    raise AttributeError(f"module 'torchfilt.filters' has no attribute {name!r}")

@@ -57,7 +57,7 @@ class CubatureStep:
             Q: process noise of the step. R: measurement noise of the step.
 
         Returns:
-            The filtered belief about ``x_t``, the step's :class:`~torchfilt.filters.StepRecord`
+            The filtered belief about ``x_t``, the step's :class:`~torchfilt.filters.results.StepRecord`
             and extra per-step outputs (none here).
         """
         pred, cache = self.predict(belief, u, points, Q)

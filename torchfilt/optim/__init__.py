@@ -11,7 +11,9 @@ checkpoints (:func:`torchfilt.io.atomic_write`), the progress reporter
 have made ``GPModel.fit`` depend on the layer that uses the models.
 
 * :mod:`torchfilt.optim.options`: ``OptimizerOptions``, ``WindowOptions``, ``StoppingOptions``,
-  ``CheckpointOptions`` and every fit's defaults (``DEFAULTS``, with a table of where they differ).
+  ``CheckpointOptions``, ``FitHooks`` and every fit's defaults (``DEFAULTS``, with a table of
+  where they differ; ``resolve_options`` fills a fit's ``None`` options from it), and the
+  decorator that keeps the fits' old flat keywords working for a release.
 * :mod:`torchfilt.optim.loop`: ``FitLoop`` (iterations, progress, callback, data-parallel stop,
   stopping rules, checkpoints), ``GuardedStep`` (Adam / L-BFGS that never leaves the finite
   region), ``EarlyStopping``.
@@ -43,10 +45,14 @@ from torchfilt.optim.options import (
     DEFAULTS,
     CheckpointOptions,
     FitDefaults,
+    FitHooks,
+    FitOptions,
     OptimizerOptions,
     StoppingOptions,
     WindowOptions,
-    stopping_options,
+    deprecated_fit_keywords,
+    field_docs,
+    resolve_options,
 )
 
 __all__ = [
@@ -56,7 +62,9 @@ __all__ = [
     "CheckpointOptions",
     "EarlyStopping",
     "FitDefaults",
+    "FitHooks",
     "FitLoop",
+    "FitOptions",
     "GuardedStep",
     "OptimizerOptions",
     "Outcome",
@@ -64,10 +72,12 @@ __all__ = [
     "StepResult",
     "StoppingOptions",
     "WindowOptions",
+    "deprecated_fit_keywords",
+    "field_docs",
     "fingerprint",
     "free_parameters",
     "make_optimizer",
+    "resolve_options",
     "restore",
     "snapshot",
-    "stopping_options",
 ]

@@ -215,6 +215,8 @@ class EarlyStopping:
         score: the held-out score (higher is better), or ``None`` (no held-out data: never
             exhausted, the best stays the start).
         snapshot: the current parameters (copies), kept at the best score.
+        patience_given: the caller set ``patience`` (not the fit's default): without held-out
+            data, early stopping cannot act, which then warns.
     """
 
     def __init__(
@@ -222,9 +224,12 @@ class EarlyStopping:
         options: StoppingOptions,
         score: Callable[[], float] | None,
         snapshot: Callable[[], list[Tensor]],
+        *,
+        patience_given: bool = False,
     ) -> None:
         self.options, self.score, self.snapshot = options, score, snapshot
-        if score is None and options.patience_given:
+        self.patience = 20 if options.patience is None else int(options.patience)
+        if score is None and patience_given:
             warnings.warn(
                 f"patience={options.patience} was given but there is no held-out data "
                 "(validation=None): early stopping cannot act; the fit stops at convergence or "
@@ -250,7 +255,7 @@ class EarlyStopping:
     @property
     def exhausted(self) -> bool:
         """``patience`` evaluations in a row without improvement."""
-        return self.score is not None and self.bad >= self.options.patience
+        return self.score is not None and self.bad >= self.patience
 
     def state_dict(self) -> dict[str, Any]:
         """The checkpoint entries."""

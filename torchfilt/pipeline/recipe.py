@@ -38,17 +38,21 @@ from pathlib import Path
 from typing import Any
 
 from torchfilt.exceptions import RecipeError
+from torchfilt.optim import field_docs
+from torchfilt.pipeline.recipe_options import OPTION_KEYS, fit_options, option_default
 
 __all__ = [
     "CALIBRATE_DEFAULTS",
     "GP_OPTIONS",
     "MEASUREMENT_ONLY_DEFAULTS",
+    "OPTION_KEYS",
     "RECIPE_SCHEMA",
     "Key",
     "Recipe",
     "RecipeError",
     "check_calibrate",
     "check_states",
+    "fit_options",
     "load_recipe",
     "recipe_reference",
 ]
@@ -171,8 +175,13 @@ def _gp_keys() -> tuple[Key, ...]:
         Key("num_latents", "`1`", "number of latent GPs of a multitask model", kind="posint"),
         Key("task_rank", "`1`", "rank of each latent's task covariance (multitask)", kind="posint"),
         Key("num_inducing", "`256`", "inducing points per output (sparse)", kind="posint"),
-        Key("iterations", "`200`", "Adam iterations", kind="posint"),
-        Key("lr", "`0.05`", "Adam learning rate", kind="posfloat"),
+        Key(
+            "iterations",
+            f"`{option_default('gp', 'iterations')}`",
+            "Adam iterations",
+            kind="posint",
+        ),
+        Key("lr", f"`{option_default('gp', 'lr')}`", "Adam learning rate", kind="posfloat"),
         Key(
             "natural_lr",
             "`0.1`",
@@ -199,6 +208,24 @@ def _gp_keys() -> tuple[Key, ...]:
         Key("tol", "`0.05`", 'relative variance tolerance of `variance = "auto"`', kind="posfloat"),
         Key("chunk_size", "`128`", "points per kernel chunk in large batches", kind="posint"),
     )
+
+
+def _option_key(
+    fit: str,
+    key: str,
+    kind: str,
+    *,
+    none: str = "",
+    note: str = "",
+    choices: tuple[str, ...] = (),
+) -> Key:
+    """The schema entry of option key ``key`` of fit ``fit``: its default from
+    :data:`~torchfilt.optim.DEFAULTS` (``none``: how a default of ``None`` reads), its meaning
+    from the field's docstring (and ``note``)."""
+    v = option_default(fit, key)
+    shown = none if v is None else (f'`"{v}"`' if isinstance(v, str) else f"`{v}`")
+    cls, name = OPTION_KEYS[key]
+    return Key(key, shown, field_docs(cls)[name] + note, kind=kind, choices=choices)
 
 
 #: Every recipe section and key with its default and meaning: the validator's allowed keys and
@@ -266,7 +293,7 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
             kind="choice",
             choices=("em", "likelihood"),
         ),
-        Key("iterations", "`30`", "EM or optimiser iterations", kind="posint"),
+        _option_key("measurement_only", "iterations", "posint"),
         Key(
             "inducing",
             "`16`",
@@ -292,30 +319,27 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
             "initial diagonal of the learned process noise `Q` (scalar or one per state); also "
             "the initial GP output variance",
         ),
-        Key(
+        _option_key(
+            "measurement_only",
             "window",
-            "(whole recordings)",
-            'window length in steps (`"likelihood"` only)',
-            kind="posint",
+            "posint",
+            none="(whole recordings)",
+            note=' (`"likelihood"` only)',
         ),
-        Key(
-            "burn_in",
-            "`0`",
-            'uncounted steps at the start of every window (`"likelihood"` only)',
-            kind="nonnegint",
-        ),
-        Key(
+        _option_key("measurement_only", "burn_in", "nonnegint", note=' (`"likelihood"` only)'),
+        _option_key(
+            "measurement_only",
             "optimizer",
-            '`"lbfgs"`',
-            '`"lbfgs"` or `"adam"` (`"likelihood"` only)',
-            kind="choice",
+            "choice",
+            note=' (`"likelihood"` only)',
             choices=("lbfgs", "adam"),
         ),
-        Key(
+        _option_key(
+            "measurement_only",
             "lr",
-            "(the optimiser's default)",
-            'learning rate (`"likelihood"` only)',
-            kind="posfloat",
+            "posfloat",
+            none="(the optimiser's default)",
+            note=' (`"likelihood"` only)',
         ),
         Key(
             "m_step_iterations",
@@ -365,34 +389,12 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
             '`"learned"`',
             '`"learned"` (the GP sides) or a list of `"transition"` and/or `"measurement"`',
         ),
-        Key("window", "`100`", "window length in steps (longer recordings are cut)", kind="posint"),
-        Key(
-            "burn_in",
-            "`20`",
-            "uncounted steps at the start of every window (an integer in [0, window))",
-            kind="int",
-        ),
-        Key("iterations", "`100`", "Adam (or L-BFGS) iterations", kind="posint"),
-        Key(
-            "lr",
-            "`0.1`",
-            "learning rate on the log scales and floors (at most 10)",
-            kind="posfloat",
-        ),
-        Key(
-            "optimizer",
-            '`"adam"`',
-            '`"adam"` or `"lbfgs"`',
-            kind="choice",
-            choices=("adam", "lbfgs"),
-        ),
-        Key(
-            "patience",
-            "`15`",
-            "early stopping: iterations without a better held-out likelihood on the validation "
-            "recordings",
-            kind="posint",
-        ),
+        _option_key("calibrate", "window", "posint"),
+        _option_key("calibrate", "burn_in", "int"),
+        _option_key("calibrate", "iterations", "posint"),
+        _option_key("calibrate", "lr", "posfloat", note=" (at most 10)"),
+        _option_key("calibrate", "optimizer", "choice", choices=("adam", "lbfgs")),
+        _option_key("calibrate", "patience", "posint"),
         Key(
             "inflate_only",
             "`true`",
@@ -412,36 +414,30 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
     ),
 }
 
-#: Defaults of the ``[calibrate]`` section.
+#: Defaults of the ``[calibrate]`` section (those of its option keys from
+#: ``DEFAULTS["calibrate"]``).
 CALIBRATE_DEFAULTS: dict[str, Any] = {
     "enabled": True,
     "sides": "learned",
-    "window": 100,
-    "burn_in": 20,
-    "iterations": 100,
-    "lr": 0.1,
-    "optimizer": "adam",
-    "patience": 15,
+    **{k: option_default("calibrate", k) for k in OPTION_KEYS},
     "inflate_only": True,
     "gp": "none",
 }
 
-#: Defaults of the ``[measurement_only]`` section (``states = "none"``); ``None``: see
-#: :data:`RECIPE_SCHEMA` (``known_channels``: all; ``process_noise``: 1e-2 x the prior variances;
-#: ``window``, ``lr``: those of :func:`~torchfilt.training.fit_measurement_only`).
+#: Defaults of the ``[measurement_only]`` section (``states = "none"``; those of its option keys
+#: from ``DEFAULTS["measurement_only"]``); ``None``: see :data:`RECIPE_SCHEMA`
+#: (``known_channels``: all; ``process_noise``: 1e-2 x the prior variances; ``window``: whole
+#: recordings; ``lr``: the optimiser's default).
 MEASUREMENT_ONLY_DEFAULTS: dict[str, Any] = {
     "method": "em",
-    "iterations": 30,
+    **{k: option_default("measurement_only", k) for k in OPTION_KEYS if k != "patience"},
     "inducing": 16,
     "known_channels": None,
     "nominal": None,
     "process_noise": None,
-    "window": None,
-    "burn_in": 0,
-    "optimizer": "lbfgs",
-    "lr": None,
     "m_step_iterations": 20,
 }
+
 
 #: Options passed through to ``GPTransition.fit`` / ``GPMeasurement.fit``.
 GP_OPTIONS = frozenset(k.name for k in RECIPE_SCHEMA["transition"] if k.name != "model")
@@ -500,6 +496,9 @@ class Recipe:
             and inputs alone; see :func:`check_states`).
         measurement_only: with ``states = "none"``, the ``[measurement_only]`` section with its
             defaults filled in (:data:`MEASUREMENT_ONLY_DEFAULTS`); empty otherwise.
+        given: the keys each section of the recipe file wrote (``None``: a recipe built in
+            code); not part of :meth:`resolved`. A ``patience`` the recipe did not write is the
+            fit's default (see :func:`fit_options`).
     """
 
     path: Path | None
@@ -516,6 +515,7 @@ class Recipe:
     calibrate: dict[str, Any] = field(default_factory=lambda: dict(CALIBRATE_DEFAULTS))
     states: str = "logged"
     measurement_only: dict[str, Any] = field(default_factory=dict)
+    given: dict[str, frozenset[str]] | None = field(default=None, compare=False, repr=False)
 
     def resolved(self) -> dict[str, Any]:
         """The fully resolved configuration (what a run directory records). ``states`` and
@@ -626,6 +626,10 @@ def load_recipe(path: str | Path) -> Recipe:
         calibrate=_calibrate(d.get("calibrate", {}), path),
         states=states,
         measurement_only=mo,
+        given={
+            "calibrate": frozenset(d.get("calibrate", {})),
+            "measurement_only": frozenset(mo),
+        },
     )
     try:
         check_states(r)

@@ -9,7 +9,7 @@ import io
 import json
 import shutil
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -23,8 +23,9 @@ from torchfilt.io.atomic import output_error
 from torchfilt.io.progress import ProgressBar
 from torchfilt.io.recording import Recording
 from torchfilt.models import CholeskyCovariance, InducingTransition, StateSpaceModel
+from torchfilt.optim import CheckpointOptions
 from torchfilt.pipeline.bundle import inducing_state, nominal_model
-from torchfilt.pipeline.recipe import Recipe
+from torchfilt.pipeline.recipe import Recipe, fit_options
 from torchfilt.pipeline.run_checks import STAGES, _feature_indices, _known_channels
 from torchfilt.training.calibrate import CalibrationResult, calibrate
 from torchfilt.training.measurement_only import MeasurementOnlyFit, fit_measurement_only
@@ -49,21 +50,23 @@ class StageFitters:
     Each stage calls its fitter exactly as it calls the local function, and a replacement must
     accept those arguments and keep their meaning:
 
-    - ``calibrate(model, train, *, x0, P0, validation, sides, window, burn_in, iterations, lr,
-      optimizer, patience, inflate_only, gp, callback, checkpoint, resume, checkpoint_every,
-      dtype)`` -> :class:`~torchfilt.training.calibrate.CalibrationResult`, as
+    - ``calibrate(model, train, *, x0, P0, validation, sides, iterations, optimizer, windows,
+      stopping, inflate_only, gp, callback, checkpoint, dtype)`` ->
+      :class:`~torchfilt.training.calibrate.CalibrationResult`, as
       :func:`~torchfilt.training.calibrate` (``train`` the training recordings, ``x0`` ``(n,)``,
       ``P0`` ``(n, n)``, ``validation`` the validation recordings or ``None``);
-    - ``measurement_only(model, ys, us, *, x0, P0, known_channels, method, iterations, window,
-      burn_in, optimizer, lr, learn_measurement_noise, m_step_iterations, callback, progress,
-      dtype, checkpoint, checkpoint_every, resume)`` ->
+    - ``measurement_only(model, ys, us, *, x0, P0, known_channels, method, iterations,
+      optimizer, windows, learn_measurement_noise, m_step_iterations, callback, progress,
+      dtype, checkpoint)`` ->
       :class:`~torchfilt.training.measurement_only.MeasurementOnlyFit`, as
       :func:`~torchfilt.training.fit_measurement_only` (``ys`` a list of ``(T_i, m)``, ``us`` a
       list of ``(T_i, nu)`` or ``None``).
 
     ``callback`` must be called in the calling process, once per iteration in order and before
     that iteration's checkpoint (the stage writes ``metrics.jsonl`` and the progress bar from
-    it). ``checkpoint`` is a path in the run directory that the fitter owns: one checkpoint file,
+    it; ``stopping`` is passed only where the recipe set ``patience``). ``checkpoint`` is a
+    :class:`~torchfilt.optim.CheckpointOptions` whose path in the run directory the fitter owns:
+    one checkpoint file,
     or a folder of files (one per process of a data-parallel fit), each a dictionary whose
     ``"iteration"`` says how far it got (a folder resumes from the lowest); the stage removes it
     when the stage is done.
@@ -86,6 +89,11 @@ class StageFitters:
 
 #: The fitters of a plain run: the local functions, in this process.
 LOCAL_FITTERS = StageFitters()
+
+
+def _given(r: Recipe, section: str) -> frozenset[str] | None:
+    """The keys section ``section`` of the recipe file wrote (``None``: a recipe built in code)."""
+    return None if r.given is None else r.given.get(section, frozenset())
 
 
 def _now() -> str:
@@ -330,7 +338,8 @@ def _fit_measurement_only_stage(
     ys = [rec.measurements[1:].to(dtype) for rec in train]
     us = [rec.inputs[:-1].to(dtype) for rec in train] if nu else None  # type: ignore[index]
     counted = max(1, sum(int(torch.isfinite(y).sum()) for y in ys))
-    iterations = int(o["iterations"])
+    options = fit_options(o, "measurement_only", _given(r, "measurement_only"))
+    iterations = int(options["iterations"])
     ckpt = out / MEASUREMENT_ONLY_CHECKPOINT
     if resume and ckpt.exists():
         log(f"transition: resuming from iteration {_checkpoint_iteration(ckpt)}")
@@ -378,19 +387,13 @@ def _fit_measurement_only_stage(
             P0=P0.to(dtype),
             known_channels=known,
             method=o["method"],
-            iterations=iterations,
-            window=o["window"],
-            burn_in=int(o["burn_in"]),
-            optimizer=o["optimizer"],
-            lr=o["lr"],
             learn_measurement_noise=learn_R,
             m_step_iterations=int(o["m_step_iterations"]),
             callback=callback,
             progress=False,
             dtype=dtype,
-            checkpoint=ckpt,
-            checkpoint_every=every,
-            resume=resume,
+            checkpoint=CheckpointOptions(ckpt, every=every, resume=resume),
+            **options,
         )
     finally:
         metrics.close()
@@ -473,10 +476,12 @@ def _calibrate_stage(
     ckpt = out / CALIBRATE_CHECKPOINT
     if resume and ckpt.exists():
         log(f"calibrate: resuming from iteration {_checkpoint_iteration(ckpt)}")
-    iterations = int(c["iterations"])
+    options = fit_options(c, "calibrate", _given(r, "calibrate"))
+    iterations = int(options["iterations"])
     # short recordings: the burn-in may take at most half of the shortest one
     shortest = min(len(rec) - 1 for rec in train)
     burn_in = min(int(c["burn_in"]), shortest // 2)
+    options["windows"] = replace(options["windows"], burn_in=burn_in)
     if burn_in < int(c["burn_in"]):
         log(
             f"calibrate: burn_in {c['burn_in']} -> {burn_in} (shortest recording: {shortest} steps)"
@@ -507,19 +512,12 @@ def _calibrate_stage(
             P0=P0,
             validation=val or None,
             sides=sides,  # type: ignore[arg-type]
-            window=int(c["window"]),
-            burn_in=burn_in,
-            iterations=iterations,
-            lr=float(c["lr"]),
-            optimizer=c["optimizer"],
-            patience=int(c["patience"]),
             inflate_only=bool(c["inflate_only"]),
             gp=c.get("gp", "none"),
             callback=callback,
-            checkpoint=ckpt,
-            resume=resume,
-            checkpoint_every=every,
+            checkpoint=CheckpointOptions(ckpt, every=every, resume=resume),
             dtype=dtype,
+            **options,
         )
     fit = res.fit
     entry = _calibration_entry(res, c)

@@ -28,12 +28,20 @@ from torchfilt.filters import CKF, coverage, nees, nis
 from torchfilt.io import Recording
 from torchfilt.models import CalibratedModel, ConditionalModel, StateSpaceModel
 from torchfilt.models.drift import DriftMeasurement, DriftModel, DriftTransition
-from torchfilt.optim import DEFAULTS
+from torchfilt.optim import (
+    CheckpointOptions,
+    FitHooks,
+    OptimizerOptions,
+    StoppingOptions,
+    WindowOptions,
+    deprecated_fit_keywords,
+    resolve_options,
+)
 from torchfilt.training.likelihood import (
     LikelihoodFit,
     LikelihoodState,
     Sequences,
-    fit_likelihood,
+    _fit_likelihood,
 )
 
 __all__ = [
@@ -48,10 +56,6 @@ __all__ = [
 FLOOR_INIT = 1e-2
 #: The floor's reference variance of an output that has none (a noise-free state).
 NEGLIGIBLE_VARIANCE = 1e-12
-#: The defaults of :func:`calibrate` (see :mod:`torchfilt.optim.options`: windows of 100 steps
-#: with 20 of burn-in, larger Adam steps and less patience than :func:`fit_likelihood`).
-_C = DEFAULTS["calibrate"]
-_C_LR = _C.optimizer.learning_rate
 
 
 @dataclass
@@ -137,34 +141,29 @@ def _sequences(data: Sequence[Recording] | Sequences, name: str) -> tuple[Any, A
     return ys, us, None, None
 
 
+@deprecated_fit_keywords("calibrate")
 def calibrate(
     model: StateSpaceModel,
     recordings: Sequence[Recording] | Sequences,
     *,
     x0: Tensor,
     P0: Tensor,
-    validation: Sequence[Recording] | Sequences | None = None,
-    sides: Sequence[Literal["transition", "measurement"]] = ("transition", "measurement"),
-    window: int | None = _C.window.window,
-    burn_in: int = _C.window.burn_in,
-    iterations: int = _C.optimizer.iterations,
-    lr: float = _C_LR,
-    optimizer: Literal["adam", "lbfgs"] = _C.optimizer.optimizer,
-    patience: int | None = None,
-    rtol: float = _C.stopping.rtol,
-    rtol_window: int = _C.stopping.rtol_window,
     fixed: Collection[str] = (),
-    inflate_only: bool = True,
+    validation: Sequence[Recording] | Sequences | None = None,
+    iterations: int | None = None,
+    optimizer: OptimizerOptions | Literal["adam", "lbfgs"] | None = None,
+    windows: WindowOptions | None = None,
+    stopping: StoppingOptions | None = None,
+    checkpoint: CheckpointOptions | str | Path | None = None,
+    hooks: FitHooks | None = None,
     progress: bool = False,
     callback: Callable[[LikelihoodState], bool | None] | None = None,
-    checkpoint: str | Path | None = _C.checkpoint.path,
-    resume: bool = _C.checkpoint.resume,
-    checkpoint_every: int = _C.checkpoint.every,
     dtype: torch.dtype = torch.float64,
     sqrt: bool = False,
     compile: bool = False,
+    sides: Sequence[Literal["transition", "measurement"]] = ("transition", "measurement"),
+    inflate_only: bool = True,
     gp: Literal["none", "noise", "all"] = "none",
-    all_reduce: Callable[[Tensor], None] | None = None,
 ) -> CalibrationResult:
     """Calibrate a model's predictive variances by the filter likelihood on recordings.
 
@@ -176,6 +175,10 @@ def calibrate(
     variance scales (start just above 1) and diagonal floor (start ``FLOOR_INIT`` x the side's mean variance)
     are fitted; the other side is left as it is.
 
+    The flat keywords of before (``window``, ``burn_in``, ``lr``, ``patience``, ``rtol``,
+    ``rtol_window``, ``checkpoint_every``, ``resume``, ``all_reduce``) still work for one
+    release, with a ``DeprecationWarning`` naming their new spelling.
+
     Args:
         model: the model to calibrate (typically GP transition and measurement). It is not
             modified; the result shares its base models.
@@ -184,26 +187,36 @@ def calibrate(
             ``u = inputs[:-1]``), or a :class:`~torchfilt.training.likelihood.Sequences` of tensors.
         x0: prior mean ``(n,)`` (or one per recording).
         P0: prior covariance ``(n, n)`` (or one per recording).
+        fixed: names of parameters of the calibrated model (``result.model.named_parameters()``,
+            e.g. ``"transition.log_scale"``) held fixed; an unknown name is an ``InputError``.
         validation: held-out recordings for early stopping (optional).
+        iterations: iteration budget (default 100).
+        optimizer: :class:`~torchfilt.optim.OptimizerOptions` or its name (default Adam on the
+            log parameters, ``lr`` 0.1).
+        windows: windows of the likelihood, :class:`~torchfilt.optim.WindowOptions` (default
+            100 steps, 20 of burn-in; see :mod:`torchfilt.training.likelihood`).
+        stopping: :class:`~torchfilt.optim.StoppingOptions` (default ``patience`` 15, acting
+            only with ``validation``; convergence as in
+            :func:`~torchfilt.training.fit_likelihood`).
+        checkpoint: :class:`~torchfilt.optim.CheckpointOptions` or the file's path; a resumed
+            calibration equals an uninterrupted one.
+        hooks: :class:`~torchfilt.optim.FitHooks`: ``project`` and ``prepare`` run after the
+            calibration's own (which keep the scales feasible and rebuild refitted GPs);
+            ``all_reduce``: data-parallel calibration, each process with its own recordings (see
+            :func:`~torchfilt.training.likelihood.fit_likelihood`). Every process must start
+            from the same parameters: a floor starts from the side's noise variance, or, for a
+            side that reports none, from its variance at the first recording's prior mean and
+            input, which then must be the same in every process.
+        progress: show a progress bar.
+        callback: per-iteration callback (return ``True`` to stop).
+        dtype: floating dtype (float64 by default).
+        sqrt: use the square-root CKF.
+        compile: compile the filter step.
+        sides: which sides to calibrate.
         inflate_only: keep the variance scales at or above 1 (default): calibration then only adds
             uncertainty, never makes the filter more confident than its models. A measurement
             likelihood cannot see states that the measurements do not observe; shrinking their
             variance there would go unpunished by the fit and make the filter over-confident.
-        sides: which sides to calibrate.
-        window, burn_in: windows of the likelihood (see :mod:`torchfilt.training.likelihood`).
-        iterations, lr, optimizer, patience: the optimiser (Adam on the log parameters by default;
-            ``patience`` 15, acting only with ``validation``).
-        rtol, rtol_window: stop at convergence, as in
-            :func:`~torchfilt.training.fit_likelihood` (default ``1e-6`` over 20 iterations).
-        fixed: names of parameters of the calibrated model (``result.model.named_parameters()``,
-            e.g. ``"transition.log_scale"``) held fixed; an unknown name is an ``InputError``.
-        progress: show a progress bar.
-        callback: per-iteration callback (return ``True`` to stop).
-        checkpoint, resume, checkpoint_every: checkpointing; a resumed calibration equals an
-            uninterrupted one.
-        dtype: floating dtype (float64 by default).
-        sqrt: use the square-root CKF.
-        compile: compile the filter step.
         gp: also refit the hyperparameters of the GP sides in ``sides``: ``"noise"`` (their
             likelihood noises) or ``"all"`` (noises, lengthscales and outputscales; the mean
             constants stay). The fit then runs through each GP's differentiable twin
@@ -211,11 +224,6 @@ def calibrate(
             kept, rebuilt from the hyperparameters before every likelihood evaluation); the GPs
             are copied, and frozen again with their own options at the end. Independent exact
             GPs only. ``"none"`` (default): the GPs are left as they are.
-        all_reduce: data-parallel calibration, each process with its own recordings (see
-            :func:`~torchfilt.training.likelihood.fit_likelihood`). Every process must start
-            from the same parameters: a floor starts from the side's noise variance, or, for a
-            side that reports none, from its variance at the first recording's prior mean and
-            input, which then must be the same in every process.
 
     Returns:
         A :class:`CalibrationResult`.
@@ -234,49 +242,31 @@ def calibrate(
         p.requires_grad_(False)
     wrapped = [side for side in cal.sides if isinstance(side, CalibratedModel)]
 
+    user = hooks or FitHooks()
+
     def project() -> None:
         for side in wrapped:
             side.project_()
+        if user.project is not None:
+            user.project()
 
     def prepare() -> None:
         for g in cal.refit.values():
             g.predictor = g.twin()
+        if user.prepare is not None:
+            user.prepare()
 
+    o = resolve_options(
+        "calibrate", iterations=iterations, optimizer=optimizer, windows=windows,
+        stopping=stopping, checkpoint=checkpoint,
+        hooks=FitHooks(project, prepare if cal.refit or user.prepare else None, user.all_reduce),
+    )  # fmt: skip
     try:
-        fit = fit_likelihood(
-            cal.model,
-            y,
-            u,
-            x0=x0,
-            P0=P0,
-            params=cal.params,
-            window=window,
-            burn_in=burn_in,
-            validation=val,
-            # the default patience (15) with held-out data; without, none, unless one was given
-            patience=(
-                (_C.stopping.patience if val is not None else None)
-                if patience is None or (patience == _C.stopping.patience and val is None)
-                else patience
-            ),
-            rtol=rtol,
-            rtol_window=rtol_window,
-            fixed=fixed,
-            optimizer=optimizer,
-            lr=lr,
-            iterations=iterations,
-            callback=callback,
-            project=project,
-            prepare=prepare if cal.refit else None,
-            all_reduce=all_reduce,
-            progress=progress,
-            dtype=dtype,
-            sqrt=sqrt,
+        fit = _fit_likelihood(
+            cal.model, y, u, x0=x0, P0=P0, parameters=cal.params, fixed=fixed, validation=val,
+            options=o, progress=progress, callback=callback, dtype=dtype, sqrt=sqrt, rule=None,
             compile=compile,
-            checkpoint=checkpoint,
-            checkpoint_every=checkpoint_every,
-            resume=resume,
-        )
+        )  # fmt: skip
     finally:
         for p in frozen:
             p.requires_grad_(True)

@@ -19,10 +19,10 @@ slowly drifting errors, the filter likelihood can.
 Consecutive windows overlap by ``burn_in`` steps, and the first ``burn_in`` steps of every window
 (the first window of a recording included) are not counted in the likelihood: they let the filter
 forget its start, so a diffuse or misplaced start never dominates the fit, and every other step is
-counted exactly once. A recording's first window starts from its prior ``N(x0, P0)``; each later
+counted exactly once (both are fields of ``windows=``, a :class:`~torchfilt.optim.WindowOptions`). A recording's first window starts from its prior ``N(x0, P0)``; each later
 window starts from the previous pass's estimate of the state just before it (``start="filtered"``,
 the default, or ``"smoothed"``, the RTS estimate), refreshed every ``refresh_every`` iterations
-with the current parameters. ``x0`` may itself be a learnable tensor listed in ``params``.
+with the current parameters. ``x0`` may itself be a learnable tensor listed in ``parameters``.
 """
 
 from __future__ import annotations
@@ -46,21 +46,23 @@ from torchfilt.io.progress import ProgressBar
 from torchfilt.models import StateSpaceModel
 from torchfilt.numerics import gaussian_log_prob, safe_cholesky
 from torchfilt.optim import (
-    DEFAULTS,
     CheckpointFile,
     CheckpointOptions,
     EarlyStopping,
+    FitHooks,
     FitLoop,
+    FitOptions,
     GuardedStep,
     OptimizerOptions,
     Outcome,
     StoppingOptions,
     WindowOptions,
+    deprecated_fit_keywords,
     fingerprint,
     free_parameters,
+    resolve_options,
     restore,
     snapshot,
-    stopping_options,
 )
 
 __all__ = [
@@ -349,10 +351,7 @@ class LikelihoodFit:
     elapsed: float = 0.0
 
 
-#: The defaults of :func:`fit_likelihood` (see :mod:`torchfilt.optim.options`).
-_D = DEFAULTS["likelihood"]
-
-
+@deprecated_fit_keywords("likelihood")
 def fit_likelihood(
     model: StateSpaceModel,
     y: Tensor | Sequence[Tensor],
@@ -360,39 +359,32 @@ def fit_likelihood(
     *,
     x0: Tensor,
     P0: Tensor,
-    params: Iterable[nn.Parameter] | None = None,
-    window: int | None = _D.window.window,
-    burn_in: int = _D.window.burn_in,
-    start: Literal["filtered", "smoothed"] = _D.window.start,
-    refresh_every: int = _D.window.refresh_every,
-    validation: Sequences | None = None,
-    validate_every: int = _D.stopping.validate_every,
-    patience: int | None = None,
-    optimizer: Literal["adam", "lbfgs"] = _D.optimizer.optimizer,
-    lr: float | None = _D.optimizer.lr,
-    iterations: int = _D.optimizer.iterations,
-    tol: float | None = _D.stopping.tol,
-    rtol: float = _D.stopping.rtol,
-    rtol_window: int = _D.stopping.rtol_window,
+    parameters: Iterable[nn.Parameter] | None = None,
     fixed: Collection[str] = (),
-    callback: Callable[[LikelihoodState], bool | None] | None = None,
-    project: Callable[[], None] | None = None,
-    prepare: Callable[[], None] | None = None,
-    all_reduce: Callable[[Tensor], None] | None = None,
+    validation: Sequences | None = None,
+    iterations: int | None = None,
+    optimizer: OptimizerOptions | Literal["adam", "lbfgs"] | None = None,
+    windows: WindowOptions | None = None,
+    stopping: StoppingOptions | None = None,
+    checkpoint: CheckpointOptions | str | Path | None = None,
+    hooks: FitHooks | None = None,
     progress: bool = False,
+    callback: Callable[[LikelihoodState], bool | None] | None = None,
     dtype: torch.dtype = torch.float64,
     sqrt: bool = False,
     rule: CubatureRule | None = None,
     compile: bool = False,
-    checkpoint: str | Path | None = _D.checkpoint.path,
-    checkpoint_every: int = _D.checkpoint.every,
-    resume: bool = _D.checkpoint.resume,
 ) -> LikelihoodFit:
     """Maximise the CKF's innovation log-likelihood over a model's parameters.
 
     Input convention (:mod:`torchfilt.filters`): step ``t`` predicts ``x_t`` from ``x_{t-1}``
     with the input row ``u[..., t, :]`` and updates with ``y[..., t, :]``, passing the same row
     to the measurement; the prior ``N(x0, P0)`` is the belief about ``x_{-1}``.
+
+    The flat keywords of before (``params``, ``lr``, ``window``, ``burn_in``, ``start``,
+    ``refresh_every``, ``patience``, ``validate_every``, ``tol``, ``rtol``, ``rtol_window``,
+    ``checkpoint_every``, ``resume``, ``project``, ``prepare``, ``all_reduce``) still work for
+    one release, with a ``DeprecationWarning`` naming their new spelling.
 
     Args:
         model: the state-space model; converted to ``dtype`` in place. It ends holding the best
@@ -403,58 +395,53 @@ def fit_likelihood(
         u: inputs ``(..., T, nu)``, a list of ``(T_i, nu)``, or ``None``.
         x0: prior mean ``(n,)`` shared, or one per recording ``(..., n)``.
         P0: prior covariance ``(n, n)`` or one per recording ``(..., n, n)``.
-        params: the parameters to fit (default: every parameter of ``model`` with
+        parameters: the parameters to fit (default: every parameter of ``model`` with
             ``requires_grad``). Positive-definite ``Q``/``R`` and bounded constants come from
             :mod:`torchfilt.models.params`: ``DiagonalCovariance`` (log-diagonal),
             ``CholeskyCovariance`` (Cholesky factor with a log diagonal), ``ScalarCovariance``
             (log variance), ``Positive`` (softplus), ``Bounded`` (logit).
-        window: window length in steps (``None``: whole recordings).
-        burn_in: uncounted steps at the start of every window (see the module docstring).
-        start: where a later window starts: the previous pass's ``"filtered"`` or
-            ``"smoothed"`` estimate of the state just before it.
-        refresh_every: iterations between refreshes of the window starts.
-        validation: held-out recordings for early stopping.
-        validate_every: iterations between held-out evaluations.
-        patience: stop after this many held-out evaluations without improvement.
-        optimizer: ``"adam"`` (default) or ``"lbfgs"`` (strong-Wolfe line search; best for a few
-            parameters and tight optima).
-        lr: learning rate (default 0.05 for Adam, 1 for L-BFGS).
-        iterations: iteration budget (an L-BFGS iteration runs up to 20 inner steps).
-        tol: stop when the loss changes by less than ``tol * (1 + |loss|)`` in an iteration
-            (default ``1e-10`` for L-BFGS, off for Adam).
-        rtol, rtol_window: stop (``"converged"``) when the loss per measurement ``L`` moved by
-            at most ``rtol * max(1, |L_k|)`` over the last ``rtol_window`` iterations:
-            ``|L_k - L_{k-w}|`` (default ``1e-6`` over 20; 0: off; see
-            :class:`~torchfilt.optim.StoppingOptions`).
         fixed: names of parameters held fixed, as ``model.named_parameters()`` gives them
             (e.g. ``"transition.A"``): they are left out of the fit and end bit-identical; an
             unknown name is an :class:`~torchfilt.exceptions.InputError`.
+        validation: held-out recordings for early stopping.
+        iterations: iteration budget (default 200; an L-BFGS iteration runs up to
+            ``max_iter`` inner steps).
+        optimizer: the optimiser, :class:`~torchfilt.optim.OptimizerOptions` or its name
+            (``"adam"``, the default, or ``"lbfgs"``: strong-Wolfe line search, best for a few
+            parameters and tight optima); its ``lr`` defaults to 0.05 for Adam, 1 for L-BFGS.
+        windows: the windows of the likelihood, :class:`~torchfilt.optim.WindowOptions`
+            (default whole recordings; see the module docstring).
+        stopping: the stopping rules, :class:`~torchfilt.optim.StoppingOptions`: early stopping
+            on ``validation`` (``patience`` 20 evaluations, every ``validate_every``
+            iterations), ``tol`` (default ``1e-10`` for L-BFGS, off for Adam) and the windowed
+            ``rtol`` (default ``1e-6`` over 20 iterations). A ``patience`` given without
+            ``validation`` warns (:class:`~torchfilt.exceptions.ConvergenceWarning`).
+        checkpoint: checkpoints, :class:`~torchfilt.optim.CheckpointOptions` or the file's path
+            (atomic, every 10 iterations by default); with ``resume=True`` an existing one is
+            continued, and the result equals an uninterrupted fit.
+        hooks: :class:`~torchfilt.optim.FitHooks`. ``project`` is called after every optimiser
+            step to project the parameters back onto their feasible set in place (e.g.
+            :meth:`~torchfilt.models.CalibratedModel.project_`); ``prepare`` before every
+            evaluation of the likelihood (training, held-out, window starts), inside its
+            autograd context: e.g. rebuilding a GP's differentiable twin
+            (:meth:`~torchfilt.models.gp.GPModel.twin`) from its current hyperparameters;
+            ``all_reduce``, for a data-parallel fit, sums a flat tensor in place across the
+            processes (e.g. ``torch.distributed.all_reduce`` with a CPU ``gloo`` group). Each
+            process passes its own recordings (whole recordings: window starts come from
+            filtering them) and the same ``validation`` (or none); the log-likelihood, the
+            measurement count and the gradient are summed over the processes, so every process
+            takes the same steps and ends with the parameters of one fit on all recordings (up
+            to the order of the sums). A callback that stops one process stops all. Give each
+            process its own ``checkpoint`` file; each also keeps the checkpoint before it, so
+            that after a lost process a resume starts every process from the same iteration.
+        progress: show a progress bar on stderr.
         callback: called after every iteration with a :class:`LikelihoodState`; return ``True``
             to stop.
-        project: called after every optimiser step to project the parameters back onto their
-            feasible set in place (e.g. :meth:`~torchfilt.models.CalibratedModel.project_`).
-        prepare: called before every evaluation of the likelihood (training, held-out, window
-            starts), inside its autograd context: e.g. rebuilding a GP's differentiable twin
-            (:meth:`~torchfilt.models.gp.GPModel.twin`) from its current hyperparameters.
-        all_reduce: for a data-parallel fit: sums a flat tensor in place across the processes
-            (e.g. ``torch.distributed.all_reduce`` with a CPU ``gloo`` group). Each process passes
-            its own recordings (whole recordings: window starts come from filtering them) and the
-            same ``validation`` (or none); the log-likelihood, the measurement count and the
-            gradient are summed over the processes, so every process takes the same steps and
-            ends with the parameters of one fit on all recordings (up to the order of the sums).
-            A callback that stops one process stops all. Give each process its own
-            ``checkpoint`` file; each also keeps the checkpoint before it, so that after a lost
-            process a resume starts every process from the same iteration.
-        progress: show a progress bar on stderr.
         dtype: floating dtype of the fit (float64 by default).
         sqrt: use the square-root CKF.
         rule: cubature rule (default the third-degree spherical-radial rule).
         compile: compile the filter step with ``torch.compile`` (pays on one or a few long
             windows; see ``scripts/bench_calibrate.py``).
-        checkpoint: file for checkpoints (atomic); with ``resume=True`` an existing one is
-            continued, and the result equals an uninterrupted fit.
-        checkpoint_every: iterations between checkpoints.
-        resume: continue from ``checkpoint`` if it exists.
 
     Returns:
         A :class:`LikelihoodFit`.
@@ -462,17 +449,46 @@ def fit_likelihood(
     Raises:
         InputError, ShapeError: invalid arguments; RunError: a checkpoint of another fit.
     """
+    o = resolve_options(
+        "likelihood", iterations=iterations, optimizer=optimizer, windows=windows,
+        stopping=stopping, checkpoint=checkpoint, hooks=hooks,
+    )  # fmt: skip
+    return _fit_likelihood(
+        model, y, u, x0=x0, P0=P0, parameters=parameters, fixed=fixed, validation=validation,
+        options=o, progress=progress, callback=callback, dtype=dtype, sqrt=sqrt, rule=rule,
+        compile=compile,
+    )  # fmt: skip
+
+
+def _fit_likelihood(
+    model: StateSpaceModel,
+    y: Tensor | Sequence[Tensor],
+    u: Tensor | Sequence[Tensor] | None,
+    *,
+    x0: Tensor,
+    P0: Tensor,
+    parameters: Iterable[nn.Parameter] | None,
+    fixed: Collection[str],
+    validation: Sequences | None,
+    options: FitOptions,
+    progress: bool,
+    callback: Callable[[LikelihoodState], bool | None] | None,
+    dtype: torch.dtype,
+    sqrt: bool,
+    rule: CubatureRule | None,
+    compile: bool,
+) -> LikelihoodFit:
+    """:func:`fit_likelihood` with its options resolved (:func:`~torchfilt.optim.resolve_options`):
+    the body that :func:`~torchfilt.training.calibrate` and
+    :func:`~torchfilt.training.fit_measurement_only` share with their own defaults."""
+    o = options
     if not isinstance(model, StateSpaceModel):
         raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
-    opt_o = OptimizerOptions(optimizer, lr, iterations)
-    win_o = WindowOptions(window, burn_in, start, refresh_every)
-    stop_o = stopping_options(_D.stopping, patience, validate_every, tol, rtol, rtol_window)
-    ckpt_o = CheckpointOptions(checkpoint, checkpoint_every, resume)
     if dtype not in (torch.float32, torch.float64):
         raise InputError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
     model.to(dtype)
     recs = _recordings(model, y, u, x0, P0, dtype)
-    plist = free_parameters(model, params, fixed)
+    plist = free_parameters(model, parameters, fixed, what="parameters")
     val = None
     if validation is not None:
         vx0 = recs.x0[0] if validation.x0 is None else validation.x0
@@ -481,10 +497,10 @@ def fit_likelihood(
         if int(torch.isfinite(val.y).sum()) == 0:
             raise InputError("validation.y: no measurement observed")
     obj = _Objective(
-        model, recs, val, x0, win_o, CKF(model, rule=rule, sqrt=sqrt, compile=compile),
-        prepare, all_reduce,
+        model, recs, val, x0, o.windows, CKF(model, rule=rule, sqrt=sqrt, compile=compile),
+        o.hooks.prepare, o.hooks.all_reduce,
     )  # fmt: skip
-    return _run(obj, plist, opt_o, stop_o, ckpt_o, callback, project, progress)
+    return _run(obj, plist, o, callback, progress)
 
 
 class _Objective:
@@ -612,16 +628,14 @@ class _Objective:
 def _run(
     obj: _Objective,
     plist: list[nn.Parameter],
-    opt_o: OptimizerOptions,
-    stop_o: StoppingOptions,
-    ckpt_o: CheckpointOptions,
+    o: FitOptions,
     callback: Callable[[LikelihoodState], bool | None] | None,
-    project: Callable[[], None] | None,
     progress: bool,
 ) -> LikelihoodFit:
     """The fitting loop of :func:`fit_likelihood` on the objective ``obj``."""
-    iterations, counted, tol = opt_o.iterations, obj.counted, stop_o.tolerance(opt_o.optimizer)
-    guarded = GuardedStep(plist, opt_o, project)
+    opt_o, stop_o, ckpt_o = o.optimizer, o.stopping, o.checkpoint
+    iterations, counted, tol = o.iterations, obj.counted, stop_o.tolerance(opt_o.optimizer)
+    guarded = GuardedStep(plist, opt_o, o.hooks.project)
     ckpt = None
     if ckpt_o.path is not None:
         fp = fingerprint(obj.recs.y, obj.recs.u, *snapshot(plist))
@@ -630,12 +644,14 @@ def _run(
             all_reduce=obj.all_reduce,
         )  # fmt: skip
     val_score = obj.held_out if obj.val is not None else None
-    early = EarlyStopping(stop_o, val_score, lambda: snapshot(plist))
+    early = EarlyStopping(
+        stop_o, val_score, lambda: snapshot(plist), patience_given=o.patience_given
+    )
     bar = ProgressBar("fit likelihood", iterations, enabled=progress)
     loop = FitLoop(
         iterations=iterations, progress=bar, callback=callback, all_reduce=obj.all_reduce,
         stopping=early, tol=tol, rtol=stop_o.rtol, rtol_window=stop_o.rtol_window,
-        checkpoint=ckpt, every=ckpt_o.every,
+        checkpoint=ckpt, every=int(ckpt_o.every or 1),
     )  # fmt: skip
     wx0: Tensor | None = None
     wP0: Tensor | None = None

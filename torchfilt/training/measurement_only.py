@@ -50,7 +50,6 @@ output spectrum, the likelihood) are identified, individual matrix entries need 
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -70,14 +69,18 @@ from torchfilt.models import (
 )
 from torchfilt.models.sensor import AffineSensor
 from torchfilt.optim import (
-    DEFAULTS,
     CheckpointFile,
     CheckpointOptions,
+    FitHooks,
     FitLoop,
+    OptimizerOptions,
     Outcome,
+    StoppingOptions,
+    WindowOptions,
+    deprecated_fit_keywords,
     fingerprint,
     free_parameters,
-    stopping_options,
+    resolve_options,
 )
 from torchfilt.training.em_steps import (
     SmoothedPairs,
@@ -91,8 +94,8 @@ from torchfilt.training.likelihood import (
     LikelihoodFit,
     LikelihoodState,
     Sequences,
+    _fit_likelihood,
     _recordings,
-    fit_likelihood,
 )
 
 __all__ = [
@@ -107,11 +110,6 @@ __all__ = [
 ]
 
 _EM_SCHEMA = "torchfilt.em-checkpoint/1"
-#: The defaults of :func:`fit_em` and :func:`fit_measurement_only` (see
-#: :mod:`torchfilt.optim.options`).
-_EM = DEFAULTS["em"]
-_MO = DEFAULTS["measurement_only"]
-_EM_TOL = _EM.stopping.tolerance("lbfgs")
 
 
 # ----------------------------------------------------------------------------------- gauge
@@ -295,6 +293,7 @@ class MeasurementOnlyFit:
 
 
 # ----------------------------------------------------------------------------------- EM
+@deprecated_fit_keywords("em")
 def fit_em(
     model: StateSpaceModel,
     y: Tensor | Sequence[Tensor],
@@ -303,24 +302,24 @@ def fit_em(
     x0: Tensor,
     P0: Tensor,
     known_channels: Sequence[int] | None,
-    iterations: int = _EM.optimizer.iterations,
-    tol: float = _EM_TOL,
-    rtol: float = _EM.stopping.rtol,
-    rtol_window: int = _EM.stopping.rtol_window,
     fixed: Collection[str] = (),
+    iterations: int | None = None,
+    stopping: StoppingOptions | None = None,
+    checkpoint: CheckpointOptions | str | Path | None = None,
+    hooks: FitHooks | None = None,
+    progress: bool = False,
+    callback: Callable[[EMState], bool | None] | None = None,
+    dtype: torch.dtype = torch.float64,
+    rule: CubatureRule | None = None,
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
     backtracks: int = 4,
-    rule: CubatureRule | None = None,
-    callback: Callable[[EMState], bool | None] | None = None,
-    progress: bool = False,
-    dtype: torch.dtype = torch.float64,
-    checkpoint: str | Path | None = None,
-    checkpoint_every: int = _EM.checkpoint.every,
-    resume: bool = False,
-    all_reduce: Callable[[Tensor], None] | None = None,
 ) -> EMFit:
     """Expectation-maximisation with the cubature RTS smoother (see the module docstring).
+
+    The flat keywords of before (``tol``, ``rtol``, ``rtol_window``, ``checkpoint_every``,
+    ``resume``, ``all_reduce``) still work for one release, with a ``DeprecationWarning`` naming
+    their new spelling.
 
     Args:
         model: the model to fit. A :class:`~torchfilt.models.LinearGaussianModel` (or any model
@@ -335,15 +334,36 @@ def fit_em(
         x0: prior mean ``(n,)`` or one per recording ``(..., n)`` (fixed).
         P0: prior covariance ``(n, n)`` or ``(..., n, n)`` (fixed).
         known_channels: the gauge: measurement channels whose map is known (at least one).
-        iterations: EM iterations.
-        tol: stop when the log-likelihood per measurement changes by less than ``tol``.
-        rtol, rtol_window: stop (``"converged"``) when the negative log-likelihood per
-            measurement ``L`` moved by at most ``rtol * max(1, |L_k|)`` over the last
-            ``rtol_window`` iterations (default ``1e-6`` over 20; 0: off).
         fixed: blocks held fixed. For the closed-form M-step the matrices ``"A"``, ``"B"``,
             ``"Q"``, ``"H"``, ``"R"`` (a fixed block keeps its value exactly; the free ones take
             their closed form given it); for the gradient M-step names of
             ``model.named_parameters()``. An unknown name is an ``InputError``.
+        iterations: EM iterations (default 100).
+        stopping: :class:`~torchfilt.optim.StoppingOptions`: ``tol`` stops when the
+            log-likelihood per measurement changes by less than it in an iteration (default
+            ``1e-9``); ``rtol``, ``rtol_window`` stop (``"converged"``) when the negative
+            log-likelihood per measurement ``L`` moved by at most ``rtol * max(1, |L_k|)`` over
+            the last ``rtol_window`` iterations (default ``1e-6`` over 20; 0: off).
+        checkpoint: :class:`~torchfilt.optim.CheckpointOptions` or the file's path (atomic,
+            every iteration by default); with ``resume=True`` an existing one is continued and
+            the result equals an uninterrupted fit.
+        hooks: :class:`~torchfilt.optim.FitHooks`; EM uses ``all_reduce`` alone: for a
+            data-parallel fit it sums a flat tensor in place across the processes (e.g.
+            ``torch.distributed.all_reduce`` with a CPU ``gloo`` group). Each process passes its
+            own recordings and runs the E-step on them; the linear M-step sums the expected
+            sufficient statistics over the processes (one collective) before the closed form,
+            the gradient M-step sums ``Q`` and its gradient at every L-BFGS evaluation (one
+            collective each), and the backtracking and stopping decisions use the summed filter
+            log-likelihood, so every process takes the same steps and ends with the parameters
+            of one EM on all recordings (up to the order of the sums). A callback that stops one
+            process stops all. Give each process its own ``checkpoint`` file; each also keeps the
+            checkpoint before it, so that after a lost process a resume starts all from the same
+            iteration.
+        progress: show a progress bar on stderr.
+        callback: called after every iteration with an :class:`EMState`; return ``True`` to
+            stop.
+        dtype: floating dtype (float64 by default).
+        rule: cubature rule of the filter and of the M-step expectation (default third degree).
         learn_measurement_noise: update ``R`` (linear) / include the measurement term in the
             M-step (others).
         m_step_iterations: L-BFGS iterations per M-step (non-linear models).
@@ -351,26 +371,6 @@ def fit_em(
             before it is undone (0: undone at once) and the next block of the M-step is tried:
             the joint step, then the maps alone, then the noises alone (an iteration where none
             raises the likelihood stops the fit with ``"no improvement"``).
-        rule: cubature rule of the filter and of the M-step expectation (default third degree).
-        callback: called after every iteration with an :class:`EMState`; return ``True`` to
-            stop.
-        progress: show a progress bar on stderr.
-        dtype: floating dtype (float64 by default).
-        checkpoint: file for checkpoints (atomic); with ``resume=True`` an existing one is
-            continued and the result equals an uninterrupted fit.
-        checkpoint_every: iterations between checkpoints.
-        resume: continue from ``checkpoint`` if it exists.
-        all_reduce: for a data-parallel fit: sums a flat tensor in place across the processes
-            (e.g. ``torch.distributed.all_reduce`` with a CPU ``gloo`` group). Each process
-            passes its own recordings and runs the E-step on them; the linear M-step sums the
-            expected sufficient statistics over the processes (one collective) before the closed
-            form, the gradient M-step sums ``Q`` and its gradient at every L-BFGS evaluation (one
-            collective each), and the backtracking and stopping decisions use the summed filter
-            log-likelihood, so every process takes the same steps and ends with the parameters
-            of one EM on all recordings (up to the order of the sums). A callback that stops one
-            process stops all. Give each process its own ``checkpoint`` file; each also keeps the
-            checkpoint before it, so that after a lost process a resume starts all from the same
-            iteration.
 
     Returns:
         An :class:`EMFit` (log-likelihoods and ``measurements`` summed over the processes).
@@ -381,18 +381,20 @@ def fit_em(
     """
     if not isinstance(model, StateSpaceModel):
         raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
-    if iterations < 1:
-        raise InputError(f"iterations must be at least 1, got {iterations}")
-    CheckpointOptions(checkpoint, checkpoint_every, resume)  # resume=True needs a checkpoint
-    stop_o = stopping_options(_EM.stopping, None, 1, tol, rtol, rtol_window)
-    for name, v in (
-        ("m_step_iterations", m_step_iterations),
-        ("checkpoint_every", checkpoint_every),
-    ):
-        if v < 1:
-            raise InputError(f"{name} must be at least 1, got {v}")
-    if not (math.isfinite(tol) and tol >= 0):
-        raise InputError(f"tol must be finite and non-negative, got {tol}")
+    o = resolve_options(
+        "em", iterations=iterations, stopping=stopping, checkpoint=checkpoint, hooks=hooks
+    )
+    if o.hooks.project is not None or o.hooks.prepare is not None:
+        raise InputError("hooks: fit_em uses all_reduce alone (no project or prepare)")
+    iterations, stop_o, ckpt_o, all_reduce = (
+        o.iterations,
+        o.stopping,
+        o.checkpoint,
+        o.hooks.all_reduce,
+    )
+    tol = stop_o.tolerance("lbfgs")
+    if m_step_iterations < 1:
+        raise InputError(f"m_step_iterations must be at least 1, got {m_step_iterations}")
     if dtype not in (torch.float32, torch.float64):
         raise InputError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
     if model.transition.time_varying_noise or model.measurement.time_varying_noise:
@@ -427,19 +429,19 @@ def fit_em(
         m_step_iterations, backtracks, frozenset(fixed),
     )  # fmt: skip
     ckpt = None
-    if checkpoint is not None:
+    if ckpt_o.path is not None:
         ckpt = CheckpointFile(
-            checkpoint, fingerprint(em.Y, em.U, em.X0, em.C0, *em.state()), schema=_EM_SCHEMA,
+            ckpt_o.path, fingerprint(em.Y, em.U, em.X0, em.C0, *em.state()), schema=_EM_SCHEMA,
             kind="EM", write=atomic_write, all_reduce=reduce,
         )  # fmt: skip
     bar = ProgressBar("fit EM", iterations, enabled=progress)
     loop = FitLoop(
         iterations=iterations, progress=bar, callback=callback, all_reduce=reduce,
         rtol=stop_o.rtol, rtol_window=stop_o.rtol_window, checkpoint=ckpt,
-        every=checkpoint_every,
+        every=int(ckpt_o.every or 1),
     )  # fmt: skip
     initial: float | None = None
-    ck = loop.resume() if resume else None
+    ck = loop.resume() if ckpt_o.resume else None
     if ck is not None:
         em.load(list(ck["state"]))
         initial = float(ck["initial"])
@@ -477,6 +479,7 @@ def fit_em(
 
 
 # ----------------------------------------------------------------------------------- front
+@deprecated_fit_keywords("measurement_only")
 def fit_measurement_only(
     model: StateSpaceModel,
     y: Tensor | Sequence[Tensor],
@@ -485,30 +488,28 @@ def fit_measurement_only(
     x0: Tensor,
     P0: Tensor,
     known_channels: Sequence[int] | None,
-    method: Literal["em", "likelihood"] = "em",
-    iterations: int = _MO.optimizer.iterations,
-    window: int | None = _MO.window.window,
-    burn_in: int = _MO.window.burn_in,
-    validation: Sequences | None = None,
-    optimizer: Literal["adam", "lbfgs"] = _MO.optimizer.optimizer,
-    lr: float | None = _MO.optimizer.lr,
-    tol: float | None = _MO.stopping.tol,
-    rtol: float = _MO.stopping.rtol,
-    rtol_window: int = _MO.stopping.rtol_window,
     fixed: Collection[str] = (),
+    validation: Sequences | None = None,
+    iterations: int | None = None,
+    optimizer: OptimizerOptions | Literal["adam", "lbfgs"] | None = None,
+    windows: WindowOptions | None = None,
+    stopping: StoppingOptions | None = None,
+    checkpoint: CheckpointOptions | str | Path | None = None,
+    hooks: FitHooks | None = None,
+    progress: bool = False,
+    callback: Callable[[EMState | LikelihoodState], bool | None] | None = None,
+    dtype: torch.dtype = torch.float64,
+    rule: CubatureRule | None = None,
+    method: Literal["em", "likelihood"] = "em",
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
-    rule: CubatureRule | None = None,
-    callback: Callable[[EMState | LikelihoodState], bool | None] | None = None,
-    progress: bool = False,
-    dtype: torch.dtype = torch.float64,
-    checkpoint: str | Path | None = None,
-    checkpoint_every: int = _MO.checkpoint.every,
-    resume: bool = False,
-    all_reduce: Callable[[Tensor], None] | None = None,
 ) -> MeasurementOnlyFit:
     """Learn a state-space model from measurements alone (no states), by EM or by the filter's
     likelihood (see the module docstring).
+
+    The flat keywords of before (``window``, ``burn_in``, ``lr``, ``tol``, ``rtol``,
+    ``rtol_window``, ``checkpoint_every``, ``resume``, ``all_reduce``) still work for one
+    release, with a ``DeprecationWarning`` naming their new spelling.
 
     Args:
         model: the model, with the gauge fixed: the maps of ``known_channels`` must not depend on
@@ -521,25 +522,27 @@ def fit_measurement_only(
         x0: prior mean ``(n,)`` or ``(..., n)``.
         P0: prior covariance ``(n, n)`` or ``(..., n, n)``.
         known_channels: the gauge (see :func:`check_gauge`).
-        method: ``"em"`` (:func:`fit_em`) or ``"likelihood"``
-            (:func:`~torchfilt.training.fit_likelihood`).
-        iterations: EM iterations, or optimiser iterations.
-        window, burn_in, validation, optimizer, lr: of
-            :func:`~torchfilt.training.fit_likelihood` (``"likelihood"`` only).
-        tol: convergence tolerance (EM: per measurement, default ``1e-9``; likelihood: that of
-            ``fit_likelihood``).
-        rtol, rtol_window, fixed: convergence over a window and the parameters held fixed
-            (see :func:`fit_em` and :func:`~torchfilt.training.fit_likelihood`).
-        learn_measurement_noise, m_step_iterations: of :func:`fit_em` (``"em"`` only).
-        rule: cubature rule.
+        fixed: the parameters held fixed (see :func:`fit_em` and
+            :func:`~torchfilt.training.fit_likelihood`).
+        validation: held-out recordings for early stopping (``"likelihood"`` only).
+        iterations: EM iterations, or optimiser iterations (default 30).
+        optimizer, windows: of :func:`~torchfilt.training.fit_likelihood` (``"likelihood"``
+            only; default L-BFGS on whole recordings).
+        stopping: :class:`~torchfilt.optim.StoppingOptions` (``tol``: EM per measurement,
+            default ``1e-9``; likelihood: that of ``fit_likelihood``).
+        checkpoint: :class:`~torchfilt.optim.CheckpointOptions` or the file's path (every
+            iteration by default); resuming equals an uninterrupted fit.
+        hooks: :class:`~torchfilt.optim.FitHooks`: ``all_reduce`` for a data-parallel fit over
+            processes with their own recordings (see :func:`fit_em` and
+            :func:`~torchfilt.training.fit_likelihood`).
+        progress: show a progress bar.
         callback: per-iteration callback (an :class:`EMState` or a
             :class:`~torchfilt.training.LikelihoodState`); return ``True`` to stop.
-        progress: show a progress bar.
         dtype: floating dtype.
-        checkpoint, checkpoint_every, resume: checkpointing; resuming equals an uninterrupted
-            fit.
-        all_reduce: a data-parallel fit over processes with their own recordings (see
-            :func:`fit_em` and :func:`~torchfilt.training.fit_likelihood`).
+        rule: cubature rule.
+        method: ``"em"`` (:func:`fit_em`) or ``"likelihood"``
+            (:func:`~torchfilt.training.fit_likelihood`).
+        learn_measurement_noise, m_step_iterations: of :func:`fit_em` (``"em"`` only).
 
     Returns:
         A :class:`MeasurementOnlyFit`.
@@ -552,30 +555,17 @@ def fit_measurement_only(
     if not isinstance(model, StateSpaceModel):
         raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
     known = check_gauge(model, known_channels)
+    o = resolve_options(
+        "measurement_only", iterations=iterations, optimizer=optimizer, windows=windows,
+        stopping=stopping, checkpoint=checkpoint, hooks=hooks,
+    )  # fmt: skip
     if method == "em":
         em = fit_em(
-            model,
-            y,
-            u,
-            x0=x0,
-            P0=P0,
-            known_channels=known,
-            iterations=iterations,
-            tol=_EM_TOL if tol is None else tol,
-            rtol=rtol,
-            rtol_window=rtol_window,
-            fixed=fixed,
-            learn_measurement_noise=learn_measurement_noise,
-            m_step_iterations=m_step_iterations,
-            rule=rule,
-            callback=callback,
-            progress=progress,
-            dtype=dtype,
-            checkpoint=checkpoint,
-            checkpoint_every=checkpoint_every,
-            resume=resume,
-            all_reduce=all_reduce,
-        )
+            model, y, u, x0=x0, P0=P0, known_channels=known, fixed=fixed,
+            iterations=o.iterations, stopping=stopping, checkpoint=o.checkpoint, hooks=hooks,
+            progress=progress, callback=callback, dtype=dtype, rule=rule,
+            learn_measurement_noise=learn_measurement_noise, m_step_iterations=m_step_iterations,
+        )  # fmt: skip
         return MeasurementOnlyFit(
             model=em.model,
             method="em",
@@ -588,31 +578,11 @@ def fit_measurement_only(
             elapsed=em.elapsed,
             detail=em,
         )
-    lf = fit_likelihood(
-        model,
-        y,
-        u,
-        x0=x0,
-        P0=P0,
-        window=window,
-        burn_in=burn_in,
-        validation=validation,
-        optimizer=optimizer,
-        lr=lr,
-        iterations=iterations,
-        tol=tol,
-        rtol=rtol,
-        rtol_window=rtol_window,
-        fixed=fixed,
-        callback=callback,
-        progress=progress,
-        dtype=dtype,
-        rule=rule,
-        checkpoint=checkpoint,
-        checkpoint_every=checkpoint_every,
-        resume=resume,
-        all_reduce=all_reduce,
-    )
+    lf = _fit_likelihood(
+        model, y, u, x0=x0, P0=P0, parameters=None, fixed=fixed, validation=validation,
+        options=o, progress=progress, callback=callback, dtype=dtype, sqrt=False, rule=rule,
+        compile=False,
+    )  # fmt: skip
     return MeasurementOnlyFit(
         model=model,
         method="likelihood",

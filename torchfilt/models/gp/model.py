@@ -44,7 +44,7 @@ from torchfilt.models.gp.predictor import (
 )
 from torchfilt.models.gp.standardize import Standardizer
 from torchfilt.numerics.dtypes import check_real_tensor
-from torchfilt.optim import DEFAULTS
+from torchfilt.optim import DEFAULTS, OptimizerOptions, deprecated_fit_keywords
 
 __all__ = ["STATE_FORMAT", "GPModel"]
 
@@ -57,6 +57,16 @@ MAX_LR = 1.0
 #: The defaults of :meth:`GPModel.optimize` (see :mod:`torchfilt.optim.options`).
 _GP = DEFAULTS["gp"]
 _GP_LR = _GP.optimizer.learning_rate
+
+
+def _check_rate(name: str, rate: Any) -> float:
+    """``rate`` as a float, refused unless a number in ``(0, MAX_LR]``."""
+    if not isinstance(rate, numbers.Real) or not 0.0 < float(rate) <= MAX_LR:
+        raise InputError(
+            f"{name} must be a number in (0, {MAX_LR:g}], got {rate!r} (a step above "
+            f"{MAX_LR:g} on the log-hyperparameters diverges)"
+        )
+    return float(rate)
 
 
 class GPModel(ConditionalModel):
@@ -225,9 +235,11 @@ class GPModel(ConditionalModel):
     def _fit(cls, pairs: PairData, options: dict[str, Any]) -> GPModel:
         """Shared body of the ``fit`` class methods: build, train, freeze."""
         train_keys: tuple[str, ...] = ("iterations", "lr", "natural_lr", "subset", "batch_size")
-        train_keys += ("callback", "progress", "resume")
+        train_keys += ("optimizer", "callback", "progress", "resume")
         freeze_keys = ("variance", "rank", "tol", "chunk_size")
         train = {k: options.pop(k) for k in train_keys if k in options}
+        if "lr" in train:  # the flat ``lr`` of ``fit`` (and of a recipe's GP table)
+            train["optimizer"] = OptimizerOptions("adam", lr=_check_rate("lr", train.pop("lr")))
         freeze = {k: options.pop(k) for k in freeze_keys if k in options}
         seed = options.get("seed", 0)
         device = options.pop("device", None)
@@ -246,11 +258,12 @@ class GPModel(ConditionalModel):
         return model
 
     # ------------------------------------------------------------------ training
+    @deprecated_fit_keywords("gp")
     def optimize(
         self,
-        iterations: int = _GP.optimizer.iterations,
-        lr: float = _GP_LR,
+        iterations: int | None = None,
         *,
+        optimizer: OptimizerOptions | Literal["adam"] | None = None,
         natural_lr: float = 0.1,
         subset: int | None = DEFAULT_SUBSET,
         batch_size: int = 1024,
@@ -263,8 +276,12 @@ class GPModel(ConditionalModel):
         """Train the hyperparameters (and variational parameters of a sparse model).
 
         Args:
-            iterations: total Adam iterations (including those of a resumed run).
-            lr: Adam learning rate (hyperparameters, inducing inputs).
+            iterations: total Adam iterations (including those of a resumed run; default 200;
+                0: none).
+            optimizer: :class:`~torchfilt.optim.OptimizerOptions` of the Adam steps on the
+                hyperparameters and inducing inputs (default ``lr`` 0.05, at most 1), or
+                ``"adam"``. The keyword ``lr=`` of before still works for one release, with a
+                ``DeprecationWarning``.
             natural_lr: natural-gradient step size for ``q(u)`` of a sparse model.
             subset: train an exact model's hyperparameters on a random subset of at most this
                 many rows per group (default 1000; ``None``: all rows). The model still conditions
@@ -284,18 +301,23 @@ class GPModel(ConditionalModel):
         Returns:
             The loss per iteration run (also appended to :attr:`history`).
         """
+        if iterations is None:
+            iterations = _GP.iterations
+        if optimizer is None:
+            optimizer = _GP.optimizer
+        elif isinstance(optimizer, str):
+            optimizer = OptimizerOptions(optimizer)  # type: ignore[arg-type]
+        if not isinstance(optimizer, OptimizerOptions) or optimizer.optimizer != "adam":
+            raise InputError(f"optimizer: a GP trains with Adam, got {optimizer!r}")
+        lr = _GP_LR if optimizer.lr is None else float(optimizer.lr)
         if (
             isinstance(iterations, bool)
             or not isinstance(iterations, numbers.Integral)
             or iterations < 0
         ):
             raise InputError(f"iterations must be a non-negative integer, got {iterations!r}")
-        for name, rate in (("lr", lr), ("natural_lr", natural_lr)):
-            if not isinstance(rate, numbers.Real) or not 0.0 < float(rate) <= MAX_LR:
-                raise InputError(
-                    f"{name} must be a number in (0, {MAX_LR:g}], got {rate!r} (a step above "
-                    f"{MAX_LR:g} on the log-hyperparameters diverges)"
-                )
+        _check_rate("lr", lr)
+        _check_rate("natural_lr", natural_lr)
         if subset is not None and subset < MIN_POINTS:
             raise InputError(f"subset must be at least {MIN_POINTS}, got {subset}")
         if batch_size < 1:

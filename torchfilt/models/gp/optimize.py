@@ -149,9 +149,8 @@ def run_adam(
         FitDivergedError: if the loss becomes non-finite.
     """
     plist = [p for p in params if p.requires_grad]
-    # the options pick the optimiser; the budget is the loop's (a GP may train 0 iterations,
-    # which OptimizerOptions refuses for the likelihood fits)
-    options = replace(DEFAULTS["gp"].optimizer, lr=lr, iterations=max(1, iterations))
+    # the options pick the optimiser; the budget is the loop's (a GP may train 0 iterations)
+    options = replace(DEFAULTS["gp"].optimizer, lr=lr)
     opt = make_optimizer(plist, options) if plist else None
     ngd = tuple(gpytorch.optim.NGD(list(ps), num_data=n, lr=natural_lr) for ps, n in natural)
     if opt is None and not ngd:  # nothing to learn (e.g. every output constant)

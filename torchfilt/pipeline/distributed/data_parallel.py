@@ -11,6 +11,7 @@ from typing import Any, Literal, TextIO
 import torch
 
 from torchfilt.exceptions import InputError, WorkerError
+from torchfilt.optim import CheckpointOptions, OptimizerOptions, StoppingOptions, WindowOptions
 from torchfilt.pipeline.distributed.fits import calibrate_ray, fit_measurement_only_ray
 from torchfilt.pipeline.distributed.group import GROUP_TIMEOUT, _check_timeout
 from torchfilt.pipeline.distributed.session import import_ray, ray_session
@@ -31,19 +32,16 @@ def _measurement_only_stage_ray(
     P0: torch.Tensor,
     known_channels: Sequence[int] | None,
     method: Literal["em", "likelihood"] = "em",
-    iterations: int = 100,
-    window: int | None = None,
-    burn_in: int = 0,
-    optimizer: str = "lbfgs",
-    lr: float | None = None,
+    iterations: int | None = None,
+    optimizer: OptimizerOptions | Literal["adam", "lbfgs"] | None = None,
+    windows: WindowOptions | None = None,
+    stopping: StoppingOptions | None = None,
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
     callback: Callable[[Any], bool | None] | None = None,
     progress: bool = False,
     dtype: torch.dtype = torch.float64,
-    checkpoint: str | Path | None = None,
-    checkpoint_every: int = 1,
-    resume: bool = False,
+    checkpoint: CheckpointOptions | str | Path | None = None,
 ) -> Any:
     """:func:`fit_measurement_only_ray` called as :func:`~torchfilt.training.fit_measurement_only`
     (``y`` and ``u`` lists of ``(T_i, m)`` / ``(T_i, nu)``), the callback on the driver:
@@ -60,17 +58,14 @@ def _measurement_only_stage_ray(
         method=method,
         workers=workers,
         iterations=iterations,
-        window=window,
-        burn_in=burn_in,
         optimizer=optimizer,
-        lr=lr,
+        windows=windows,
+        stopping=stopping,
         learn_measurement_noise=learn_measurement_noise,
         m_step_iterations=m_step_iterations,
         dtype=dtype,
         callback=callback,
         checkpoint=checkpoint,
-        resume=resume,
-        checkpoint_every=checkpoint_every,
         timeout=timeout,
         callback_on="driver",
     )

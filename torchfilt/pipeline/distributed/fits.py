@@ -9,11 +9,20 @@ from typing import Any, Literal
 import torch
 
 from torchfilt.exceptions import InputError
+from torchfilt.optim import (
+    CheckpointOptions,
+    OptimizerOptions,
+    StoppingOptions,
+    WindowOptions,
+    deprecated_fit_keywords,
+    resolve_options,
+)
 from torchfilt.pipeline.distributed.group import GROUP_TIMEOUT, _run_group
 
 __all__ = ["calibrate_ray", "fit_measurement_only_ray"]
 
 
+@deprecated_fit_keywords("calibrate")
 def calibrate_ray(
     model: Any,
     recordings: Any,
@@ -23,20 +32,16 @@ def calibrate_ray(
     workers: int = 2,
     address: str | None = None,
     validation: Any = None,
+    iterations: int | None = None,
+    optimizer: OptimizerOptions | Literal["adam", "lbfgs"] | None = None,
+    windows: WindowOptions | None = None,
+    stopping: StoppingOptions | None = None,
+    checkpoint: CheckpointOptions | str | Path | None = None,
+    callback: Callable[[Any], bool | None] | None = None,
+    dtype: torch.dtype = torch.float64,
     sides: Sequence[str] = ("transition", "measurement"),
-    window: int | None = 100,
-    burn_in: int = 20,
-    iterations: int = 150,
-    lr: float = 0.1,
-    optimizer: str = "adam",
-    patience: int = 15,
     inflate_only: bool = True,
     gp: str = "none",
-    dtype: torch.dtype = torch.float64,
-    callback: Callable[[Any], bool | None] | None = None,
-    checkpoint: str | Path | None = None,
-    resume: bool = False,
-    checkpoint_every: int = 10,
     timeout: float = GROUP_TIMEOUT,
     callback_on: Literal["actors", "driver"] = "actors",
 ) -> Any:
@@ -56,18 +61,19 @@ def calibrate_ray(
     one before it), and the result equals an uninterrupted fit (tested).
 
     Args:
-        model, recordings, x0, P0, validation, sides, window, burn_in, iterations, lr,
-        optimizer, patience, inflate_only, gp, dtype, checkpoint_every: as in
-            :func:`~torchfilt.training.calibrate` (``recordings`` a list of recordings or a
-            :class:`~torchfilt.training.likelihood.Sequences` whose ``x0``/``P0`` are shared).
+        model, recordings, x0, P0, validation, iterations, optimizer, windows, stopping, dtype,
+        sides, inflate_only, gp: as in :func:`~torchfilt.training.calibrate` (``recordings`` a
+            list of recordings or a :class:`~torchfilt.training.likelihood.Sequences` whose
+            ``x0``/``P0`` are shared; the flat keywords of before warn as there).
         workers: Ray actors, one CPU each; the cluster must have that many free at once.
         address: Ray cluster (see :func:`ray_session`).
         callback: called in every actor's process after each iteration (its rank is
             ``torch.distributed.get_rank()``); one returning ``True`` stops all. Sent to the
             actors, so it must pickle. With ``callback_on="driver"``: see there.
-        checkpoint: folder of the actors' checkpoints (``None``: no checkpoints, and a lost
-            worker means starting again).
-        resume: continue from the checkpoints in ``checkpoint``.
+        checkpoint: folder of the actors' checkpoints, or a
+            :class:`~torchfilt.optim.CheckpointOptions` whose ``path`` is that folder (``None``:
+            no checkpoints, and a lost worker means starting again); its ``resume=True``
+            continues from the checkpoints in the folder.
         timeout: seconds a collective waits for the other actors before it fails (the longest
             one actor may compute between two collectives, e.g. filter its shard, must stay
             below it).
@@ -86,30 +92,34 @@ def calibrate_ray(
             bad ``timeout``.
         WorkerError: an actor was lost (see above).
     """
+    ckpt = _checkpoint("calibrate", checkpoint)
     options: dict[str, Any] = {
         "x0": x0,
         "P0": P0,
         "validation": validation,
         "sides": tuple(sides),
-        "window": window,
-        "burn_in": burn_in,
         "iterations": iterations,
-        "lr": lr,
         "optimizer": optimizer,
-        "patience": patience,
+        "windows": windows,
+        "stopping": stopping,
         "inflate_only": inflate_only,
         "gp": gp,
         "dtype": dtype,
         "callback": callback,
-        "resume": resume,
-        "checkpoint_every": checkpoint_every,
+        "checkpoint": ckpt,
     }
     return _run_group(
-        "calibrate_ray", "calibrate", model, recordings, options, workers, address, checkpoint,
+        "calibrate_ray", "calibrate", model, recordings, options, workers, address, ckpt.path,
         timeout, callback_on,
     )  # fmt: skip
 
 
+def _checkpoint(fit: str, checkpoint: CheckpointOptions | str | Path | None) -> CheckpointOptions:
+    """The checkpoints of a group's fit: ``path`` the actors' folder, ``every`` set."""
+    return resolve_options(fit, checkpoint=checkpoint).checkpoint
+
+
+@deprecated_fit_keywords("measurement_only")
 def fit_measurement_only_ray(
     model: Any,
     recordings: Any,
@@ -117,23 +127,19 @@ def fit_measurement_only_ray(
     x0: torch.Tensor,
     P0: torch.Tensor,
     known_channels: Sequence[int] | None,
-    method: str = "likelihood",
     workers: int = 2,
     address: str | None = None,
-    iterations: int = 100,
-    window: int | None = None,
-    burn_in: int = 0,
     validation: Any = None,
-    optimizer: str = "lbfgs",
-    lr: float | None = None,
-    tol: float | None = None,
+    iterations: int | None = None,
+    optimizer: OptimizerOptions | Literal["adam", "lbfgs"] | None = None,
+    windows: WindowOptions | None = None,
+    stopping: StoppingOptions | None = None,
+    checkpoint: CheckpointOptions | str | Path | None = None,
+    callback: Callable[[Any], bool | None] | None = None,
+    dtype: torch.dtype = torch.float64,
+    method: str = "likelihood",
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
-    dtype: torch.dtype = torch.float64,
-    callback: Callable[[Any], bool | None] | None = None,
-    checkpoint: str | Path | None = None,
-    resume: bool = False,
-    checkpoint_every: int = 1,
     timeout: float = GROUP_TIMEOUT,
     callback_on: Literal["actors", "driver"] = "actors",
 ) -> Any:
@@ -146,12 +152,13 @@ def fit_measurement_only_ray(
     and its gradient (any other), see :func:`~torchfilt.training.fit_em`.
 
     Args:
-        model, x0, P0, known_channels, method, iterations, window, burn_in, validation,
-        optimizer, lr, tol, learn_measurement_noise, m_step_iterations, dtype,
-        checkpoint_every: as in :func:`~torchfilt.training.fit_measurement_only`.
+        model, x0, P0, known_channels, validation, iterations, optimizer, windows, stopping,
+        dtype, method, learn_measurement_noise, m_step_iterations: as in
+            :func:`~torchfilt.training.fit_measurement_only` (the flat keywords of before warn
+            as there).
         recordings: a :class:`~torchfilt.training.likelihood.Sequences` (``y``, ``u``; shared
             ``x0``/``P0``).
-        workers, address, callback, checkpoint, resume, timeout, callback_on: as in
+        workers, address, callback, checkpoint, timeout, callback_on: as in
             :func:`calibrate_ray`.
 
     Returns:
@@ -163,26 +170,24 @@ def fit_measurement_only_ray(
     """
     if method not in ("em", "likelihood"):
         raise InputError(f"method must be 'em' or 'likelihood', got {method!r}")
+    ckpt = _checkpoint("measurement_only", checkpoint)
     options: dict[str, Any] = {
         "x0": x0,
         "P0": P0,
         "known_channels": known_channels,
         "method": method,
         "iterations": iterations,
-        "window": window,
-        "burn_in": burn_in,
-        "validation": validation,
         "optimizer": optimizer,
-        "lr": lr,
-        "tol": tol,
+        "windows": windows,
+        "stopping": stopping,
+        "validation": validation,
         "learn_measurement_noise": learn_measurement_noise,
         "m_step_iterations": m_step_iterations,
         "dtype": dtype,
         "callback": callback,
-        "resume": resume,
-        "checkpoint_every": checkpoint_every,
+        "checkpoint": ckpt,
     }
     return _run_group(
         "fit_measurement_only_ray", "measurement_only", model, recordings, options, workers,
-        address, checkpoint, timeout, callback_on,
+        address, ckpt.path, timeout, callback_on,
     )  # fmt: skip

@@ -4,12 +4,14 @@ process per actor, the driver that waits for them, and the errors of a lost acto
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from torchfilt.exceptions import InputError, TorchfiltError, WorkerError
+from torchfilt.optim import FitHooks
 from torchfilt.pipeline.distributed.session import _free_address, import_ray, ray_session
 
 __all__ = ["GROUP_TIMEOUT"]
@@ -55,19 +57,14 @@ def _fit_rank(rank: int, world: int, init: str, job: dict[str, Any]) -> dict[str
         ckpt = job["checkpoint"]
         path = None if ckpt is None else Path(ckpt) / f"rank{rank}.ckpt"
         data = _shard_sequences(job["recordings"], rank, world)
+        options = dict(job["options"])
+        # each rank its own checkpoint file in the folder
+        options["checkpoint"] = None if path is None else replace(options["checkpoint"], path=path)
+        hooks = FitHooks(all_reduce=dist.all_reduce)
         if job["kind"] == "calibrate":
-            res: Any = calibrate(
-                job["model"], data, all_reduce=dist.all_reduce, checkpoint=path, **job["options"]
-            )
+            res: Any = calibrate(job["model"], data, hooks=hooks, **options)
         else:
-            res = fit_measurement_only(
-                job["model"],
-                data.y,
-                data.u,
-                all_reduce=dist.all_reduce,
-                checkpoint=path,
-                **job["options"],
-            )
+            res = fit_measurement_only(job["model"], data.y, data.u, hooks=hooks, **options)
     finally:
         dist.destroy_process_group()
     return {"result": res if rank == 0 else None}
@@ -221,8 +218,9 @@ def _group_error(
         )
     else:
         hint = (
-            f"run the same call again with resume=True to continue from the checkpoints in "
-            f"{checkpoint} (every rank restarts from the latest iteration all of them saved)"
+            "run the same call again with checkpoint=CheckpointOptions(DIR, resume=True) to "
+            f"continue from the checkpoints in DIR = {checkpoint} (every rank restarts from the "
+            "latest iteration all of them saved)"
         )
     return WorkerError(f"{caller}: {what}; the other ranks were stopped; {hint}")
 
