@@ -97,7 +97,6 @@ PENDING: set[str] = {
     "torchfilt.filters.iterated.iterated_smoother",
     "torchfilt.filters.kalman.kalman_filter",
     "torchfilt.filters.kalman.kalman_smoother",
-    "torchfilt.filters.results.StepRecord",
     "torchfilt.filters.smoother.rts_smooth",
     "torchfilt.filters.steps.Noise",
     "torchfilt.filters.steps.PredictCache",
@@ -148,7 +147,6 @@ PENDING: set[str] = {
     "torchfilt.training.calibrate.calibrate",
     "torchfilt.training.calibrate.consistency",
     "torchfilt.training.em_steps.SmoothedPairs",
-    "torchfilt.training.likelihood.fit_likelihood",
     "torchfilt.training.measurement_only.fit_em",
     "torchfilt.training.measurement_only.fit_measurement_only",
 }
