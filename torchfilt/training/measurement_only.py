@@ -4,7 +4,8 @@ Two methods, chosen by ``method`` of :func:`fit_measurement_only`:
 
 ``"em"`` (:func:`fit_em`): expectation-maximisation with the cubature RTS smoother.
     *E-step*: the CKF and the RTS smoother give the smoothed moments of every state and of every
-    consecutive pair ``(x_{t-1}, x_t)``; the pair's cross-covariance is the smoothed lag-one
+    consecutive pair ``(x_{t-1}, x_t)`` (for a linear-Gaussian model the exact Kalman filter and
+    RTS smoother of :func:`~torchfilt.filters.kalman_smoother`, batched over the recordings); the pair's cross-covariance is the smoothed lag-one
     covariance ``Cov(x_{t-1}, x_t | y) = G_{t-1} P^s_t`` (``G`` the smoother gain). The prior
     ``N(x0, P0)`` is ``x_{-1}``, and it is smoothed too, so that the first transition is counted.
     *M-step*: for a linear-Gaussian model, the closed form on the expected sufficient statistics
@@ -320,7 +321,8 @@ def fit_em(
     resume: bool = False,
     all_reduce: Callable[[Tensor], None] | None = None,
 ) -> EMFit:
-    """Expectation-maximisation with the cubature RTS smoother (see the module docstring).
+    """Expectation-maximisation with the RTS smoother (exact Kalman for a linear-Gaussian model,
+    cubature otherwise; see the module docstring).
 
     Args:
         model: the model to fit. A :class:`~torchfilt.models.LinearGaussianModel` (or any model
