@@ -116,8 +116,9 @@ def _np_rts(A, H, B, Q, R, x0, P0, u, y):
     return np.array(msm), np.array(Psm), np.array(lag[1:])
 
 
-def _np_em(A, H, B, Q, R, x0, P0, u, y, known, iterations):
-    """Closed-form EM (Shumway & Stoffer) in numpy over several recordings."""
+def _np_em(A, H, B, Q, R, x0, P0, u, y, known, iterations, fixed=()):
+    """Closed-form EM (Shumway & Stoffer) in numpy over several recordings; the blocks in
+    ``fixed`` keep their values and the free ones take their closed form given them."""
     n = A.shape[0]
     for _ in range(iterations):
         Sxx = Spp = Sxp = Spu = Suu = Sxu = Syy = Sxy = 0.0
@@ -139,17 +140,29 @@ def _np_em(A, H, B, Q, R, x0, P0, u, y, known, iterations):
         Szz = np.block([[Spp, Spu], [Spu.T, Suu]])
         Sxz = np.hstack([Sxp, Sxu])
         AB = Sxz @ np.linalg.inv(Szz)
-        Q = (Sxx - AB @ Sxz.T) / N
+        if "A" in fixed and "B" in fixed:
+            AB = np.hstack([A, B])
+        elif "A" in fixed:
+            AB = np.hstack([A, (Sxu - A @ Spu) @ np.linalg.inv(Suu)])
+        elif "B" in fixed:
+            AB = np.hstack([(Sxp - B @ Spu.T) @ np.linalg.inv(Spp), B])
+        if "Q" not in fixed:
+            Q = (Sxx - AB @ Sxz.T - Sxz @ AB.T + AB @ Szz @ AB.T) / N
         A, B = AB[:, :n], AB[:, n:]
-        H = H.copy()
-        unknown = [j for j in range(H.shape[0]) if j not in known]
-        H[unknown] = (np.linalg.solve(Sxx, Sxy[:, unknown])).T
-        R = (Syy - H @ Sxy - Sxy.T @ H.T + H @ Sxx @ H.T) / N
+        if "H" not in fixed:
+            H = H.copy()
+            unknown = [j for j in range(H.shape[0]) if j not in known]
+            H[unknown] = (np.linalg.solve(Sxx, Sxy[:, unknown])).T
+        if "R" not in fixed:
+            R = (Syy - H @ Sxy - Sxy.T @ H.T + H @ Sxx @ H.T) / N
     return A, H, B, Q, R
 
 
-@pytest.mark.parametrize("iterations", [1, 6])
-def test_linear_em_equals_numpy_closed_form_em(iterations):
+@pytest.mark.parametrize(
+    ("iterations", "fixed"),
+    [(1, ()), (6, ()), (3, ("A",)), (3, ("B", "R")), (3, ("Q", "H")), (2, ("A", "B"))],
+)
+def test_linear_em_equals_numpy_closed_form_em(iterations, fixed):
     rng = np.random.default_rng(11)
     A, H, B, Q, R = _system(rng)
     n, T, reps = 3, 60, 3
@@ -170,9 +183,10 @@ def test_linear_em_equals_numpy_closed_form_em(iterations):
         iterations=iterations,
         tol=0.0,
         rtol=0.0,
+        fixed=fixed,
     )
     assert fit.iterations == iterations
-    want = _np_em(A1, H1, B1, Q1, R1, x0, P0, u, y, [0], iterations)
+    want = _np_em(A1, H1, B1, Q1, R1, x0, P0, u, y, [0], iterations, fixed)
     got = fit.model
     for name, w in zip("AHBQR", want, strict=True):
         g = {

@@ -138,9 +138,9 @@ def _linear_m_step(
     u = U.reshape(-1, U.shape[-1])[keep].to(f64) if U is not None else None
     stats = [
         torch.tensor(float(m_cur.shape[0]), dtype=f64),  # N
-        (P_cur + m_cur.unsqueeze(-1) * m_cur.unsqueeze(-2)).sum(0),  # Sxx
-        (P_prev + m_prev.unsqueeze(-1) * m_prev.unsqueeze(-2)).sum(0),  # Spp
-        (C.mT + m_cur.unsqueeze(-1) * m_prev.unsqueeze(-2)).sum(0),  # Sxp = E[x_t x_{t-1}^T]
+        P_cur.sum(0) + m_cur.mT @ m_cur,  # Sxx
+        P_prev.sum(0) + m_prev.mT @ m_prev,  # Spp
+        C.sum(0).mT + m_cur.mT @ m_prev,  # Sxp = E[x_t x_{t-1}^T]
     ]
     if with_B:
         assert u is not None
@@ -154,7 +154,7 @@ def _linear_m_step(
         yo = yo - u[ok] @ lin.D.to(f64).mT
     stats += [
         torch.tensor(float(ok.sum()), dtype=f64),  # observed rows
-        (Po + mo.unsqueeze(-1) * mo.unsqueeze(-2)).sum(0),  # Sxx_o
+        Po.sum(0) + mo.mT @ mo,  # Sxx_o
         mo.mT @ yo,  # Sxy
         yo.mT @ yo,  # Syy
     ]

@@ -10,7 +10,8 @@ Two methods, chosen by ``method`` of :func:`fit_measurement_only`:
     ``N(x0, P0)`` is ``x_{-1}``, and it is smoothed too, so that the first transition is counted.
     *M-step*: for a linear-Gaussian model, the closed form on the expected sufficient statistics
     (``A, B, Q``; the rows of ``H`` outside ``known_channels``; ``R``), which is exact EM: the
-    likelihood never decreases. For any other model (a GP transition such as
+    likelihood never decreases (a start for it from the data alone, in the model's gauge:
+    :func:`~torchfilt.models.subspace_start`, N4SID). For any other model (a GP transition such as
     :class:`~torchfilt.models.InducingTransition`), a few L-BFGS steps on the *expected
     complete-data log-likelihood*
 
