@@ -60,6 +60,10 @@ def test_noise_free_data_give_the_true_system():
     np.testing.assert_allclose(fit.x0.numpy(), 0.0, atol=1e-7)
     order = subspace_order(y, u)
     assert order.suggested == 4
+    # recordings of different lengths, as a list
+    ragged = subspace_identify([y[0], y[1, :180]], [u[0], u[1, :180]], order=4)
+    np.testing.assert_allclose(_eig(ragged.model.A), _eig(A), atol=1e-8)
+    np.testing.assert_allclose(ragged.x0.numpy(), 0.0, atol=1e-7)
 
 
 def test_feedthrough_and_no_input():

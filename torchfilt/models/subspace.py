@@ -195,7 +195,8 @@ def _sym_basis(d: int) -> list[Tensor]:
 
 def _psd(S: Tensor, floor: float) -> Tensor:
     w, V = torch.linalg.eigh(0.5 * (S + S.mT))
-    return (V * w.clamp_min(floor)) @ V.mT
+    out = (V * w.clamp_min(floor)) @ V.mT
+    return 0.5 * (out + out.mT)
 
 
 def _noise(A: Tensor, H: Tensor, res: list[Tensor], lags: int) -> tuple[Tensor, Tensor]:
@@ -236,25 +237,30 @@ def _input_maps(
     """``B, D'`` and the initial states of ``s_{t+1} = A s_t + B u_t``, ``y_t = C s_t + D' u_t``
     by least squares on every output (linear in them given ``A, C``), and the residuals."""
     n, m, p, R = A.shape[0], C.shape[0], us[0].shape[1], len(ys)
-    eye = torch.eye(n, dtype=f64)
+    lengths = [y.shape[0] for y in ys]
+    T = max(lengths)
+    U = torch.zeros(R, T, p, dtype=f64)  # zero inputs past a recording's end change nothing
+    for k, u in enumerate(us):
+        U[k, : u.shape[0]] = u
+    eye_n, eye_m = torch.eye(n, dtype=f64), torch.eye(m, dtype=f64)
+    # Psi_t = sum_{j<t} u_j^T (x) A^{t-1-j} (R, n, n p): y_t's regressor on vec(B) is C Psi_t,
+    # all recordings at once; u_t^T (x) I is (eye[i, j] u_b) at [i, b n + j]
+    Psi = torch.zeros(R, n, n * p, dtype=f64)
+    Ak = eye_n
+    regB, regD, regX = [], [], []
+    for t in range(T):
+        regB.append(C @ Psi)
+        regD.append((eye_m[None, :, None, :] * U[:, t, None, :, None]).reshape(R, m, p * m))
+        regX.append(C @ Ak)
+        Psi = A @ Psi + (eye_n[None, :, None, :] * U[:, t, None, :, None]).reshape(R, n, p * n)
+        Ak = A @ Ak
+    RB, RD, RX = torch.stack(regB, 1), torch.stack(regD, 1), torch.stack(regX, 0)  # (R, T, m, .)
     rows, targets = [], []
-    for k, (y, u) in enumerate(zip(ys, us, strict=True)):
-        T = y.shape[0]
-        # Psi_t = sum_{j<t} u_j^T (x) A^{t-1-j}: y_t's regressor on vec(B) is C Psi_t
-        Psi = torch.zeros(n, n * p, dtype=f64)
-        Ak = eye
-        regs = []
-        for t in range(T):
-            x0_part = torch.zeros(m, n * R, dtype=f64)
-            x0_part[:, k * n : (k + 1) * n] = C @ Ak
-            regs.append(
-                torch.cat(
-                    [C @ Psi, torch.kron(u[t].unsqueeze(0), torch.eye(m, dtype=f64)), x0_part], -1
-                )
-            )
-            Psi = A @ Psi + torch.kron(u[t].unsqueeze(0), eye)
-            Ak = A @ Ak
-        rows.append(torch.cat(regs, 0))
+    for k, y in enumerate(ys):
+        Tk = lengths[k]
+        x0_part = torch.zeros(Tk, m, n * R, dtype=f64)
+        x0_part[..., k * n : (k + 1) * n] = RX[:Tk]
+        rows.append(torch.cat([RB[k, :Tk], RD[k, :Tk], x0_part], -1).reshape(Tk * m, -1))
         targets.append(y.reshape(-1))
     X, Y = torch.cat(rows, 0), torch.cat(targets, 0)
     theta = torch.linalg.lstsq(X, Y.unsqueeze(-1), driver="gelsd").solution.squeeze(-1)
