@@ -31,6 +31,13 @@ from torchfilt.models.params import (
     ScalarCovariance,
 )
 from torchfilt.models.sensor import AffineSensor
+from torchfilt.models.subspace import (
+    SubspaceFit,
+    SubspaceOrder,
+    subspace_identify,
+    subspace_order,
+    subspace_start,
+)
 from torchfilt.models.uncertain import ParameterPosterior, UncertainParameters
 
 __all__ = [
@@ -51,6 +58,8 @@ __all__ = [
     "Prediction",
     "ScalarCovariance",
     "StateSpaceModel",
+    "SubspaceFit",
+    "SubspaceOrder",
     "TimeVarying",
     "UncertainParameters",
     "as_conditional",
@@ -58,4 +67,7 @@ __all__ = [
     "check_prediction",
     "linear_system",
     "rk4",
+    "subspace_identify",
+    "subspace_order",
+    "subspace_start",
 ]

@@ -15,7 +15,7 @@ from torch import Tensor, nn
 
 from torchfilt.cubature import CubatureRule, sigma_points
 from torchfilt.exceptions import GaugeError, ModelError, RunError
-from torchfilt.filters import CKF, FilterResult, rts_smooth
+from torchfilt.filters import CKF, FilterResult, SmootherResult, kalman_smoother, rts_smooth
 from torchfilt.models import (
     CovarianceParameter,
     LinearGaussianModel,
@@ -63,7 +63,12 @@ def smoothed_pairs(res: FilterResult, x0: Tensor, P0: Tensor) -> SmoothedPairs:
     Returns:
         A :class:`SmoothedPairs`.
     """
-    sm = rts_smooth(res)
+    return _pairs(rts_smooth(res), x0, P0)
+
+
+def _pairs(sm: SmootherResult, x0: Tensor, P0: Tensor) -> SmoothedPairs:
+    """:func:`smoothed_pairs` from a smoother result ``sm`` (its forward pass included)."""
+    res = sm.filtered
     Pp0 = res.predicted_cov[..., 0, :, :]
     G0 = psd_solve(Pp0, res.cross_cov[..., 0, :, :].mT, name="predicted covariance").mT
     ms0, Ps0 = sm.mean[..., 0, :], sm.cov[..., 0, :, :]
@@ -133,9 +138,9 @@ def _linear_m_step(
     u = U.reshape(-1, U.shape[-1])[keep].to(f64) if U is not None else None
     stats = [
         torch.tensor(float(m_cur.shape[0]), dtype=f64),  # N
-        (P_cur + m_cur.unsqueeze(-1) * m_cur.unsqueeze(-2)).sum(0),  # Sxx
-        (P_prev + m_prev.unsqueeze(-1) * m_prev.unsqueeze(-2)).sum(0),  # Spp
-        (C.mT + m_cur.unsqueeze(-1) * m_prev.unsqueeze(-2)).sum(0),  # Sxp = E[x_t x_{t-1}^T]
+        P_cur.sum(0) + m_cur.mT @ m_cur,  # Sxx
+        P_prev.sum(0) + m_prev.mT @ m_prev,  # Spp
+        C.sum(0).mT + m_cur.mT @ m_prev,  # Sxp = E[x_t x_{t-1}^T]
     ]
     if with_B:
         assert u is not None
@@ -149,7 +154,7 @@ def _linear_m_step(
         yo = yo - u[ok] @ lin.D.to(f64).mT
     stats += [
         torch.tensor(float(ok.sum()), dtype=f64),  # observed rows
-        (Po + mo.unsqueeze(-1) * mo.unsqueeze(-2)).sum(0),  # Sxx_o
+        Po.sum(0) + mo.mT @ mo,  # Sxx_o
         mo.mT @ yo,  # Sxy
         yo.mT @ yo,  # Syy
     ]
@@ -496,6 +501,12 @@ class _EMProblem:
     def e_step(self) -> tuple[float, SmoothedPairs]:
         """The filter log-likelihood (summed over the processes) and the smoothed pairs."""
         with torch.no_grad():
+            if self.lin is not None:
+                # the exact Kalman filter and RTS smoother (batched over the recordings: no
+                # cubature points, and one backward recursion of the shared covariances)
+                sm = kalman_smoother(self.current(), self.Y, self.U, x0=self.X0, P0=self.C0)
+                ll = _summed(self.reduce, sm.filtered.log_likelihood.sum())[0]
+                return float(ll), _pairs(sm, self.X0, self.C0)
             res = CKF(self.current(), rule=self.rule).filter(self.Y, self.U, x0=self.X0, P0=self.C0)
             ll = _summed(self.reduce, res.log_likelihood.sum())[0]
             return float(ll), smoothed_pairs(res, self.X0, self.C0)

@@ -4,12 +4,14 @@ Two methods, chosen by ``method`` of :func:`fit_measurement_only`:
 
 ``"em"`` (:func:`fit_em`): expectation-maximisation with the cubature RTS smoother.
     *E-step*: the CKF and the RTS smoother give the smoothed moments of every state and of every
-    consecutive pair ``(x_{t-1}, x_t)``; the pair's cross-covariance is the smoothed lag-one
+    consecutive pair ``(x_{t-1}, x_t)`` (for a linear-Gaussian model the exact Kalman filter and
+    RTS smoother of :func:`~torchfilt.filters.kalman_smoother`, batched over the recordings); the pair's cross-covariance is the smoothed lag-one
     covariance ``Cov(x_{t-1}, x_t | y) = G_{t-1} P^s_t`` (``G`` the smoother gain). The prior
     ``N(x0, P0)`` is ``x_{-1}``, and it is smoothed too, so that the first transition is counted.
     *M-step*: for a linear-Gaussian model, the closed form on the expected sufficient statistics
     (``A, B, Q``; the rows of ``H`` outside ``known_channels``; ``R``), which is exact EM: the
-    likelihood never decreases. For any other model (a GP transition such as
+    likelihood never decreases (a start for it from the data alone, in the model's gauge:
+    :func:`~torchfilt.models.subspace_start`, N4SID). For any other model (a GP transition such as
     :class:`~torchfilt.models.InducingTransition`), a few L-BFGS steps on the *expected
     complete-data log-likelihood*
 
@@ -315,7 +317,8 @@ def fit_em(
     m_step_iterations: int = 20,
     backtracks: int = 4,
 ) -> EMFit:
-    """Expectation-maximisation with the cubature RTS smoother (see the module docstring).
+    """Expectation-maximisation with the RTS smoother (exact Kalman for a linear-Gaussian model,
+    cubature otherwise; see the module docstring).
 
     The flat keywords of before (``tol``, ``rtol``, ``rtol_window``, ``checkpoint_every``,
     ``resume``, ``all_reduce``) still work for one release, with a ``DeprecationWarning`` naming
