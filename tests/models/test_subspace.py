@@ -12,6 +12,7 @@ from torchfilt.exceptions import InputError
 from torchfilt.filters import kalman_filter
 from torchfilt.models import LinearGaussianModel
 from torchfilt.models.subspace import subspace_identify, subspace_order, subspace_start
+from torchfilt.optim import StoppingOptions
 from torchfilt.training import fit_em
 
 nfoursid = pytest.importorskip("nfoursid.nfoursid")
@@ -128,14 +129,14 @@ def test_subspace_start_keeps_the_gauge_and_em_refines_it_to_the_true_likelihood
     true_ll = ll(LinearGaussianModel(*map(torch.tensor, (A, H, Q, R, B))), torch.zeros(4),
                  torch.eye(4, dtype=torch.float64))  # fmt: skip
     fit = fit_em(start.model, y, u, x0=start.x0, P0=start.P0, known_channels=[0],
-                 iterations=40, tol=0.0, rtol=0.0)  # fmt: skip
+                 iterations=40, stopping=StoppingOptions(tol=0.0, rtol=0.0))  # fmt: skip
     steps = y.shape[0] * y.shape[1]
     assert fit.log_likelihood > ll(start.model, start.x0, start.P0)
     # within a few nats per 1000 steps of the true model (the MLE is above the truth)
     assert (true_ll - fit.log_likelihood) / steps * 1000 < 3.0
     # a zero start is far worse after the same iterations
     zero = fit_em(user, y, u, x0=torch.zeros(4), P0=torch.eye(4, dtype=torch.float64),
-                  known_channels=[0], iterations=40, tol=0.0, rtol=0.0)  # fmt: skip
+                  known_channels=[0], iterations=40, stopping=StoppingOptions(tol=0.0, rtol=0.0))  # fmt: skip
     assert zero.log_likelihood < fit.log_likelihood
 
 

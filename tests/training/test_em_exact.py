@@ -10,6 +10,7 @@ from scipy.stats import multivariate_normal
 
 from torchfilt.cubature import SphericalRadialRule
 from torchfilt.models import LinearGaussianModel
+from torchfilt.optim import StoppingOptions
 from torchfilt.training import fit_em
 from torchfilt.training.em_steps import _EMProblem, _linear_start
 from torchfilt.training.likelihood import _recordings
@@ -181,8 +182,7 @@ def test_linear_em_equals_numpy_closed_form_em(iterations, fixed):
         P0=torch.tensor(P0),
         known_channels=[0],
         iterations=iterations,
-        tol=0.0,
-        rtol=0.0,
+        stopping=StoppingOptions(tol=0.0, rtol=0.0),
         fixed=fixed,
     )
     assert fit.iterations == iterations
