@@ -224,18 +224,34 @@ def _point_cov(side: Any, pred: Any) -> Tensor:
     return cov
 
 
-def _expected_loglik(
-    model: StateSpaceModel,
+class _PairPoints(NamedTuple):
+    """What ``Q(theta)`` needs of the smoothed pairs that does not depend on the parameters:
+    the cubature points of every counted transition and of every observed step, computed once per
+    M-step instead of at every L-BFGS evaluation."""
+
+    xa: Tensor  # (N, P, n): the points of x_{t-1}
+    xb: Tensor  # (N, P, n): those of x_t
+    wm: Tensor  # (P,)
+    uu: Tensor | None  # (N, P, nu)
+    p1: Tensor | None  # (K, P1, n): the points of x_t at the steps with an observed component
+    u1: Tensor | None  # (K, P1, nu)
+    wm1: Tensor | None  # (P1,)
+    o: Tensor | None  # (K, 1, m): the observed components
+    both: Tensor | None  # (K, 1, m, m)
+    unit: Tensor | None  # (K, 1, m, m): unit variance of the missing components
+    y: Tensor | None  # (K, 1, m): the measurements (0 where missing)
+
+
+def _pair_points(
+    n: int,
     sp: SmoothedPairs,
     Y: Tensor,
     U: Tensor | None,
     rule: CubatureRule,
     measurement_term: bool,
     valid: Tensor,
-) -> Tensor:
-    """``Q(theta)``: the cubature expectation of the complete-data log-likelihood over the steps
-    ``valid (R, T)``."""
-    n = model.state_dim
+) -> _PairPoints:
+    """The parameter-free part of :func:`_expected_loglik` (see :class:`_PairPoints`)."""
     dtype = sp.mean.dtype
     keep = valid.reshape(-1)
     mean2 = torch.cat([sp.prev_mean, sp.mean], -1).reshape(-1, 2 * n)[keep]
@@ -249,37 +265,62 @@ def _expected_loglik(
     xi, wm, _ = rule.unit_points(2 * n, dtype=dtype, device=mean2.device)
     S = safe_cholesky(symmetrize(cov2), name="smoothed pair covariance")
     pts = sigma_points(mean2, S, xi)  # (N, P, 2n)
-    xa, xb = pts[..., :n], pts[..., n:]
     uu = None
     if U is not None:
         uu = U.reshape(-1, U.shape[-1])[keep].unsqueeze(-2).expand(-1, pts.shape[-2], -1)
-    pred = model.transition.predict(xa, uu)
+    if not measurement_term:
+        return _PairPoints(pts[..., :n], pts[..., n:], wm, uu, *([None] * 7))
+    m = Y.shape[-1]
+    y = Y.reshape(-1, m)
+    seen = torch.isfinite(y) & keep.unsqueeze(-1)  # (N, m): the observed components
+    ok = seen.any(-1)
+    xi1, wm1, _ = rule.unit_points(n, dtype=dtype, device=mean2.device)
+    S1 = safe_cholesky(symmetrize(sp.cov.reshape(-1, n, n)[ok]), name="smoothed covariance")
+    p1 = sigma_points(sp.mean.reshape(-1, n)[ok], S1, xi1)
+    u1 = None
+    if U is not None:
+        u1 = U.reshape(-1, U.shape[-1])[ok].unsqueeze(-2).expand(-1, p1.shape[-2], -1)
+    o = seen[ok].unsqueeze(-2)  # (K, 1, m)
+    both = o.unsqueeze(-1) & o.unsqueeze(-2)
+    unit = torch.diag_embed((~o).to(dtype))
+    return _PairPoints(
+        pts[..., :n], pts[..., n:], wm, uu, p1, u1, wm1, o, both, unit,
+        y[ok].nan_to_num().unsqueeze(-2),
+    )  # fmt: skip
+
+
+def _expected_loglik(
+    model: StateSpaceModel,
+    sp: SmoothedPairs | _PairPoints,
+    Y: Tensor,
+    U: Tensor | None,
+    rule: CubatureRule,
+    measurement_term: bool,
+    valid: Tensor,
+) -> Tensor:
+    """``Q(theta)``: the cubature expectation of the complete-data log-likelihood over the steps
+    ``valid (R, T)``; ``sp`` the smoothed pairs or their points from :func:`_pair_points` (the
+    same arguments), which an M-step computes once for all its evaluations."""
+    pp = (
+        sp
+        if isinstance(sp, _PairPoints)
+        else _pair_points(model.state_dim, sp, Y, U, rule, measurement_term, valid)
+    )
+    pred = model.transition.predict(pp.xa, pp.uu)
     L = safe_cholesky(_point_cov(model.transition, pred), name="transition covariance")
-    q = (gaussian_log_prob(xb - pred.mean, L) * wm).sum()
+    q = (gaussian_log_prob(pp.xb - pred.mean, L) * pp.wm).sum()
     if measurement_term:
-        m = model.obs_dim
-        y = Y.reshape(-1, m)
-        seen = torch.isfinite(y) & keep.unsqueeze(-1)  # (N, m): the observed components
-        ok = seen.any(-1)
-        xi1, wm1, _ = rule.unit_points(n, dtype=dtype, device=mean2.device)
-        S1 = safe_cholesky(symmetrize(sp.cov.reshape(-1, n, n)[ok]), name="smoothed covariance")
-        p1 = sigma_points(sp.mean.reshape(-1, n)[ok], S1, xi1)
-        u1 = None
-        if U is not None:
-            u1 = U.reshape(-1, U.shape[-1])[ok].unsqueeze(-2).expand(-1, p1.shape[-2], -1)
-        hp = model.measurement.predict(p1, u1)
+        assert pp.p1 is not None and pp.o is not None and pp.both is not None
+        assert pp.unit is not None and pp.y is not None and pp.wm1 is not None
+        hp = model.measurement.predict(pp.p1, pp.u1)
         # the marginal density of the observed components of a partly observed step: a missing
         # component gets residual 0, unit variance and no covariance with the others, and is
         # not counted in the normalising constant (as in the filter's masked update)
-        o = seen[ok].unsqueeze(-2)  # (K, 1, m)
-        both = o.unsqueeze(-1) & o.unsqueeze(-2)
-        C = torch.where(both, _point_cov(model.measurement, hp), 0.0) + torch.diag_embed(
-            (~o).to(dtype)
-        )
-        r = torch.where(o, y[ok].nan_to_num().unsqueeze(-2) - hp.mean, 0.0)
+        C = torch.where(pp.both, _point_cov(model.measurement, hp), 0.0) + pp.unit
+        r = torch.where(pp.o, pp.y - hp.mean, 0.0)
         Lr = safe_cholesky(C, name="measurement covariance")
-        lp = gaussian_log_prob(r, Lr, dim=o.sum(-1))
-        q = q + (lp * wm1).sum()
+        lp = gaussian_log_prob(r, Lr, dim=pp.o.sum(-1))
+        q = q + (lp * pp.wm1).sum()
     return q
 
 
@@ -338,13 +379,15 @@ def _gradient_m_step(
     }
     noise = [p for p in plist if id(p) in noise_ids]
     rest = [p for p in plist if id(p) not in noise_ids]
+    with torch.no_grad():  # the points of the smoothed pairs: the same at every evaluation
+        pts = _pair_points(model.state_dim, sp, Y, U, rule, measurement_term, valid)
 
     def q_value() -> float:
         """``Q`` at the current parameters, summed over the processes."""
         failed = False
         with torch.no_grad():
             try:
-                q = _expected_loglik(model, sp, Y, U, rule, measurement_term, valid).detach()
+                q = _expected_loglik(model, pts, Y, U, rule, measurement_term, valid).detach()
             except (RuntimeError, ValueError):
                 if reduce is None:
                     raise
@@ -365,14 +408,14 @@ def _gradient_m_step(
         def closure() -> Tensor:
             opt.zero_grad()
             if reduce is None:
-                loss = -_expected_loglik(model, sp, Y, U, rule, measurement_term, valid) / scale
+                loss = -_expected_loglik(model, pts, Y, U, rule, measurement_term, valid) / scale
                 loss.backward()
                 return loss.detach()
             # data-parallel: local sums, then one collective for the value and the gradient
             # (on every process whatever its outcome, so that none waits forever)
             failed = False
             try:
-                local = -_expected_loglik(model, sp, Y, U, rule, measurement_term, valid)
+                local = -_expected_loglik(model, pts, Y, U, rule, measurement_term, valid)
                 local.backward()
                 value = local.detach()
             except (RuntimeError, ValueError):
