@@ -75,3 +75,22 @@ def test_expected_loglik_from_the_points_matches_the_cubature_expectation():
     ref0 = _reference(sp, y.numpy(), valid.numpy(), Q, R, measurement=False)
     assert abs(q0 - ref0) <= 1e-10 * abs(ref0)
     assert abs(ref0 - ref) > 1.0  # the measurement term counts
+
+
+def test_expected_loglik_every_step_observed_shares_one_noise_factor():
+    """All observed and no per-point variance: ``Q`` and ``R`` are each factored once for all
+    points; the value equals the cubature expectation written out."""
+    sim = reaction.simulate_truth(2, steps=10, seed=5)
+    y = sim.measurements
+    model = reaction.model()
+    x0, P0 = reaction.prior_mean(), reaction.prior_cov()
+    with torch.no_grad():
+        res = CKF(model).filter(y, x0=x0, P0=P0)
+        sp = smoothed_pairs(res, x0, P0)
+    valid = torch.ones(2, 10, dtype=torch.bool)
+    rule = SphericalRadialRule()
+    pts = _pair_points(2, sp, y, None, rule, True, valid)
+    assert pts.all_seen
+    q = float(_expected_loglik(model, pts, y, None, rule, True, valid))
+    ref = _reference(sp, y.numpy(), valid.numpy(), np.diag(reaction.Q_DIAG), [[reaction.R_VAR]])
+    assert abs(q - ref) <= 1e-10 * abs(ref)

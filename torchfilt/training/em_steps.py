@@ -240,6 +240,7 @@ class _PairPoints(NamedTuple):
     both: Tensor | None  # (K, 1, m, m)
     unit: Tensor | None  # (K, 1, m, m): unit variance of the missing components
     y: Tensor | None  # (K, 1, m): the measurements (0 where missing)
+    all_seen: bool = False  # every component of those steps observed
 
 
 def _pair_points(
@@ -269,7 +270,9 @@ def _pair_points(
     if U is not None:
         uu = U.reshape(-1, U.shape[-1])[keep].unsqueeze(-2).expand(-1, pts.shape[-2], -1)
     if not measurement_term:
-        return _PairPoints(pts[..., :n], pts[..., n:], wm, uu, *([None] * 7))
+        return _PairPoints(
+            pts[..., :n], pts[..., n:], wm, uu, None, None, None, None, None, None, None
+        )
     m = Y.shape[-1]
     y = Y.reshape(-1, m)
     seen = torch.isfinite(y) & keep.unsqueeze(-1)  # (N, m): the observed components
@@ -285,8 +288,18 @@ def _pair_points(
     unit = torch.diag_embed((~o).to(dtype))
     return _PairPoints(
         pts[..., :n], pts[..., n:], wm, uu, p1, u1, wm1, o, both, unit,
-        y[ok].nan_to_num().unsqueeze(-2),
+        y[ok].nan_to_num().unsqueeze(-2), bool(o.all()),
     )  # fmt: skip
+
+
+def _point_chol(side: Any, pred: Any, name: str) -> Tensor:
+    """The Cholesky factor of :func:`_point_cov`: one ``(d, d)`` factor of the noise, shared by
+    every point, when the prediction reports no per-point variance and the noise is one matrix
+    (the same matrix at every point, factored once); else one factor per point."""
+    noise = side.noise_cov()
+    if pred.cov is None and pred.var is None and noise is not None and noise.dim() == 2:
+        return safe_cholesky(noise.to(pred.mean.dtype), name=name)
+    return safe_cholesky(_point_cov(side, pred), name=name)
 
 
 def _expected_loglik(
@@ -307,7 +320,7 @@ def _expected_loglik(
         else _pair_points(model.state_dim, sp, Y, U, rule, measurement_term, valid)
     )
     pred = model.transition.predict(pp.xa, pp.uu)
-    L = safe_cholesky(_point_cov(model.transition, pred), name="transition covariance")
+    L = _point_chol(model.transition, pred, "transition covariance")
     q = (gaussian_log_prob(pp.xb - pred.mean, L) * pp.wm).sum()
     if measurement_term:
         assert pp.p1 is not None and pp.o is not None and pp.both is not None
@@ -316,9 +329,12 @@ def _expected_loglik(
         # the marginal density of the observed components of a partly observed step: a missing
         # component gets residual 0, unit variance and no covariance with the others, and is
         # not counted in the normalising constant (as in the filter's masked update)
-        C = torch.where(pp.both, _point_cov(model.measurement, hp), 0.0) + pp.unit
         r = torch.where(pp.o, pp.y - hp.mean, 0.0)
-        Lr = safe_cholesky(C, name="measurement covariance")
+        if pp.all_seen:  # every component observed: no masking, C is the point covariance
+            Lr = _point_chol(model.measurement, hp, "measurement covariance")
+        else:
+            C = torch.where(pp.both, _point_cov(model.measurement, hp), 0.0) + pp.unit
+            Lr = safe_cholesky(C, name="measurement covariance")
         lp = gaussian_log_prob(r, Lr, dim=pp.o.sum(-1))
         q = q + (lp * pp.wm1).sum()
     return q
