@@ -552,12 +552,22 @@ class _EMProblem:
             for p, v in zip(self.plist, values, strict=True):
                 p.copy_(v)
 
-    def e_step(self) -> tuple[float, SmoothedPairs]:
-        """The filter log-likelihood (summed over the processes) and the smoothed pairs."""
+    def filtered(self) -> tuple[float, FilterResult]:
+        """The filter log-likelihood (summed over the processes) and the filter result."""
         with torch.no_grad():
             res = CKF(self.current(), rule=self.rule).filter(self.Y, self.U, x0=self.X0, P0=self.C0)
             ll = _summed(self.reduce, res.log_likelihood.sum())[0]
-            return float(ll), smoothed_pairs(res, self.X0, self.C0)
+            return float(ll), res
+
+    def smoothed(self, res: FilterResult) -> SmoothedPairs:
+        """The smoothed pairs of a filter result of :meth:`filtered`."""
+        with torch.no_grad():
+            return smoothed_pairs(res, self.X0, self.C0)
+
+    def e_step(self) -> tuple[float, SmoothedPairs]:
+        """The filter log-likelihood (summed over the processes) and the smoothed pairs."""
+        ll, res = self.filtered()
+        return ll, self.smoothed(res)
 
     def m_step(self, ll: float, sp: SmoothedPairs) -> tuple[float, SmoothedPairs, bool]:
         """One M-step from the E-step ``(ll, sp)`` and the E-step after it: the new
@@ -580,15 +590,16 @@ class _EMProblem:
                 self.model, self.plist, sp, self.Y, self.U, self.valid, self.rule, self.learn_R,
                 self.m_step_iterations, self.reduce, blocks=blocks,
             )  # fmt: skip
-            ll_new, sp_new = self.e_step()
+            # smoothed only once a step is kept: a rejected trial needs its likelihood alone
+            ll_new, res_new = self.filtered()
             after = self.state()
             for k in range(1, self.backtracks + 1):
                 if ll_new >= ll:
                     break
                 t = 0.5**k
                 self.load([b + t * (a - b) for a, b in zip(after, before, strict=True)])
-                ll_new, sp_new = self.e_step()
+                ll_new, res_new = self.filtered()
             if ll_new >= ll:
-                return ll_new, sp_new, False
+                return ll_new, self.smoothed(res_new), False
             self.load(before)
         return ll, sp, True
