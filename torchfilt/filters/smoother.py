@@ -40,27 +40,26 @@ def rts_smooth(result: FilterResult) -> SmootherResult:
             f"result: expected a FilterResult (from a filter's filter()), got {type(result).__name__}"
         )
     T = result.mean.shape[-2]
+    n = result.mean.shape[-1]
+    if T < 2:
+        gain = result.cov.new_zeros(*result.cov.shape[:-3], 0, n, n)
+        return SmootherResult(result.mean.clone(), result.cov.clone(), gain, result)
+    # the gains do not depend on the backward recursion: one batched solve over all steps
+    P_pred = result.predicted_cov[..., 1:, :, :]
+    G_all = psd_solve(P_pred, result.cross_cov[..., 1:, :, :].mT, name="predicted covariance").mT
+    GT_all = G_all.mT
+    dm_pred = result.predicted_mean[..., 1:, :]
     m_s = result.mean[..., T - 1, :]
     P_s = result.cov[..., T - 1, :, :]
-    means, covs, gains = [m_s], [P_s], []
+    means, covs = [m_s], [P_s]
     for t in range(T - 2, -1, -1):
-        P_pred = result.predicted_cov[..., t + 1, :, :]
-        C = result.cross_cov[..., t + 1, :, :]
-        G = psd_solve(P_pred, C.mT, name="predicted covariance").mT
-        m_s = result.mean[..., t, :] + (
-            G @ (m_s - result.predicted_mean[..., t + 1, :]).unsqueeze(-1)
-        ).squeeze(-1)
-        P_s = symmetrize(result.cov[..., t, :, :] + G @ (P_s - P_pred) @ G.mT)
+        G = G_all[..., t, :, :]
+        m_s = result.mean[..., t, :] + (G @ (m_s - dm_pred[..., t, :]).unsqueeze(-1)).squeeze(-1)
+        P_s = symmetrize(
+            result.cov[..., t, :, :] + G @ (P_s - P_pred[..., t, :, :]) @ GT_all[..., t, :, :]
+        )
         means.append(m_s)
         covs.append(P_s)
-        gains.append(G)
     means.reverse()
     covs.reverse()
-    gains.reverse()
-    n = result.mean.shape[-1]
-    gain = (
-        torch.stack(gains, dim=-3)
-        if gains
-        else result.cov.new_zeros(*result.cov.shape[:-3], 0, n, n)
-    )
-    return SmootherResult(torch.stack(means, -2), torch.stack(covs, -3), gain, result)
+    return SmootherResult(torch.stack(means, -2), torch.stack(covs, -3), G_all, result)

@@ -229,18 +229,35 @@ def _point_cov(side: Any, pred: Any) -> Tensor:
     return cov
 
 
-def _expected_loglik(
-    model: StateSpaceModel,
+class _PairPoints(NamedTuple):
+    """What ``Q(theta)`` needs of the smoothed pairs that does not depend on the parameters:
+    the cubature points of every counted transition and of every observed step, computed once per
+    M-step instead of at every L-BFGS evaluation."""
+
+    xa: Tensor  # (N, P, n): the points of x_{t-1}
+    xb: Tensor  # (N, P, n): those of x_t
+    wm: Tensor  # (P,)
+    uu: Tensor | None  # (N, P, nu)
+    p1: Tensor | None  # (K, P1, n): the points of x_t at the steps with an observed component
+    u1: Tensor | None  # (K, P1, nu)
+    wm1: Tensor | None  # (P1,)
+    o: Tensor | None  # (K, 1, m): the observed components
+    both: Tensor | None  # (K, 1, m, m)
+    unit: Tensor | None  # (K, 1, m, m): unit variance of the missing components
+    y: Tensor | None  # (K, 1, m): the measurements (0 where missing)
+    all_seen: bool = False  # every component of those steps observed
+
+
+def _pair_points(
+    n: int,
     sp: SmoothedPairs,
     Y: Tensor,
     U: Tensor | None,
     rule: CubatureRule,
     measurement_term: bool,
     valid: Tensor,
-) -> Tensor:
-    """``Q(theta)``: the cubature expectation of the complete-data log-likelihood over the steps
-    ``valid (R, T)``."""
-    n = model.state_dim
+) -> _PairPoints:
+    """The parameter-free part of :func:`_expected_loglik` (see :class:`_PairPoints`)."""
     dtype = sp.mean.dtype
     keep = valid.reshape(-1)
     mean2 = torch.cat([sp.prev_mean, sp.mean], -1).reshape(-1, 2 * n)[keep]
@@ -254,37 +271,77 @@ def _expected_loglik(
     xi, wm, _ = rule.unit_points(2 * n, dtype=dtype, device=mean2.device)
     S = safe_cholesky(symmetrize(cov2), name="smoothed pair covariance")
     pts = sigma_points(mean2, S, xi)  # (N, P, 2n)
-    xa, xb = pts[..., :n], pts[..., n:]
     uu = None
     if U is not None:
         uu = U.reshape(-1, U.shape[-1])[keep].unsqueeze(-2).expand(-1, pts.shape[-2], -1)
-    pred = model.transition.predict(xa, uu)
-    L = safe_cholesky(_point_cov(model.transition, pred), name="transition covariance")
-    q = (gaussian_log_prob(xb - pred.mean, L) * wm).sum()
+    if not measurement_term:
+        return _PairPoints(
+            pts[..., :n], pts[..., n:], wm, uu, None, None, None, None, None, None, None
+        )
+    m = Y.shape[-1]
+    y = Y.reshape(-1, m)
+    seen = torch.isfinite(y) & keep.unsqueeze(-1)  # (N, m): the observed components
+    ok = seen.any(-1)
+    xi1, wm1, _ = rule.unit_points(n, dtype=dtype, device=mean2.device)
+    S1 = safe_cholesky(symmetrize(sp.cov.reshape(-1, n, n)[ok]), name="smoothed covariance")
+    p1 = sigma_points(sp.mean.reshape(-1, n)[ok], S1, xi1)
+    u1 = None
+    if U is not None:
+        u1 = U.reshape(-1, U.shape[-1])[ok].unsqueeze(-2).expand(-1, p1.shape[-2], -1)
+    o = seen[ok].unsqueeze(-2)  # (K, 1, m)
+    both = o.unsqueeze(-1) & o.unsqueeze(-2)
+    unit = torch.diag_embed((~o).to(dtype))
+    return _PairPoints(
+        pts[..., :n], pts[..., n:], wm, uu, p1, u1, wm1, o, both, unit,
+        y[ok].nan_to_num().unsqueeze(-2), bool(o.all()),
+    )  # fmt: skip
+
+
+def _point_chol(side: Any, pred: Any, name: str) -> Tensor:
+    """The Cholesky factor of :func:`_point_cov`: one ``(d, d)`` factor of the noise, shared by
+    every point, when the prediction reports no per-point variance and the noise is one matrix
+    (the same matrix at every point, factored once); else one factor per point."""
+    noise = side.noise_cov()
+    if pred.cov is None and pred.var is None and noise is not None and noise.dim() == 2:
+        return safe_cholesky(noise.to(pred.mean.dtype), name=name)
+    return safe_cholesky(_point_cov(side, pred), name=name)
+
+
+def _expected_loglik(
+    model: StateSpaceModel,
+    sp: SmoothedPairs | _PairPoints,
+    Y: Tensor,
+    U: Tensor | None,
+    rule: CubatureRule,
+    measurement_term: bool,
+    valid: Tensor,
+) -> Tensor:
+    """``Q(theta)``: the cubature expectation of the complete-data log-likelihood over the steps
+    ``valid (R, T)``; ``sp`` the smoothed pairs or their points from :func:`_pair_points` (the
+    same arguments), which an M-step computes once for all its evaluations."""
+    pp = (
+        sp
+        if isinstance(sp, _PairPoints)
+        else _pair_points(model.state_dim, sp, Y, U, rule, measurement_term, valid)
+    )
+    pred = model.transition.predict(pp.xa, pp.uu)
+    L = _point_chol(model.transition, pred, "transition covariance")
+    q = (gaussian_log_prob(pp.xb - pred.mean, L) * pp.wm).sum()
     if measurement_term:
-        m = model.obs_dim
-        y = Y.reshape(-1, m)
-        seen = torch.isfinite(y) & keep.unsqueeze(-1)  # (N, m): the observed components
-        ok = seen.any(-1)
-        xi1, wm1, _ = rule.unit_points(n, dtype=dtype, device=mean2.device)
-        S1 = safe_cholesky(symmetrize(sp.cov.reshape(-1, n, n)[ok]), name="smoothed covariance")
-        p1 = sigma_points(sp.mean.reshape(-1, n)[ok], S1, xi1)
-        u1 = None
-        if U is not None:
-            u1 = U.reshape(-1, U.shape[-1])[ok].unsqueeze(-2).expand(-1, p1.shape[-2], -1)
-        hp = model.measurement.predict(p1, u1)
+        assert pp.p1 is not None and pp.o is not None and pp.both is not None
+        assert pp.unit is not None and pp.y is not None and pp.wm1 is not None
+        hp = model.measurement.predict(pp.p1, pp.u1)
         # the marginal density of the observed components of a partly observed step: a missing
         # component gets residual 0, unit variance and no covariance with the others, and is
         # not counted in the normalising constant (as in the filter's masked update)
-        o = seen[ok].unsqueeze(-2)  # (K, 1, m)
-        both = o.unsqueeze(-1) & o.unsqueeze(-2)
-        C = torch.where(both, _point_cov(model.measurement, hp), 0.0) + torch.diag_embed(
-            (~o).to(dtype)
-        )
-        r = torch.where(o, y[ok].nan_to_num().unsqueeze(-2) - hp.mean, 0.0)
-        Lr = safe_cholesky(C, name="measurement covariance")
-        lp = gaussian_log_prob(r, Lr, dim=o.sum(-1))
-        q = q + (lp * wm1).sum()
+        r = torch.where(pp.o, pp.y - hp.mean, 0.0)
+        if pp.all_seen:  # every component observed: no masking, C is the point covariance
+            Lr = _point_chol(model.measurement, hp, "measurement covariance")
+        else:
+            C = torch.where(pp.both, _point_cov(model.measurement, hp), 0.0) + pp.unit
+            Lr = safe_cholesky(C, name="measurement covariance")
+        lp = gaussian_log_prob(r, Lr, dim=pp.o.sum(-1))
+        q = q + (lp * pp.wm1).sum()
     return q
 
 
@@ -343,13 +400,15 @@ def _gradient_m_step(
     }
     noise = [p for p in plist if id(p) in noise_ids]
     rest = [p for p in plist if id(p) not in noise_ids]
+    with torch.no_grad():  # the points of the smoothed pairs: the same at every evaluation
+        pts = _pair_points(model.state_dim, sp, Y, U, rule, measurement_term, valid)
 
     def q_value() -> float:
         """``Q`` at the current parameters, summed over the processes."""
         failed = False
         with torch.no_grad():
             try:
-                q = _expected_loglik(model, sp, Y, U, rule, measurement_term, valid).detach()
+                q = _expected_loglik(model, pts, Y, U, rule, measurement_term, valid).detach()
             except (RuntimeError, ValueError):
                 if reduce is None:
                     raise
@@ -370,14 +429,14 @@ def _gradient_m_step(
         def closure() -> Tensor:
             opt.zero_grad()
             if reduce is None:
-                loss = -_expected_loglik(model, sp, Y, U, rule, measurement_term, valid) / scale
+                loss = -_expected_loglik(model, pts, Y, U, rule, measurement_term, valid) / scale
                 loss.backward()
                 return loss.detach()
             # data-parallel: local sums, then one collective for the value and the gradient
             # (on every process whatever its outcome, so that none waits forever)
             failed = False
             try:
-                local = -_expected_loglik(model, sp, Y, U, rule, measurement_term, valid)
+                local = -_expected_loglik(model, pts, Y, U, rule, measurement_term, valid)
                 local.backward()
                 value = local.detach()
             except (RuntimeError, ValueError):
@@ -498,18 +557,30 @@ class _EMProblem:
             for p, v in zip(self.plist, values, strict=True):
                 p.copy_(v)
 
+    def filtered(self) -> tuple[float, FilterResult]:
+        """A non-linear model's filter log-likelihood (summed over the processes) and the CKF's
+        result (a linear model's E-step smooths in one go: :meth:`e_step`)."""
+        with torch.no_grad():
+            res = CKF(self.current(), rule=self.rule).filter(self.Y, self.U, x0=self.X0, P0=self.C0)
+            ll = _summed(self.reduce, res.log_likelihood.sum())[0]
+            return float(ll), res
+
+    def smoothed(self, res: FilterResult) -> SmoothedPairs:
+        """The smoothed pairs of a filter result of :meth:`filtered`."""
+        with torch.no_grad():
+            return smoothed_pairs(res, self.X0, self.C0)
+
     def e_step(self) -> tuple[float, SmoothedPairs]:
         """The filter log-likelihood (summed over the processes) and the smoothed pairs."""
-        with torch.no_grad():
-            if self.lin is not None:
+        if self.lin is not None:
+            with torch.no_grad():
                 # the exact Kalman filter and RTS smoother (batched over the recordings: no
                 # cubature points, and one backward recursion of the shared covariances)
                 sm = kalman_smoother(self.current(), self.Y, self.U, x0=self.X0, P0=self.C0)
-                ll = _summed(self.reduce, sm.filtered.log_likelihood.sum())[0]
-                return float(ll), _pairs(sm, self.X0, self.C0)
-            res = CKF(self.current(), rule=self.rule).filter(self.Y, self.U, x0=self.X0, P0=self.C0)
-            ll = _summed(self.reduce, res.log_likelihood.sum())[0]
-            return float(ll), smoothed_pairs(res, self.X0, self.C0)
+                total = _summed(self.reduce, sm.filtered.log_likelihood.sum())[0]
+                return float(total), _pairs(sm, self.X0, self.C0)
+        ll, res = self.filtered()
+        return ll, self.smoothed(res)
 
     def m_step(self, ll: float, sp: SmoothedPairs) -> tuple[float, SmoothedPairs, bool]:
         """One M-step from the E-step ``(ll, sp)`` and the E-step after it: the new
@@ -532,15 +603,16 @@ class _EMProblem:
                 self.model, self.plist, sp, self.Y, self.U, self.valid, self.rule, self.learn_R,
                 self.m_step_iterations, self.reduce, blocks=blocks,
             )  # fmt: skip
-            ll_new, sp_new = self.e_step()
+            # smoothed only once a step is kept: a rejected trial needs its likelihood alone
+            ll_new, res_new = self.filtered()
             after = self.state()
             for k in range(1, self.backtracks + 1):
                 if ll_new >= ll:
                     break
                 t = 0.5**k
                 self.load([b + t * (a - b) for a, b in zip(after, before, strict=True)])
-                ll_new, sp_new = self.e_step()
+                ll_new, res_new = self.filtered()
             if ll_new >= ll:
-                return ll_new, sp_new, False
+                return ll_new, self.smoothed(res_new), False
             self.load(before)
         return ll, sp, True

@@ -1,0 +1,46 @@
+"""The learning benchmark script runs end to end at its --quick size without the peers and writes
+its JSON (slow); its time-to-optimum rule is checked on a made-up history."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+from script_support import load_script
+
+
+def test_time_to_optimum_is_the_first_time_within_tolerance():
+    mod = load_script("bench_learning")
+    lls = np.array([-100.0, -10.0, -1.05, -1.0, np.nan, -0.95])
+    elapsed = np.array([0.0, 1.0, 2.0, 3.0, 4.0, 5.0])
+    # best -0.95; within 0.1 nats per sequence (1 sequence): first at -1.05 (t = 2)
+    assert mod.time_to_optimum(lls, elapsed, 1) == 2.0
+    # 1000 sequences: within 100 nats, so from the start
+    assert mod.time_to_optimum(lls, elapsed, 1000) == 0.0
+    assert mod.time_to_optimum(np.array([np.nan]), np.array([0.0]), 1) is None
+
+
+@pytest.mark.slow
+def test_bench_learning_quick(tmp_path):
+    mod = load_script("bench_learning")
+    threads = torch.get_num_threads()
+    affinity = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
+    try:
+        assert mod.main(["--quick", "--out", str(tmp_path)]) == 0
+    finally:
+        torch.set_num_threads(threads)
+        if affinity is not None:
+            os.sched_setaffinity(0, affinity)
+    res = json.loads((tmp_path / "bench_learning.json").read_text())
+    rows = {(r["row"], r.get("method")) for r in res["rows"]}
+    assert ("linear grad", None) in rows
+    assert ("reentry grad", None) in rows
+    assert ("2A->B EM iteration", None) in rows
+    assert ("linear time to optimum", "torchfilt fit_em") in rows
+    for r in res["rows"]:
+        assert r["torchfilt_s"] is None or r["torchfilt_s"] >= 0
+        assert r.get("peer_s") is None  # no --jax-python: no peer ran
+    assert res["quick"] is True
