@@ -54,3 +54,42 @@ def test_per_point_variance_enters_predicted_cov():
     x0, P0 = torch.zeros(2), torch.eye(2)
     res = CKF(m).filter(torch.full((1, 1), float("nan")), x0=x0, P0=P0)
     assert torch.allclose(res.predicted_cov[0], 0.25 * P0 + 0.1 * torch.eye(2) + 0.2 * torch.eye(2))
+
+
+def test_linear_model_keeps_an_nn_parameter_a_parameter():
+    """A matrix passed as an nn.Parameter is fitted (in model.parameters()); a plain tensor is a
+    buffer. It used to become a buffer either way, so the fits silently left it unchanged."""
+    from torch import nn
+
+    from torchfilt.models import LinearGaussianModel
+    from torchfilt.optim import StoppingOptions
+    from torchfilt.training import fit_likelihood
+
+    g = torch.Generator().manual_seed(0)
+    A = nn.Parameter(torch.tensor([[0.5]], dtype=torch.float64))
+    model = LinearGaussianModel(
+        A,
+        torch.eye(1, dtype=torch.float64),
+        0.1 * torch.eye(1, dtype=torch.float64),
+        0.1 * torch.eye(1, dtype=torch.float64),
+    )
+    assert any(p is A for p in model.parameters())
+    assert "transition.C" not in dict(model.named_buffers())
+    plain = LinearGaussianModel(torch.tensor([[0.5]]), torch.eye(1), torch.eye(1), torch.eye(1))
+    assert list(plain.parameters()) == [] and "transition.C" in dict(plain.named_buffers())
+    # data from a = 0.9: the fit moves the parameter towards it
+    x, ys = torch.zeros(8, dtype=torch.float64), []
+    for _ in range(200):
+        x = 0.9 * x + 0.3 * torch.randn(8, generator=g, dtype=torch.float64)
+        ys.append(x + 0.3 * torch.randn(8, generator=g, dtype=torch.float64))
+    y = torch.stack(ys, -1).unsqueeze(-1)
+    fit_likelihood(
+        model,
+        y,
+        x0=torch.zeros(1, dtype=torch.float64),
+        P0=torch.eye(1, dtype=torch.float64),
+        iterations=30,
+        optimizer="lbfgs",
+        stopping=StoppingOptions(rtol=0.0),
+    )
+    assert abs(float(model.A.detach()) - 0.9) < 0.1

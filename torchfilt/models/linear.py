@@ -12,7 +12,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from torchfilt.exceptions import InputError, ModelError, ShapeError
 from torchfilt.models.base import ConditionalModel, Prediction, TimeVarying
@@ -80,6 +80,14 @@ def linear_system(model: StateSpaceModel) -> LinearSystem | None:
     return LinearSystem(A=f.C, H=h.C, B=f.D, D=h.D)
 
 
+def _register(module: nn.Module, name: str, value: Tensor | None) -> None:
+    """Register ``value`` as a parameter if it is an ``nn.Parameter``, else as a buffer."""
+    if isinstance(value, nn.Parameter):
+        module.register_parameter(name, value)
+    else:
+        module.register_buffer(name, value)
+
+
 def _as_tensor(value: Tensor | object, name: str) -> Tensor:
     try:
         t = (
@@ -135,8 +143,10 @@ class LinearModel(FunctionModel):
             name=name,
             noise_name=noise_name,
         )
-        self.register_buffer("C", C)
-        self.register_buffer("D", None if D is None else _as_tensor(D, f"{name} input matrix"))
+        # an nn.Parameter stays one (fitted by the fits, in model.parameters()); any other tensor
+        # is a buffer (moves with the model, never fitted)
+        _register(self, "C", C)
+        _register(self, "D", None if D is None else _as_tensor(D, f"{name} input matrix"))
         if self.D is not None and self.D.shape[-2] != C.shape[-2]:
             raise ShapeError(
                 f"{name}: input matrix has {self.D.shape[-2]} rows, expected {C.shape[-2]}"
