@@ -280,6 +280,10 @@ class MeasurementOnlyFit:
         history: per-iteration records of the method.
         elapsed: seconds of the whole fit.
         detail: the method's own result (:class:`EMFit` or :class:`LikelihoodFit`).
+        initial_log_likelihood: the training log-likelihood at the parameters the fit started
+            from (those of the chosen candidate with ``starts``), before any step.
+        candidates: with ``starts``, one record per candidate start (see
+            :func:`fit_measurement_only`); empty otherwise.
     """
 
     model: StateSpaceModel
@@ -292,6 +296,8 @@ class MeasurementOnlyFit:
     history: list[dict[str, Any]]
     elapsed: float
     detail: EMFit | LikelihoodFit
+    initial_log_likelihood: float = math.nan
+    candidates: list[dict[str, Any]] = field(default_factory=list)
 
 
 # ----------------------------------------------------------------------------------- EM
@@ -587,6 +593,7 @@ def fit_measurement_only(
             history=em.history,
             elapsed=em.elapsed,
             detail=em,
+            initial_log_likelihood=em.initial_log_likelihood,
         )
     lf = fit_likelihood(
         model,
@@ -624,4 +631,5 @@ def fit_measurement_only(
         history=lf.history,
         elapsed=lf.elapsed,
         detail=lf,
+        initial_log_likelihood=lf.initial_log_likelihood,
     )
