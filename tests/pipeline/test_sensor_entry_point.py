@@ -79,9 +79,7 @@ def _recipe(path: Path, data: Path, measurement: str) -> Path:
 
 def test_entry_point_sensor_trains_like_the_builtin_one(data, sensor, tmp_path) -> None:
     name, src = sensor
-    ep = _recipe(
-        tmp_path / "ep.toml", data, f'model = "{name}:total_pressure"\nR = [{R_VAR!r}]'
-    )
+    ep = _recipe(tmp_path / "ep.toml", data, f'model = "{name}:total_pressure"\nR = [{R_VAR!r}]')
     builtin = _recipe(tmp_path / "builtin.toml", data, 'model = "system:reaction"')
     b_ep = load_bundle(train_recipe(ep, tmp_path / "ep", progress=False))
     b_sys = load_bundle(train_recipe(builtin, tmp_path / "sys", progress=False))
