@@ -15,7 +15,7 @@ from torchfilt.cli import main as cli_main
 
 PAGE = Path(__file__).resolve().parents[2] / "docs" / "guide" / "own-system.md"
 FILE = re.compile(r"<!-- file: (\S+) -->\n```\w*\n(.*?)```", re.S)
-BASH = re.compile(r"```bash\n(.*?)```", re.S)
+BASH = re.compile(r"```sh\n(.*?)```", re.S)
 
 
 def test_the_own_system_page_runs_as_written(tmp_path, monkeypatch, capsys) -> None:

@@ -312,7 +312,7 @@ def _run_recipe(
     _trim_metrics(out / "metrics.jsonl", ckpt if resume else None, fresh=not resume)
     m0, P0, how = prior
     entries = _train_sides(
-        r, ds, train, m0, P0, dtype, out, resume, ckpt, progress, stream, log, fitters
+        r, ds, train, val, m0, P0, dtype, out, resume, ckpt, progress, stream, log, fitters
     )  # fmt: skip
     f = build_side(entries["transition"], "transition")
     h = build_side(entries["measurement"], "measurement")
@@ -424,6 +424,7 @@ def _train_sides(
     r: Recipe,
     ds: Dataset,
     train: list[Recording],
+    val: list[Recording],
     m0: Tensor,
     P0: Tensor,
     dtype: torch.dtype,
@@ -450,8 +451,9 @@ def _train_sides(
                 continue
             h0 = build_side(_known_entry(r, ds, "measurement"), "measurement")
             entries[stage] = _fit_measurement_only_stage(
-                r, ds, h0, train, m0, P0, dtype, out, resume, progress, stream, log, fitters
-            )
+                r, ds, h0, train, val, m0, P0, dtype, out, resume, progress, stream, log,
+                fitters,
+            )  # fmt: skip
             _save(done, entries[stage])
             _remove(out / MEASUREMENT_ONLY_CHECKPOINT)
             continue
