@@ -29,11 +29,31 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
-from torchfilt.exceptions import InputError, ShapeError
+from torchfilt.exceptions import InputError, InputTypeError, ModelError, ShapeError
 from torchfilt.models.base import ConditionalModel, Prediction
+from torchfilt.models.functional import StateSpaceModel
+from torchfilt.models.linear import LinearGaussianModel
+from torchfilt.models.params import CholeskyCovariance
 from torchfilt.numerics import safe_cholesky
 
-__all__ = ["InducingTransition"]
+__all__ = [
+    "LOG_LENGTHSCALE_BOUNDS",
+    "LOG_OUTPUTSCALE_BOUNDS",
+    "NEGLIGIBLE_OUTPUTSCALE",
+    "InducingTransition",
+]
+
+#: The range the log-lengthscales are clamped to where the model is evaluated: a fit that pushes
+#: them further (a step of a line search) stays in the finite region of the likelihood (the
+#: correlations neither underflow to an all-zero kernel nor saturate to a constant one).
+LOG_LENGTHSCALE_BOUNDS = (-10.0, 10.0)
+#: The range of the log output variances ``log s_j`` where the model is evaluated (the lower end
+#: leaves the negligible start of :meth:`InducingTransition.from_linear` inside it).
+LOG_OUTPUTSCALE_BOUNDS = (-60.0, 20.0)
+#: The default initial output variance of :meth:`InducingTransition.from_linear`: small enough
+#: that the model's likelihood is the linear model's to float64 precision, inside
+#: :data:`LOG_OUTPUTSCALE_BOUNDS`, so the fit can raise it.
+NEGLIGIBLE_OUTPUTSCALE = 1e-14
 
 
 class InducingTransition(ConditionalModel):
@@ -129,11 +149,14 @@ class InducingTransition(ConditionalModel):
         states: Tensor | None = None,
         inputs: Tensor | None = None,
         lengthscale: float | Tensor = 1.0,
-        outputscale: float | Tensor = 0.1,
+        outputscale: float | Tensor | None = None,
     ) -> InducingTransition:
         """Start a GP transition from a linear model (e.g. one identified from the data by
         :func:`~torchfilt.training.fit_em` on a :class:`~torchfilt.models.LinearGaussianModel`):
-        ``W = [A, B]``, ``b = 0``, the GP residual at zero.
+        ``W = [A, B]``, ``b = 0``, the GP residual at zero mean and, by default, a negligible
+        output variance (:data:`NEGLIGIBLE_OUTPUTSCALE`), so that the model (with the linear
+        model's ``Q`` and ``R``, see :meth:`model_from_linear`) starts at the linear model's
+        likelihood, also far from the inducing inputs.
 
         Args:
             A: ``(n, n)``.
@@ -142,7 +165,16 @@ class InducingTransition(ConditionalModel):
             states: ``(N, n)`` states to place the inducing inputs on (required when ``M > 0``),
                 e.g. the smoothed means of the linear model.
             inputs: ``(N, nu)`` inputs aligned with ``states``.
-            lengthscale, outputscale: initial GP hyperparameters.
+            lengthscale: initial lengthscales, a float or ``(n + nu,)``.
+            outputscale: initial GP variances ``s_j`` (default :data:`NEGLIGIBLE_OUTPUTSCALE`:
+                the linear model exactly, to float64 precision).
+
+        Returns:
+            The transition (frozen nothing: every parameter learnable).
+
+        Raises:
+            ShapeError: ``A`` not square or ``B`` not ``(n, nu)``.
+            InputError: ``inducing > 0`` without ``states``.
         """
         A = torch.as_tensor(A)
         if A.dim() != 2 or A.shape[0] != A.shape[1]:
@@ -161,12 +193,67 @@ class InducingTransition(ConditionalModel):
             input_dim=int(W.shape[-1]) - n,
             linear=W.detach(),
             lengthscale=lengthscale,
-            outputscale=outputscale,
+            outputscale=NEGLIGIBLE_OUTPUTSCALE if outputscale is None else outputscale,
             dtype=A.dtype,
         )
         if inducing > 0 and states is not None:
             f.init_inducing(states, inputs)
         return f
+
+    @classmethod
+    def model_from_linear(
+        cls,
+        linear: LinearGaussianModel,
+        *,
+        inducing: int = 0,
+        states: Tensor | None = None,
+        inputs: Tensor | None = None,
+        lengthscale: float | Tensor = 1.0,
+        outputscale: float | Tensor | None = None,
+    ) -> StateSpaceModel:
+        """A state-space model with a GP transition that starts exactly at a linear-Gaussian
+        model: the transition of :meth:`from_linear` on ``A`` (and ``B``), the full process noise
+        ``Q`` as a learnable :class:`~torchfilt.models.CholeskyCovariance`, and the linear
+        model's measurement side (``H``, ``D`` and the full ``R``, as learnable as they are in
+        ``linear``). Its filter likelihood equals the linear model's Kalman likelihood.
+
+        Args:
+            linear: the linear model (e.g. :func:`~torchfilt.training.fit_em`'s result).
+            inducing: number of inducing points ``M``.
+            states: ``(N, n)`` states to place the inducing inputs on (required when ``M > 0``).
+            inputs: ``(N, nu)`` inputs aligned with ``states``.
+            lengthscale: initial lengthscales.
+            outputscale: initial GP variances (default negligible, see :meth:`from_linear`).
+
+        Returns:
+            The :class:`~torchfilt.models.StateSpaceModel`.
+
+        Raises:
+            InputTypeError: ``linear`` is not a :class:`~torchfilt.models.LinearGaussianModel`.
+            ModelError: ``linear`` has a time-varying ``Q``.
+        """
+        if not isinstance(linear, LinearGaussianModel):
+            raise InputTypeError(
+                f"linear: expected a LinearGaussianModel, got {type(linear).__name__}"
+            )
+        Q = linear.transition.noise_cov()
+        if Q is None or linear.transition.time_varying_noise:
+            raise ModelError("linear: its process noise Q must be constant to start a GP from it")
+        f = cls.from_linear(
+            linear.A, linear.B, inducing=inducing, states=states, inputs=inputs,
+            lengthscale=lengthscale, outputscale=outputscale,
+        )  # fmt: skip
+        return StateSpaceModel(f, linear.measurement, Q=CholeskyCovariance(Q.detach().clone()))
+
+    def lengthscale(self) -> Tensor:
+        """The lengthscales ``(n + nu,)`` as the model uses them (``exp`` of the log-lengthscales
+        clamped to :data:`LOG_LENGTHSCALE_BOUNDS`)."""
+        return self.log_lengthscale.clamp(*LOG_LENGTHSCALE_BOUNDS).exp()
+
+    def outputscale(self) -> Tensor:
+        """The output variances ``s_j (n,)`` as the model uses them (clamped to
+        :data:`LOG_OUTPUTSCALE_BOUNDS` in the log)."""
+        return self.log_outputscale.clamp(*LOG_OUTPUTSCALE_BOUNDS).exp()
 
     @property
     def num_inducing(self) -> int:
@@ -242,12 +329,12 @@ class InducingTransition(ConditionalModel):
         self.inducing_outputs.zero_()
         r = xn - self.predict(x, u).mean  # (N, n): the residual with U = 0
         z = self._inputs(x, u)
-        ls = self.log_lengthscale.exp()
+        ls = self.lengthscale()
         Zs, zs = self.inducing_inputs / ls, z / ls
         Czx = torch.exp(-0.5 * (Zs.unsqueeze(-2) - zs).pow(2).sum(-1))  # (M, N)
         Czz = torch.exp(-0.5 * (Zs.unsqueeze(-2) - Zs).pow(2).sum(-1))
         Czz = Czz + self.jitter * torch.eye(M, dtype=x.dtype)
-        sc = self.log_outputscale.exp()
+        sc = self.outputscale()
         for j in range(n):
             S = nz[j] * Czz + sc[j] * Czx @ Czx.mT
             w = torch.linalg.solve(S, Czx @ r[:, j])
@@ -270,7 +357,7 @@ class InducingTransition(ConditionalModel):
             mean = mean + self.nominal(x, u)
         if self.num_inducing == 0:
             return Prediction(mean)
-        ls = self.log_lengthscale.exp()
+        ls = self.lengthscale()
         Zs = self.inducing_inputs / ls
         zs = z / ls
         d2 = (zs.unsqueeze(-2) - Zs).pow(2).sum(-1)  # (..., P, M)
@@ -285,5 +372,5 @@ class InducingTransition(ConditionalModel):
         A = torch.cholesky_solve(Kxz.reshape(-1, M).mT, L).mT.reshape(Kxz.shape)  # K_xZ K_ZZ^-1
         mean = mean + A @ self.inducing_outputs.mT.to(z.dtype)
         q = (A * Kxz).sum(-1, keepdim=True).clamp(0.0, 1.0)  # (..., P, 1)
-        var = self.log_outputscale.exp() * (1.0 - q) + self.floor
+        var = self.outputscale() * (1.0 - q) + self.floor
         return Prediction(mean, var)

@@ -52,6 +52,7 @@ from torchfilt.models import (
     StateSpaceModel,
     as_conditional,
 )
+from torchfilt.pipeline.entry_point import build_entry_point
 from torchfilt.systems import get_system
 
 __all__ = [
@@ -217,6 +218,8 @@ def build_side(entry: dict[str, Any], role: str) -> ConditionalModel:
     kind = entry.get("kind")
     if kind == "inducing" and role == "transition":
         return _build_inducing(entry)
+    if kind == "entry_point" and role == "measurement":
+        return build_entry_point(entry, role)
     if kind == "system":
         model = get_system(str(entry["system"])).model()
         return model.transition if role == "transition" else model.measurement
@@ -227,7 +230,8 @@ def build_side(entry: dict[str, Any], role: str) -> ConditionalModel:
         pm = entry.get("prior_mean")
         return cls.from_state(entry["state"], prior_mean=None if pm is None else nominal_model(pm))
     raise BundleError(
-        f"unknown {role} kind {kind!r} (expected 'gp', 'system' or, for the transition, 'inducing')"
+        f"unknown {role} kind {kind!r} (expected 'gp', 'system' or, for the transition, "
+        "'inducing', for the measurement 'entry_point')"
     )
 
 
@@ -398,12 +402,33 @@ def _check_inducing(entry: dict[str, Any], role: str, path: str | Path, n: int) 
         raise _bad(path, f"{role}.nominal", "must be a table with 'system' or None")
 
 
+def _check_entry_point(entry: dict[str, Any], role: str, path: str | Path) -> None:
+    """An entry-point side: a measurement, with its entry point, dimensions, a finite positive
+    definite ``R`` (or none) and the module file's SHA-256 (checked when it is built)."""
+    if role != "measurement" or not isinstance(entry.get("entry_point"), str):
+        raise _bad(path, f"{role}.entry_point", "must be the measurement's entry point string")
+    if not all(isinstance(entry.get(k), int) for k in ("state_dim", "obs_dim")):
+        raise _bad(path, role, "entry point without its state_dim and obs_dim")
+    R = entry.get("R")
+    if R is not None and (
+        not isinstance(R, Tensor)
+        or not bool(torch.isfinite(R).all())
+        or float(torch.linalg.eigvalsh(R.double()).min()) <= 0
+    ):
+        raise _bad(path, f"{role}.R", "must be a finite positive definite matrix")
+
+
 def _check_side(entry: Any, role: str, path: str | Path, n: int = -1) -> None:
-    if not isinstance(entry, dict) or entry.get("kind") not in ("gp", "system", "inducing"):
+    kinds = ("gp", "system", "inducing", "entry_point")
+    if not isinstance(entry, dict) or entry.get("kind") not in kinds:
         raise BundleError(
-            f"{path}: malformed {role} entry (expected kind 'gp', 'system' or 'inducing')"
+            f"{path}: malformed {role} entry (expected kind 'gp', 'system', 'inducing' or "
+            "'entry_point')"
         )
     if entry["kind"] == "system":
+        return
+    if entry["kind"] == "entry_point":
+        _check_entry_point(entry, role, path)
         return
     if entry["kind"] == "inducing":
         _check_inducing(entry, role, path, n)

@@ -39,6 +39,8 @@ from typing import Any
 
 from torchfilt.exceptions import RecipeError
 from torchfilt.optim import field_docs
+from torchfilt.pipeline.entry_point import is_entry_point
+from torchfilt.pipeline.recipe_keys import Key, _file
 from torchfilt.pipeline.recipe_options import OPTION_KEYS, fit_options, option_default
 
 __all__ = [
@@ -61,66 +63,10 @@ __all__ = [
 KERNELS = ("rbf", "matern52", "matern32", "matern12")
 #: Marks a key without a default (it must be given).
 REQUIRED = "(required)"
+#: Default ``[train] holdout``: the fraction held out for validation when the dataset has none.
+HOLDOUT = 0.2
 #: Values of the top-level ``states`` key.
 STATES = ("logged", "none")
-
-
-@dataclass(frozen=True)
-class Key:
-    """One recipe key: its name, its default as written in the reference, what it means, and the
-    values it takes (checked when the recipe is loaded, before any training).
-
-    Attributes:
-        name: the key.
-        default: the default, as the reference shows it.
-        meaning: what it does.
-        kind: ``"any"`` (checked later, against the dataset or by the fit), ``"bool"``,
-            ``"int"``, ``"posint"`` (an integer >= 1), ``"nonnegint"`` (an integer >= 0),
-            ``"posfloat"`` (a finite number > 0) or
-            ``"choice"`` (one of ``choices``).
-        choices: the allowed strings of a ``"choice"`` key.
-    """
-
-    name: str
-    default: str
-    meaning: str
-    kind: str = "any"
-    choices: tuple[str, ...] = ()
-
-    @property
-    def allowed(self) -> str:
-        """The allowed values, as the reference shows them."""
-        return {
-            "bool": "`true`, `false`",
-            "int": "an integer",
-            "posint": "an integer >= 1",
-            "nonnegint": "an integer >= 0",
-            "posfloat": "a number > 0",
-            "choice": ", ".join(f'`"{c}"`' for c in self.choices),
-        }.get(self.kind, "")
-
-    def check(self, value: Any, where: str, path: Path | None) -> None:
-        """Raise :class:`RecipeError` naming the file, the table and the key if ``value`` is not
-        one of the allowed values."""
-        number = isinstance(value, int | float) and not isinstance(value, bool)
-        ok = {
-            "bool": isinstance(value, bool),
-            "int": isinstance(value, int) and not isinstance(value, bool),
-            "posint": isinstance(value, int) and not isinstance(value, bool) and value >= 1,
-            "nonnegint": isinstance(value, int) and not isinstance(value, bool) and value >= 0,
-            "posfloat": number and math.isfinite(value) and value > 0,
-            "choice": value in self.choices,
-        }.get(self.kind, True)
-        if not ok:
-            raise RecipeError(
-                f"{_file(path)}[{where}] {self.name} must be {self.allowed.replace('`', '')}, "
-                f"got {value!r}"
-            )
-
-
-def _file(path: Path | None) -> str:
-    """The ``"FILE: "`` prefix of a message (none for a recipe built in code)."""
-    return "" if path is None else f"{path}: "
 
 
 def _gp_keys() -> tuple[Key, ...]:
@@ -128,8 +74,9 @@ def _gp_keys() -> tuple[Key, ...]:
         Key(
             "model",
             "(a GP)",
-            '`"system:NAME"`: use a built-in analytic model instead of a GP; '
-            "no other key is then allowed",
+            '`"system:NAME"`: use a built-in analytic model instead of a GP; in '
+            '`[measurement]` also `"package.module:function"`: your own known sensor (with '
+            "`R`); no other key is then allowed",
         ),
         Key(
             "kernel",
@@ -282,7 +229,16 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
         ),
     ),
     "transition": _gp_keys(),
-    "measurement": _gp_keys(),
+    "measurement": (
+        *_gp_keys(),
+        Key(
+            "R",
+            "(required with an entry point)",
+            'with `model = "package.module:function"` (your sensor `h(x)` or `h(x, u)`, see '
+            "`torchfilt.pipeline.entry_point`): its measurement noise, one variance per "
+            "channel or the full matrix",
+        ),
+    ),
     "measurement_only": (
         Key(
             "method",
@@ -364,6 +320,14 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
             choices=("float64", "float32"),
         ),
         Key("threads", "(unchanged)", "torch threads for training", kind="posint"),
+        Key(
+            "holdout",
+            "`0.2`",
+            "without validation recordings in the dataset: the fraction held out for validation "
+            "(early stopping, model selection, `validation.json`): whole recordings (the last "
+            "`ceil(holdout x N)`) when there are at least 4, else the last part of each "
+            "recording; the model is not refit on them. `0`: off (early stopping cannot act)",
+        ),
     ),
     "filter": (
         Key(
@@ -487,6 +451,8 @@ class Recipe:
         checkpoint_every: iterations between checkpoints.
         dtype: training dtype name (``"float64"`` or ``"float32"``).
         threads: torch threads for training (``None``: leave as is).
+        holdout: the fraction of the training data held out for validation when the dataset has
+            no validation recordings (``0``: none; see :data:`RECIPE_SCHEMA`).
         filter: default filter prior for the bundle (``prior = "data"`` (default), ``"system:NAME"``,
             or explicit ``mean`` and ``cov_diag``).
         description: free text.
@@ -510,6 +476,7 @@ class Recipe:
     checkpoint_every: int = 25
     dtype: str = "float64"
     threads: int | None = None
+    holdout: float = HOLDOUT
     filter: dict[str, Any] = field(default_factory=dict)
     description: str = ""
     calibrate: dict[str, Any] = field(default_factory=lambda: dict(CALIBRATE_DEFAULTS))
@@ -539,6 +506,8 @@ class Recipe:
                 "checkpoint_every": self.checkpoint_every,
                 "dtype": self.dtype,
                 "threads": self.threads,
+                # only when set otherwise: the digests of earlier recipes stay the same
+                **({} if self.holdout == HOLDOUT else {"holdout": self.holdout}),
             },
             "filter": copy.deepcopy(self.filter),
             "calibrate": copy.deepcopy(self.calibrate),
@@ -566,11 +535,21 @@ def _side(table: Any, where: str, path: Path | None) -> dict[str, Any]:
     if table is None:
         raise RecipeError(f'{path}: missing [{where}] table (GP options, or model = "system:NAME")')
     if isinstance(table, dict) and "model" in table:
-        t = _check_keys(table, {"model"}, where, path)
-        if not str(t["model"]).startswith("system:"):
-            raise RecipeError(f'{path}: [{where}] model must be "system:NAME", got {t["model"]!r}')
+        ep = where == "measurement" and is_entry_point(table["model"])
+        t = _check_keys(table, {"model", "R"} if ep else {"model"}, where, path)
+        if not ep and not str(t["model"]).startswith("system:"):
+            raise RecipeError(
+                f'{path}: [{where}] model must be "system:NAME"'
+                + (' or "package.module:function"' if where == "measurement" else "")
+                + f", got {t['model']!r}"
+            )
         return t
-    t = _check_keys(table, _allowed(where) - {"model"}, where, path)
+    if isinstance(table, dict) and "R" in table:
+        raise RecipeError(
+            f'{_file(path)}[{where}] R: only with model = "package.module:function" (your own '
+            "sensor's noise); a GP side learns its noise"
+        )
+    t = _check_keys(table, _allowed(where) - {"model", "R"}, where, path)
     _check_values(t, where, path)
     pm = t.get("prior_mean")
     if pm is not None and (not isinstance(pm, dict) or "system" not in pm):
@@ -600,6 +579,9 @@ def load_recipe(path: str | Path) -> Recipe:
     dtype = str(train.get("dtype", "float64"))
     every = int(train.get("checkpoint_every", 25))
     threads = None if train.get("threads") is None else int(train["threads"])
+    holdout = train.get("holdout", HOLDOUT)
+    if isinstance(holdout, bool) or not isinstance(holdout, int | float) or not 0 <= holdout <= 0.5:
+        raise RecipeError(f"{path}: [train] holdout must be a number in [0, 0.5], got {holdout!r}")
     seed = int(d.get("seed", 0))
     states = str(d.get("states", "logged"))
     mo = _check_keys(
@@ -621,6 +603,7 @@ def load_recipe(path: str | Path) -> Recipe:
         checkpoint_every=every,
         dtype=dtype,
         threads=threads,
+        holdout=float(holdout),
         filter=filt,
         description=str(d.get("description", "")),
         calibrate=_calibrate(d.get("calibrate", {}), path),
@@ -683,7 +666,8 @@ def check_states(r: Recipe) -> None:
     if "model" not in r.measurement:
         raise RecipeError(
             '[measurement]: with states = "none" the measurement model must be known: give '
-            '[measurement] model = "system:NAME". A learned measurement GP has no training '
+            '[measurement] model = "system:NAME" or "package.module:function" (your sensor, '
+            "with R). A learned measurement GP has no training "
             "targets without logged states, and a known sensor model is the gauge that pins the "
             "state coordinates (without it every change of coordinates x -> T x fits equally well)"
         )

@@ -42,7 +42,9 @@ and a run resumes only with the fitters it started with (else a :class:`RunError
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 import platform
 import sys
 from pathlib import Path
@@ -58,6 +60,7 @@ from torchfilt.io.atomic import output_dir
 from torchfilt.io.recording import Recording
 from torchfilt.models import StateSpaceModel
 from torchfilt.pipeline.bundle import BUNDLE_SCHEMA, apply_calibration, build_side, save_bundle
+from torchfilt.pipeline.entry_point import entry_point_digest, entry_point_entry, is_entry_point
 from torchfilt.pipeline.recipe import Recipe, check_calibrate, check_states, load_recipe
 from torchfilt.pipeline.run_checks import STAGES, _check_against_dataset
 from torchfilt.pipeline.run_stages import (
@@ -218,6 +221,12 @@ def _check_run_dir(out: Path, r: Recipe, fitters: StageFitters, resume: bool, fo
                 f"{out}: the recipe changed since this run started; start a new run "
                 "(another --out, or --force to discard this one)"
             )
+        if old.get("sensors", {}) != _sensor_digests(r):
+            raise RunError(
+                f"{out}: the sensor module of [measurement] model = "
+                f'"{r.measurement.get("model")}" changed since this run started (its file\'s '
+                "SHA-256 differs); restore it, or start a new run (another --out, or --force)"
+            )
         old_fitters = old.get("stage_fitters", LOCAL_FITTERS.name)
         if old_fitters != fitters.name:
             raise RunError(
@@ -243,7 +252,12 @@ def _fitters_text(name: Any) -> str:
 def _config(r: Recipe, fitters: StageFitters = LOCAL_FITTERS) -> dict[str, Any]:
     """``config.json`` of a new run: the resolved recipe, its digest, library versions (and the
     stage fitters, when they are not the local ones)."""
-    extra = {} if fitters.name == LOCAL_FITTERS.name else {"stage_fitters": fitters.name}
+    extra: dict[str, Any] = (
+        {} if fitters.name == LOCAL_FITTERS.name else {"stage_fitters": fitters.name}
+    )
+    sensors = _sensor_digests(r)
+    if sensors:
+        extra["sensors"] = sensors
     return {
         "recipe": r.resolved(),
         "digest": r.digest(),
@@ -292,13 +306,13 @@ def _run_recipe(
 ) -> Path:
     dtype = torch.float64 if r.dtype == "float64" else torch.float32
     dlog = _dataset_log(r, ds, out, resume, log)
-    train, val = ds.split("train"), ds.split("validation")
+    train, val = _split(r, ds, log)
     ckpt_path = out / "checkpoint.pt"
     ckpt = _load_checkpoint(ckpt_path) if resume and ckpt_path.is_file() else None
     _trim_metrics(out / "metrics.jsonl", ckpt if resume else None, fresh=not resume)
     m0, P0, how = prior
     entries = _train_sides(
-        r, ds, train, m0, P0, dtype, out, resume, ckpt, progress, stream, log, fitters
+        r, ds, train, val, m0, P0, dtype, out, resume, ckpt, progress, stream, log, fitters
     )  # fmt: skip
     f = build_side(entries["transition"], "transition")
     h = build_side(entries["measurement"], "measurement")
@@ -368,10 +382,49 @@ def _dataset_log(r: Recipe, ds: Dataset, out: Path, resume: bool, log: _Log) -> 
     return dlog
 
 
+def _split(r: Recipe, ds: Dataset, log: _Log) -> tuple[list[Recording], list[Recording]]:
+    """The training and validation recordings: the dataset's split, or, when it has no
+    validation recordings, a default hold-out of ``r.holdout`` (``[train] holdout``): the last
+    ``ceil(holdout x N)`` of ``N >= 4`` training recordings, else the last part of each (its
+    first part trains). The model is trained on the rest and not refit on the held-out data."""
+    train, val = ds.split("train"), ds.split("validation")
+    if val:
+        return train, val
+    if r.holdout <= 0:
+        log(
+            "no validation recordings ([train] holdout = 0 and none in the dataset): early "
+            "stopping and model selection cannot act, validation.json is empty"
+        )
+        return train, val
+    hint = "set [dataset] validation recordings in the manifest or [train] holdout = 0 to change"
+    if len(train) >= 4:
+        k = math.ceil(r.holdout * len(train))
+        train, val = train[:-k], train[-k:]
+        log(
+            f"{len(train)} train / {len(val)} validation recordings (held out by default: the "
+            f"last {k}; {hint})"
+        )
+        return train, val
+    heads, tails = [], []
+    for rec in train:
+        cut = len(rec) - max(2, math.ceil(r.holdout * len(rec)))
+        if cut < 2:
+            heads.append(rec)
+            continue
+        heads.append(dataclasses.replace(rec, time=rec.time[:cut], data=rec.data[:cut]))
+        tails.append(dataclasses.replace(rec, time=rec.time[cut:], data=rec.data[cut:]))
+    log(
+        f"{len(train)} train recordings, their last {r.holdout:.0%} held out for validation "
+        f"(held out by default: fewer than 4 recordings; {hint})"
+    )
+    return heads, tails
+
+
 def _train_sides(
     r: Recipe,
     ds: Dataset,
     train: list[Recording],
+    val: list[Recording],
     m0: Tensor,
     P0: Tensor,
     dtype: torch.dtype,
@@ -396,19 +449,18 @@ def _train_sides(
                 entries[stage] = _load_stage(done)
                 log(f"{stage}: already trained (resumed)")
                 continue
-            h0 = build_side(
-                {"kind": "system", "system": str(r.measurement["model"]).split(":", 1)[1]},
-                "measurement",
-            )
+            h0 = build_side(_known_entry(r, ds, "measurement"), "measurement")
             entries[stage] = _fit_measurement_only_stage(
-                r, ds, h0, train, m0, P0, dtype, out, resume, progress, stream, log, fitters
-            )
+                r, ds, h0, train, val, m0, P0, dtype, out, resume, progress, stream, log,
+                fitters,
+            )  # fmt: skip
             _save(done, entries[stage])
             _remove(out / MEASUREMENT_ONLY_CHECKPOINT)
             continue
         if "model" in opts:
-            entries[stage] = {"kind": "system", "system": str(opts["model"]).split(":", 1)[1]}
-            log(f"{stage}: built-in model {opts['model']}")
+            entries[stage] = _known_entry(r, ds, stage)
+            what = "built-in" if entries[stage]["kind"] == "system" else "known (entry point)"
+            log(f"{stage}: {what} model {opts['model']}")
             continue
         if resume and done.is_file():
             entries[stage] = _load_stage(done)
@@ -419,6 +471,29 @@ def _train_sides(
         )
         _save(done, entries[stage])
     return entries
+
+
+def _known_entry(r: Recipe, ds: Dataset, stage: str) -> dict[str, Any]:
+    """The bundle entry of a side with a known ``model``: a built-in system, or an entry point
+    (with its ``R`` and its module file's SHA-256)."""
+    opts = getattr(r, stage)
+    spec = str(opts["model"])
+    if stage == "measurement" and is_entry_point(spec):
+        return entry_point_entry(
+            spec, opts.get("R"), role=stage, state_dim=ds.state_dim, obs_dim=ds.obs_dim,
+            input_dim=ds.input_dim,
+        )  # fmt: skip
+    return {"kind": "system", "system": spec.split(":", 1)[1]}
+
+
+def _sensor_digests(r: Recipe) -> dict[str, Any]:
+    """The SHA-256 of the module file of each entry-point side (what ``config.json`` records, so
+    that ``--resume`` refuses a changed sensor)."""
+    out: dict[str, Any] = {}
+    spec = r.measurement.get("model")
+    if is_entry_point(spec):
+        out["measurement"] = entry_point_digest(str(spec), "measurement")
+    return out
 
 
 def _validate(

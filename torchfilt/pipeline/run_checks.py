@@ -12,6 +12,7 @@ from torchfilt.exceptions import DataError, InputError, RecipeError
 from torchfilt.io import Dataset
 from torchfilt.io.recording import Recording
 from torchfilt.pipeline.bundle import nominal_model
+from torchfilt.pipeline.entry_point import is_entry_point, load_entry_point
 from torchfilt.pipeline.recipe import Recipe
 from torchfilt.systems import get_system
 
@@ -101,7 +102,7 @@ def _check_channels(r: Recipe, ds: Dataset) -> tuple[Tensor, Tensor, str]:
     for stage in STAGES:
         opts = getattr(r, stage)
         if "model" in opts:
-            get_system(str(opts["model"]).split(":", 1)[1])
+            _known_side(r, ds, stage)
             continue
         features = states + inputs if stage == "transition" else states
         if "inputs" in opts:
@@ -112,6 +113,20 @@ def _check_channels(r: Recipe, ds: Dataset) -> tuple[Tensor, Tensor, str]:
         if opts.get("prior_mean") is not None:
             nominal_model(opts["prior_mean"])
     return _prior(r, train, len(states))
+
+
+def _known_side(r: Recipe, ds: Dataset, stage: str) -> None:
+    """A side's known ``model``: the built-in system exists, or the entry point imports and maps
+    the dataset's states to its measurement channels (see :mod:`torchfilt.pipeline.entry_point`)."""
+    opts = getattr(r, stage)
+    spec = str(opts["model"])
+    if stage == "measurement" and is_entry_point(spec):
+        load_entry_point(
+            spec, opts.get("R"), role=stage, state_dim=ds.state_dim, obs_dim=ds.obs_dim,
+            input_dim=ds.input_dim,
+        )  # fmt: skip
+        return
+    get_system(spec.split(":", 1)[1])
 
 
 def _known_channels(r: Recipe, ds: Dataset) -> list[int]:
@@ -133,7 +148,11 @@ def _check_measurement_only(r: Recipe, ds: Dataset) -> None:
     """``states = "none"`` against the dataset: the measurement system fits its channels, the
     known channels exist, the nominal model maps the states, ``process_noise`` has one value per
     state."""
-    n, nu, m = ds.state_dim, ds.input_dim, ds.obs_dim
+    n, m = ds.state_dim, ds.obs_dim
+    if is_entry_point(r.measurement["model"]):
+        _known_side(r, ds, "measurement")
+        _check_nominal(r, ds)
+        return
     name = str(r.measurement["model"]).split(":", 1)[1]
     try:
         spec = get_system(name)
@@ -145,6 +164,13 @@ def _check_measurement_only(r: Recipe, ds: Dataset) -> None:
             f"{len(spec.measurements)} measurements, but the dataset declares {n} state and {m} "
             "measurement channels"
         )
+    _check_nominal(r, ds)
+
+
+def _check_nominal(r: Recipe, ds: Dataset) -> None:
+    """The known channels exist, the nominal model maps the states, ``process_noise`` has one
+    value per state."""
+    n, nu = ds.state_dim, ds.input_dim
     _known_channels(r, ds)
     o = r.measurement_only
     if o["nominal"] is not None:

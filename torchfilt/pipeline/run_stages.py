@@ -7,6 +7,7 @@ from __future__ import annotations
 import datetime as _dt
 import io
 import json
+import math
 import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -34,9 +35,13 @@ __all__ = [
     "CALIBRATE_CHECKPOINT",
     "LOCAL_FITTERS",
     "MEASUREMENT_ONLY_CHECKPOINT",
+    "PILOT_NOISE_SCALES",
     "StageFitters",
 ]
 
+#: Scales of the default initial process noise (1e-2 x the prior variances) that a
+#: ``states = "none"`` fit without ``process_noise`` tries as starts (the best is fitted).
+PILOT_NOISE_SCALES = (0.1, 1.0, 10.0)
 #: The calibration stage's checkpoint in a run directory.
 CALIBRATE_CHECKPOINT = "calibrate.ckpt"
 #: The checkpoint of a ``states = "none"`` transition fit (``fit_measurement_only``'s own).
@@ -269,16 +274,18 @@ def _measurement_only_model(
     m0: Tensor,
     P0: Tensor,
     dtype: torch.dtype,
+    scale: float = 1.0,
 ) -> StateSpaceModel:
     """The initial model of a ``states = "none"`` fit: an :class:`InducingTransition` on the
     nominal model (or a random walk), its inducing inputs spread over the filtered states of a
     pilot CKF with that model on the training recordings, its lengthscales their spread; a
-    learnable process noise ``Q`` (``process_noise``, default 1e-2 x the prior variances)."""
+    learnable process noise ``Q`` (``process_noise``, default ``scale`` x 1e-2 x the prior
+    variances)."""
     o = r.measurement_only
     g = None if o["nominal"] is None else nominal_model(o["nominal"])
     pn = o["process_noise"]
     if pn is None:
-        q0 = 1e-2 * P0.diagonal().to(dtype)
+        q0 = scale * 1e-2 * P0.diagonal().to(dtype)
     else:
         q0 = torch.as_tensor(pn, dtype=dtype).expand(n).clone()
     pilot = StateSpaceModel(
@@ -313,11 +320,63 @@ def _measurement_only_model(
     return StateSpaceModel(f, h, Q=CholeskyCovariance(torch.diag(q0)))
 
 
+def _score(
+    model: StateSpaceModel, recs: list[Recording], nu: int, m0: Tensor, P0: Tensor, dtype: Any
+) -> float:
+    """The CKF log-likelihood of ``model`` on recordings (``-inf`` where not finite)."""
+    total = 0.0
+    with torch.no_grad():
+        for rec in recs:
+            y = rec.measurements[1:].to(dtype)
+            u = None if not nu else rec.inputs[:-1].to(dtype)  # type: ignore[index]
+            res = CKF(model).filter(y, u, x0=m0.to(dtype), P0=P0.to(dtype))
+            total += float(res.log_likelihood.sum())
+    return total if math.isfinite(total) else -math.inf
+
+
+def _start(
+    r: Recipe,
+    h: Any,
+    train: list[Recording],
+    val: list[Recording],
+    n: int,
+    nu: int,
+    m0: Tensor,
+    P0: Tensor,
+    dtype: torch.dtype,
+    log: _Log,
+) -> tuple[StateSpaceModel, list[dict[str, Any]]]:
+    """The start of a ``states = "none"`` fit. With ``process_noise`` given: that model. Without:
+    one pilot start per scale of :data:`PILOT_NOISE_SCALES` on the default process noise, each
+    scored by its filter log-likelihood on the validation recordings (the training ones where
+    there are none), the best kept; each candidate is logged and returned as a record."""
+    if r.measurement_only["process_noise"] is not None:
+        return _measurement_only_model(r, h, train, n, nu, m0, P0, dtype), []
+    recs, where = (val, "held-out") if val else (train, "training")
+    models, records, scores = [], [], []
+    for k, sc in enumerate(PILOT_NOISE_SCALES, 1):
+        model = _measurement_only_model(r, h, train, n, nu, m0, P0, dtype, sc)
+        ll = _score(model, recs, nu, m0, P0, dtype)
+        models.append(model)
+        scores.append(ll)
+        records.append({"candidate": k, "process_noise_scale": sc, "score": ll, "on": where})
+        log(
+            f"transition: candidate start {k}: process noise {sc:g} x 1e-2 x the prior "
+            f"variances, {where} log-likelihood {ll:.6g}"
+        )
+    best = max(range(len(scores)), key=lambda i: scores[i])
+    for i, rec in enumerate(records):
+        rec["chosen"] = i == best
+    log(f"transition: starting from candidate {best + 1} (the best {where} log-likelihood)")
+    return models[best], records
+
+
 def _fit_measurement_only_stage(
     r: Recipe,
     ds: Dataset,
     h: Any,
     train: list[Recording],
+    val: list[Recording],
     m0: Tensor,
     P0: Tensor,
     dtype: torch.dtype,
@@ -334,7 +393,7 @@ def _fit_measurement_only_stage(
     o = r.measurement_only
     n, nu = ds.state_dim, ds.input_dim
     known = _known_channels(r, ds)
-    model = _measurement_only_model(r, h, train, n, nu, m0, P0, dtype)
+    model, candidates = _start(r, h, train, val, n, nu, m0, P0, dtype, log)
     ys = [rec.measurements[1:].to(dtype) for rec in train]
     us = [rec.inputs[:-1].to(dtype) for rec in train] if nu else None  # type: ignore[index]
     counted = max(1, sum(int(torch.isfinite(y).sum()) for y in ys))
@@ -398,6 +457,8 @@ def _fit_measurement_only_stage(
     finally:
         metrics.close()
     entry = _measurement_only_entry(fit, o, ds.manifest.names("measurement"))
+    if candidates:
+        entry["fit"]["candidates"] = candidates
     log(
         f"transition: {fit.stopped} after {fit.iterations} iterations; log-likelihood "
         f"{entry['fit']['initial_log_likelihood']:.6g} -> {fit.log_likelihood:.6g}"

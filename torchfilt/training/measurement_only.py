@@ -52,6 +52,7 @@ output spectrum, the likelihood) are identified, individual matrix entries need 
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -280,6 +281,10 @@ class MeasurementOnlyFit:
         history: per-iteration records of the method.
         elapsed: seconds of the whole fit.
         detail: the method's own result (:class:`EMFit` or :class:`LikelihoodFit`).
+        initial_log_likelihood: the training log-likelihood at the parameters the fit started
+            from (those of the chosen candidate with ``starts``), before any step.
+        candidates: with ``starts``, one record per candidate start (see
+            :func:`fit_measurement_only`); empty otherwise.
     """
 
     model: StateSpaceModel
@@ -292,6 +297,8 @@ class MeasurementOnlyFit:
     history: list[dict[str, Any]]
     elapsed: float
     detail: EMFit | LikelihoodFit
+    initial_log_likelihood: float = math.nan
+    candidates: list[dict[str, Any]] = field(default_factory=list)
 
 
 # ----------------------------------------------------------------------------------- EM
@@ -580,6 +587,7 @@ def fit_measurement_only(
             history=em.history,
             elapsed=em.elapsed,
             detail=em,
+            initial_log_likelihood=em.initial_log_likelihood,
         )
     lf = _fit_likelihood(
         model, y, u, x0=x0, P0=P0, parameters=None, fixed=fixed, validation=validation,
@@ -597,4 +605,5 @@ def fit_measurement_only(
         history=lf.history,
         elapsed=lf.elapsed,
         detail=lf,
+        initial_log_likelihood=lf.initial_log_likelihood,
     )
