@@ -222,8 +222,9 @@ class InducingTransition(ConditionalModel):
             inducing: number of inducing points ``M``.
             states: ``(N, n)`` states to place the inducing inputs on (required when ``M > 0``).
             inputs: ``(N, nu)`` inputs aligned with ``states``.
-            lengthscale: initial lengthscales.
-            outputscale: initial GP variances (default negligible, see :meth:`from_linear`).
+            lengthscale: initial lengthscales, a scalar or shape ``(n + nu,)``.
+            outputscale: initial GP variances, a scalar or shape ``(n,)`` (default negligible,
+                see :meth:`from_linear`).
 
         Returns:
             The :class:`~torchfilt.models.StateSpaceModel`.
@@ -251,7 +252,7 @@ class InducingTransition(ConditionalModel):
         return self.log_lengthscale.clamp(*LOG_LENGTHSCALE_BOUNDS).exp()
 
     def outputscale(self) -> Tensor:
-        """The output variances ``s_j (n,)`` as the model uses them (clamped to
+        """The output variances ``s_j``, shape ``(n,)``, as the model uses them (clamped to
         :data:`LOG_OUTPUTSCALE_BOUNDS` in the log)."""
         return self.log_outputscale.clamp(*LOG_OUTPUTSCALE_BOUNDS).exp()
 
