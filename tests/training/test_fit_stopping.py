@@ -182,7 +182,7 @@ def test_em_with_A_fixed_keeps_it_and_re_estimates_Q_and_R():
     y = simulate(1.0, 0.1, 0.5, 150, seed=11)
     A = torch.tensor([[0.97]], dtype=DT)
     lg = LinearGaussianModel(A.clone(), torch.eye(1, dtype=DT), 0.5 * P0, 2.0 * P0)
-    fit = fit_em(lg, y, x0=X0, P0=P0, known_channels=[0], iterations=200, tol=1e-12, rtol=0,
+    fit = fit_em(lg, y, x0=X0, P0=P0, known_channels=[0], iterations=200, tol=1e-12, rtol=0, atol=0,
                  fixed=["A"])  # fmt: skip
     m = fit.model
     assert isinstance(m, LinearGaussianModel)

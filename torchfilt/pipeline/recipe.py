@@ -409,6 +409,12 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
             kind="choice",
             choices=("none", "noise", "all"),
         ),
+        Key(
+            "atol", "`0.01`", "stop when 20 iterations gain < atol nats/recording", kind="posfloat"
+        ),
+        Key(
+            "per_iteration", "`16`", "windows per Adam step (random subset if more)", kind="posint"
+        ),
     ),
 }
 
@@ -424,6 +430,8 @@ CALIBRATE_DEFAULTS: dict[str, Any] = {
     "patience": 15,
     "inflate_only": True,
     "gp": "none",
+    "atol": 0.01,
+    "per_iteration": 16,
 }
 
 #: Defaults of the ``[measurement_only]`` section (``states = "none"``); ``None``: see

@@ -50,8 +50,8 @@ class StageFitters:
     accept those arguments and keep their meaning:
 
     - ``calibrate(model, train, *, x0, P0, validation, sides, window, burn_in, iterations, lr,
-      optimizer, patience, inflate_only, gp, callback, checkpoint, resume, checkpoint_every,
-      dtype)`` -> :class:`~torchfilt.training.calibrate.CalibrationResult`, as
+      optimizer, patience, inflate_only, gp, atol, per_iteration, callback, checkpoint, resume,
+      checkpoint_every, dtype)`` -> :class:`~torchfilt.training.calibrate.CalibrationResult`, as
       :func:`~torchfilt.training.calibrate` (``train`` the training recordings, ``x0`` ``(n,)``,
       ``P0`` ``(n, n)``, ``validation`` the validation recordings or ``None``);
     - ``measurement_only(model, ys, us, *, x0, P0, known_channels, method, iterations, window,
@@ -515,6 +515,8 @@ def _calibrate_stage(
             patience=int(c["patience"]),
             inflate_only=bool(c["inflate_only"]),
             gp=c.get("gp", "none"),
+            atol=float(c["atol"]),
+            per_iteration=int(c["per_iteration"]) if c["optimizer"] == "adam" else None,
             callback=callback,
             checkpoint=ckpt,
             resume=resume,

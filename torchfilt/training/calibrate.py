@@ -153,6 +153,8 @@ def calibrate(
     patience: int | None = None,
     rtol: float = _C.stopping.rtol,
     rtol_window: int = _C.stopping.rtol_window,
+    atol: float | None = None,
+    per_iteration: int | None = _C.window.per_iteration,
     fixed: Collection[str] = (),
     inflate_only: bool = True,
     progress: bool = False,
@@ -195,6 +197,12 @@ def calibrate(
             ``patience`` 15, acting only with ``validation``).
         rtol, rtol_window: stop at convergence, as in
             :func:`~torchfilt.training.fit_likelihood` (default ``1e-6`` over 20 iterations).
+        atol: stop when the total log-likelihood improved by less than ``atol`` nats per
+            recording over the last ``rtol_window`` iterations (``None``: 0.01; 0: off).
+        per_iteration: at most this many windows per Adam iteration (default 16; ``None``:
+            all): with more, each iteration steps on a random subset, and the full objective is
+            evaluated every few iterations (see :mod:`torchfilt.training.likelihood`). With
+            ``optimizer="lbfgs"`` the default is all windows.
         fixed: names of parameters of the calibrated model (``result.model.named_parameters()``,
             e.g. ``"transition.log_scale"``) held fixed; an unknown name is an ``InputError``.
         progress: show a progress bar.
@@ -261,6 +269,13 @@ def calibrate(
             ),
             rtol=rtol,
             rtol_window=rtol_window,
+            atol=atol,
+            # L-BFGS needs the full objective: the default subsets are Adam's
+            per_iteration=(
+                None
+                if optimizer == "lbfgs" and per_iteration == _C.window.per_iteration
+                else per_iteration
+            ),
             fixed=fixed,
             optimizer=optimizer,
             lr=lr,

@@ -307,6 +307,7 @@ def fit_em(
     tol: float = _EM_TOL,
     rtol: float = _EM.stopping.rtol,
     rtol_window: int = _EM.stopping.rtol_window,
+    atol: float | None = None,
     fixed: Collection[str] = (),
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
@@ -340,6 +341,9 @@ def fit_em(
         rtol, rtol_window: stop (``"converged"``) when the negative log-likelihood per
             measurement ``L`` moved by at most ``rtol * max(1, |L_k|)`` over the last
             ``rtol_window`` iterations (default ``1e-6`` over 20; 0: off).
+        atol: stop (``"converged"``) when the log-likelihood improved by less than ``atol``
+            nats per recording over the last ``rtol_window`` iterations (``None``: 0.01; 0: off;
+            see :class:`~torchfilt.optim.StoppingOptions`).
         fixed: blocks held fixed. For the closed-form M-step the matrices ``"A"``, ``"B"``,
             ``"Q"``, ``"H"``, ``"R"`` (a fixed block keeps its value exactly; the free ones take
             their closed form given it); for the gradient M-step names of
@@ -384,7 +388,7 @@ def fit_em(
     if iterations < 1:
         raise InputError(f"iterations must be at least 1, got {iterations}")
     CheckpointOptions(checkpoint, checkpoint_every, resume)  # resume=True needs a checkpoint
-    stop_o = stopping_options(_EM.stopping, None, 1, tol, rtol, rtol_window)
+    stop_o = stopping_options(_EM.stopping, None, 1, tol, rtol, rtol_window, atol=atol)
     for name, v in (
         ("m_step_iterations", m_step_iterations),
         ("checkpoint_every", checkpoint_every),
@@ -405,7 +409,8 @@ def fit_em(
     reduce = None if all_reduce is None else _Reducer(all_reduce)
     # the steps of each recording (a shorter one is NaN-padded: those steps are no transitions)
     valid = torch.arange(Y.shape[-2]).unsqueeze(0) < torch.tensor(recs.lengths).unsqueeze(-1)
-    counted = int(_summed(reduce, torch.tensor(float(torch.isfinite(Y).sum())))[0])
+    counts = torch.tensor([float(torch.isfinite(Y).sum()), float(len(recs.lengths))])
+    counted, recordings = (int(c) for c in _summed(reduce, counts)[0])
     if counted == 0:
         raise InputError("y: no measurement observed")
     lin = _linear_start(model, dtype, known)
@@ -435,8 +440,8 @@ def fit_em(
     bar = ProgressBar("fit EM", iterations, enabled=progress)
     loop = FitLoop(
         iterations=iterations, progress=bar, callback=callback, all_reduce=reduce,
-        rtol=stop_o.rtol, rtol_window=stop_o.rtol_window, checkpoint=ckpt,
-        every=checkpoint_every,
+        rtol=stop_o.rtol, rtol_window=stop_o.rtol_window, atol=stop_o.atol,
+        scale=counted / recordings, checkpoint=ckpt, every=checkpoint_every,
     )  # fmt: skip
     initial: float | None = None
     ck = loop.resume() if resume else None

@@ -32,6 +32,8 @@ def calibrate_ray(
     patience: int = 15,
     inflate_only: bool = True,
     gp: str = "none",
+    atol: float | None = None,
+    per_iteration: int | None = 16,
     dtype: torch.dtype = torch.float64,
     callback: Callable[[Any], bool | None] | None = None,
     checkpoint: str | Path | None = None,
@@ -57,7 +59,7 @@ def calibrate_ray(
 
     Args:
         model, recordings, x0, P0, validation, sides, window, burn_in, iterations, lr,
-        optimizer, patience, inflate_only, gp, dtype, checkpoint_every: as in
+        optimizer, patience, inflate_only, gp, atol, per_iteration, dtype, checkpoint_every: as in
             :func:`~torchfilt.training.calibrate` (``recordings`` a list of recordings or a
             :class:`~torchfilt.training.likelihood.Sequences` whose ``x0``/``P0`` are shared).
         workers: Ray actors, one CPU each; the cluster must have that many free at once.
@@ -99,6 +101,8 @@ def calibrate_ray(
         "patience": patience,
         "inflate_only": inflate_only,
         "gp": gp,
+        "atol": atol,
+        "per_iteration": per_iteration,
         "dtype": dtype,
         "callback": callback,
         "resume": resume,
