@@ -298,3 +298,42 @@ def test_fit_likelihood_early_stopped_stays_stopped_on_resume(tmp_path):
     again, values2 = run(resume=True)
     assert again.stopped == "early stopping" and again.history == fit.history
     assert torch.equal(values, values2) and again.log_likelihood == fit.log_likelihood
+
+
+# ----------------------------------------------------------------------- the rule in nats
+def test_atol_rule_stops_at_the_first_window_that_gains_less_than_atol():
+    """A loss per measurement falling as ``2^-k``, 100 measurements per recording: the loop
+    stops at the first record whose gain over the last ``w`` records, in nats per recording, is
+    below ``atol``; a loss falling by a constant step above it never stops."""
+    losses = [2.0**-k for k in range(200)]
+    loop = FitLoop(iterations=200, atol=0.01, scale=100.0, rtol_window=5)
+    assert loop.run(lambda it: Outcome({"loss": losses[it - 1]})) == "converged"
+    L = [r["loss"] for r in loop.history]
+    assert (L[-6] - L[-1]) * 100 < 0.01 <= (L[-7] - L[-2]) * 100
+    steady = FitLoop(iterations=60, atol=0.01, scale=100.0, rtol_window=5)
+    assert steady.run(lambda it: Outcome({"loss": -it * 1e-4})) == "iterations"  # 0.05 / window
+    assert (
+        FitLoop(iterations=60, atol=0.01, rtol_window=5).run(  # no scale: off
+            lambda it: Outcome({"loss": 1.0})
+        )
+        == "iterations"
+    )
+
+
+def test_rules_watch_only_the_records_with_the_monitored_entry():
+    """Every third record carries the objective: the rules compare those only (the noisy
+    per-iteration ``loss`` never stops the loop)."""
+    rng = torch.Generator().manual_seed(0)
+
+    def step(it: int) -> Outcome:
+        rec: dict[str, Any] = {"loss": float(torch.rand(1, generator=rng))}
+        if it % 3 == 0:
+            rec["objective"] = 2.0**-it
+        return Outcome(rec)
+
+    loop = FitLoop(iterations=300, atol=0.01, scale=100.0, rtol_window=6, monitor="objective")
+    assert loop.run(step) == "converged"
+    hist = loop.history
+    assert "objective" in hist[-1]
+    then = next(r for r in reversed(hist[: len(hist) - 6]) if "objective" in r)
+    assert (then["objective"] - hist[-1]["objective"]) * 100 < 0.01

@@ -206,7 +206,7 @@ def test_em_with_A_fixed_keeps_it_and_re_estimates_Q_and_R():
         known_channels=[0],
         iterations=200,
         fixed=["A"],
-        stopping=StoppingOptions(tol=1e-12, rtol=0),
+        stopping=StoppingOptions(tol=1e-12, rtol=0, atol=0),
     )
     m = fit.model
     assert isinstance(m, LinearGaussianModel)

@@ -24,8 +24,10 @@ Stopping rules live in ``StoppingOptions`` and ``FitLoop._rule`` (the relative c
 window of iterations, ``rtol`` / ``rtol_window``, is on by default); the estimate of the stage's
 time and of what is left is drawn by ``FitLoop.run`` through the fit's reporter; parameters held
 fixed (``fixed=``) are left out of the list a fit hands to ``GuardedStep`` by
-``free_parameters``. Where the next capabilities land: stochastic subsets of windows in the likelihood fit's step
-(:mod:`torchfilt.training.likelihood`), whose full objective the loop's rules can then evaluate.
+``free_parameters``. Stochastic subsets of windows live in the likelihood fit's step
+(:mod:`torchfilt.training.likelihood`); its full objective, evaluated every few iterations, is
+the record entry the loop's rules watch (``FitLoop(monitor=...)``), and ``atol`` stops a fit in
+nats of that objective.
 """
 
 from torchfilt.optim.checkpoint import AtomicWrite, CheckpointFile, fingerprint

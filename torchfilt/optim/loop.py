@@ -14,7 +14,9 @@ iteration does (an optimiser step, an E- and an M-step), returning an :class:`Ou
    (:class:`EarlyStopping`, after ``patience`` evaluations without improvement), then
    convergence: the loss changed by less than ``tol * (1 + |loss|)`` in one iteration, or by
    at most ``rtol * max(1, |L_k|)`` over the last ``rtol_window`` iterations
-   (``|L_k - L_{k-w}|``; on by default, see :class:`~torchfilt.optim.StoppingOptions`);
+   (``|L_k - L_{k-w}|``; on by default, see :class:`~torchfilt.optim.StoppingOptions`), or
+   the objective improved by less than ``atol`` (in its own units, e.g. nats per recording)
+   over those iterations;
 5. a checkpoint every ``every`` iterations, at the last one and when a rule stopped the fit:
    the loop's state (iteration, history, the stop reason, the early-stopping state) and the
    fit's own entries, written atomically; a fit resumed from it continues exactly where the
@@ -305,7 +307,16 @@ class FitLoop:
             ``tol * (1 + |loss|)`` since the previous record (0: off).
         rtol: convergence over a window: stop when ``|L_k - L_{k-w}| <= rtol * max(1, |L_k|)``
             for the records' ``loss`` ``L`` (0: off).
-        rtol_window: the window ``w`` of ``rtol``.
+        rtol_window: the window ``w`` of ``rtol`` and ``atol``.
+        atol: convergence over the window in the objective's own units: stop when
+            ``(L_{k-w} - L_k) * scale < atol`` (the objective improved by less than ``atol``;
+            0: off).
+        scale: the units of ``atol`` per unit of the records' loss (e.g. measurements per
+            recording for a loss per measurement and ``atol`` in nats per recording; 0: off).
+        monitor: the record entry the convergence rules watch. Records without it (iterations
+            whose objective was not evaluated) are skipped: the rules compare the last record
+            that has it with the one before it (``tol``) and with the latest one at least ``w``
+            records earlier (``rtol``, ``atol``), and act only at a record that has it.
         checkpoint: the checkpoint file (``None``: none).
         every: iterations between checkpoints.
         start: iterations already done (a run resumed by its caller, without a checkpoint file).
@@ -322,6 +333,9 @@ class FitLoop:
         tol: float = 0.0,
         rtol: float = 0.0,
         rtol_window: int = 20,
+        atol: float = 0.0,
+        scale: float = 0.0,
+        monitor: str = "loss",
         checkpoint: CheckpointFile | None = None,
         every: int = 1,
         start: int = 0,
@@ -329,6 +343,7 @@ class FitLoop:
         self.iterations, self.progress, self.callback = iterations, progress, callback
         self.all_reduce, self.stopping, self.tol = all_reduce, stopping, tol
         self.rtol, self.rtol_window = rtol, max(1, int(rtol_window))
+        self.atol, self.scale, self.monitor = atol, scale, monitor
         self.checkpoint, self.every = checkpoint, every
         self.iteration = start  # the last iteration started (or resumed from)
         self.history: list[dict[str, Any]] = []
@@ -407,16 +422,30 @@ class FitLoop:
     def _rule(self) -> str | None:
         if self.stopping is not None and self.stopping.exhausted:
             return "early stopping"
-        hist = self.history
-        if self.tol > 0 and len(hist) > 1 and "loss" in hist[-1]:
-            last, loss = float(hist[-2]["loss"]), float(hist[-1]["loss"])
-            if abs(last - loss) <= self.tol * (1 + abs(loss)):
+        hist, key = self.history, self.monitor
+        if not hist or key not in hist[-1]:
+            return None
+        loss = float(hist[-1][key])
+        if self.tol > 0:
+            j = self._before(len(hist) - 2)
+            if j is not None and abs(float(hist[j][key]) - loss) <= self.tol * (1 + abs(loss)):
                 return "converged"
         w = self.rtol_window
-        if self.rtol > 0 and len(hist) > w and "loss" in hist[-1]:
-            then, loss = float(hist[-1 - w]["loss"]), float(hist[-1]["loss"])
-            if abs(loss - then) <= self.rtol * max(1.0, abs(loss)):
-                return "converged"
+        j = self._before(len(hist) - 1 - w)
+        if j is None:
+            return None
+        then = float(hist[j][key])
+        if self.rtol > 0 and abs(loss - then) <= self.rtol * max(1.0, abs(loss)):
+            return "converged"
+        if self.atol > 0 and self.scale > 0 and (then - loss) * self.scale < self.atol:
+            return "converged"
+        return None
+
+    def _before(self, index: int) -> int | None:
+        """The last record at or before ``index`` that has the monitored entry."""
+        for j in range(index, -1, -1):
+            if self.monitor in self.history[j]:
+                return j
         return None
 
     def _payload(

@@ -124,17 +124,31 @@ class WindowOptions:
         start: where a later window starts: the previous pass's ``"filtered"`` or ``"smoothed"``
             estimate of the state just before it.
         refresh_every: iterations between refreshes of the window starts.
+        per_iteration: at most this many windows per Adam iteration (``None``: all). With more
+            windows than that, each iteration steps on a random subset of ``per_iteration`` of
+            them, drawn from ``(seed, iteration)`` alone (a resumed fit draws the same ones),
+            its log-likelihood scaled by ``windows / per_iteration`` (an unbiased estimate of
+            the full one); the full objective is evaluated every ``full_every`` iterations and
+            at the end, for the stopping rules, the best parameters and the reported
+            likelihood.
+        full_every: iterations between evaluations of the full objective with subsets.
+        seed: the seed of the subsets.
     """
 
     window: int | None = None
     burn_in: int = 0
     start: Literal["filtered", "smoothed"] = "filtered"
     refresh_every: int = 10
+    per_iteration: int | None = None
+    full_every: int = 5
+    seed: int = 0
 
     def __post_init__(self) -> None:
         if self.start not in ("filtered", "smoothed"):
             raise InputError(f"start must be 'filtered' or 'smoothed', got {self.start!r}")
-        _at_least_one(refresh_every=self.refresh_every)
+        _at_least_one(refresh_every=self.refresh_every, full_every=self.full_every)
+        if self.per_iteration is not None:
+            _at_least_one(per_iteration=self.per_iteration)
 
 
 @dataclass(frozen=True)
@@ -150,7 +164,17 @@ class StoppingOptions:
       ``w = 20`` iterations: a loss that moved by less than a millionth in twenty iterations has
       stopped moving; a fit that still creeps at that rate gains nothing a user would see), so a
       fit no longer spends its whole budget printing the same loss. A reference comparison that
-      needs the optimum to the last digits passes a smaller ``rtol`` (or 0: off).
+      needs the optimum to the last digits passes a smaller ``rtol`` (or 0: off);
+    * ``atol`` over the same window, in nats of the total objective: the total log-likelihood
+      improved by less than ``atol`` nats per recording over the last ``rtol_window``
+      iterations (``(L_{k-w} - L_k) * measurements / recordings < atol`` for a loss per
+      measurement). Default ``0.01``: a likelihood-ratio difference of a hundredth of a nat
+      per recording is far below any significance (a likelihood-ratio test at 5 % needs
+      1.92 nats for one parameter), so a fit that gains less than that in twenty iterations has
+      nothing left to find that the data could tell apart; ``rtol = 1e-6`` per measurement is
+      0.004 nats in total on ~3600 measurements and lets a converged fit run its budget. It
+      acts in the fits that know their measurement and recording counts (the likelihood fits
+      and EM); 0: off.
 
     A ``patience`` set here counts as given: early stopping that cannot act (no held-out data)
     then warns (:class:`~torchfilt.exceptions.ConvergenceWarning`); the fit's default does not.
@@ -162,6 +186,7 @@ class StoppingOptions:
         tol: the per-iteration rule (``None``: the fit's default, see ``DEFAULTS``; 0: off).
         rtol: the windowed rule's relative tolerance (0: off).
         rtol_window: its window ``w`` in iterations.
+        atol: the windowed rule in nats per recording (0: off).
     """
 
     patience: int | None = None
@@ -169,6 +194,7 @@ class StoppingOptions:
     tol: float | None = None
     rtol: float = 1e-6
     rtol_window: int = 20
+    atol: float = 0.01
 
     def __post_init__(self) -> None:
         _at_least_one(validate_every=self.validate_every, rtol_window=self.rtol_window)
@@ -178,6 +204,8 @@ class StoppingOptions:
             raise InputError(f"tol must be finite and non-negative, got {self.tol}")
         if not (math.isfinite(self.rtol) and self.rtol >= 0):
             raise InputError(f"rtol must be finite and non-negative, got {self.rtol}")
+        if not (math.isfinite(self.atol) and self.atol >= 0):
+            raise InputError(f"atol must be finite and non-negative, got {self.atol}")
 
     def tolerance(self, optimizer: str) -> float:
         """``tol``, or the likelihood fits' default for ``optimizer`` (``1e-10`` for L-BFGS,
@@ -258,7 +286,7 @@ DEFAULTS: Mapping[str, FitDefaults] = MappingProxyType(
         "calibrate": FitDefaults(
             100,
             OptimizerOptions("adam", lr=0.1),
-            WindowOptions(window=100, burn_in=20),
+            WindowOptions(window=100, burn_in=20, per_iteration=16),
             StoppingOptions(patience=15),
         ),
         "measurement_only": FitDefaults(

@@ -359,6 +359,8 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
         _option_key("calibrate", "lr", "posfloat", note=" (at most 10)"),
         _option_key("calibrate", "optimizer", "choice", choices=("adam", "lbfgs")),
         _option_key("calibrate", "patience", "posint"),
+        _option_key("calibrate", "atol", "nonnegfloat"),
+        _option_key("calibrate", "per_iteration", "posint"),
         Key(
             "inflate_only",
             "`true`",
@@ -388,13 +390,20 @@ CALIBRATE_DEFAULTS: dict[str, Any] = {
     "gp": "none",
 }
 
+#: ``[calibrate]`` keys added after recipes were first digested: a run's digest holds them only
+#: when a recipe sets them to something else than the default.
+_LATER_CALIBRATE_KEYS = ("atol", "per_iteration")
+
 #: Defaults of the ``[measurement_only]`` section (``states = "none"``; those of its option keys
 #: from ``DEFAULTS["measurement_only"]``); ``None``: see :data:`RECIPE_SCHEMA`
 #: (``known_channels``: all; ``process_noise``: 1e-2 x the prior variances; ``window``: whole
 #: recordings; ``lr``: the optimiser's default).
 MEASUREMENT_ONLY_DEFAULTS: dict[str, Any] = {
     "method": "em",
-    **{k: option_default("measurement_only", k) for k in OPTION_KEYS if k != "patience"},
+    **{
+        k: option_default("measurement_only", k)
+        for k in ("iterations", "optimizer", "lr", "window", "burn_in")
+    },
     "inducing": 16,
     "known_channels": None,
     "nominal": None,
@@ -510,7 +519,12 @@ class Recipe:
                 **({} if self.holdout == HOLDOUT else {"holdout": self.holdout}),
             },
             "filter": copy.deepcopy(self.filter),
-            "calibrate": copy.deepcopy(self.calibrate),
+            # keys added later appear only when set otherwise (earlier digests stay the same)
+            "calibrate": {
+                k: copy.deepcopy(v)
+                for k, v in self.calibrate.items()
+                if not (k in _LATER_CALIBRATE_KEYS and v == CALIBRATE_DEFAULTS[k])
+            },
         }
 
     def digest(self) -> str:

@@ -24,7 +24,7 @@ class Key:
         meaning: what it does.
         kind: ``"any"`` (checked later, against the dataset or by the fit), ``"bool"``,
             ``"int"``, ``"posint"`` (an integer >= 1), ``"nonnegint"`` (an integer >= 0),
-            ``"posfloat"`` (a finite number > 0) or
+            ``"posfloat"`` (a finite number > 0), ``"nonnegfloat"`` (a finite number >= 0) or
             ``"choice"`` (one of ``choices``).
         choices: the allowed strings of a ``"choice"`` key.
     """
@@ -44,6 +44,7 @@ class Key:
             "posint": "an integer >= 1",
             "nonnegint": "an integer >= 0",
             "posfloat": "a number > 0",
+            "nonnegfloat": "a number >= 0",
             "choice": ", ".join(f'`"{c}"`' for c in self.choices),
         }.get(self.kind, "")
 
@@ -57,6 +58,7 @@ class Key:
             "posint": isinstance(value, int) and not isinstance(value, bool) and value >= 1,
             "nonnegint": isinstance(value, int) and not isinstance(value, bool) and value >= 0,
             "posfloat": number and math.isfinite(value) and value > 0,
+            "nonnegfloat": number and math.isfinite(value) and value >= 0,
             "choice": value in self.choices,
         }.get(self.kind, True)
         if not ok:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Callable, Collection, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal, NamedTuple
 
@@ -29,6 +29,7 @@ from torchfilt.io import Recording
 from torchfilt.models import CalibratedModel, ConditionalModel, StateSpaceModel
 from torchfilt.models.drift import DriftMeasurement, DriftModel, DriftTransition
 from torchfilt.optim import (
+    DEFAULTS,
     CheckpointOptions,
     FitHooks,
     OptimizerOptions,
@@ -194,7 +195,10 @@ def calibrate(
         optimizer: :class:`~torchfilt.optim.OptimizerOptions` or its name (default Adam on the
             log parameters, ``lr`` 0.1).
         windows: windows of the likelihood, :class:`~torchfilt.optim.WindowOptions` (default
-            100 steps, 20 of burn-in; see :mod:`torchfilt.training.likelihood`).
+            100 steps, 20 of burn-in, and ``per_iteration=16``: with more windows each Adam
+            iteration steps on a random subset of 16 and the full objective is evaluated every
+            ``full_every`` iterations; with L-BFGS all windows; see
+            :mod:`torchfilt.training.likelihood`).
         stopping: :class:`~torchfilt.optim.StoppingOptions` (default ``patience`` 15, acting
             only with ``validation``; convergence as in
             :func:`~torchfilt.training.fit_likelihood`).
@@ -261,6 +265,11 @@ def calibrate(
         stopping=stopping, checkpoint=checkpoint,
         hooks=FitHooks(project, prepare if cal.refit or user.prepare else None, user.all_reduce),
     )  # fmt: skip
+    default_subsets = DEFAULTS["calibrate"].windows.per_iteration
+    if o.optimizer.optimizer == "lbfgs" and o.windows.per_iteration == default_subsets:
+        # L-BFGS needs the full objective: the default subsets are Adam's (another explicit
+        # per_iteration with L-BFGS is refused by the fit)
+        o = o._replace(windows=replace(o.windows, per_iteration=None))
     try:
         fit = _fit_likelihood(
             cal.model, y, u, x0=x0, P0=P0, parameters=cal.params, fixed=fixed, validation=val,

@@ -23,6 +23,13 @@ counted exactly once (both are fields of ``windows=``, a :class:`~torchfilt.opti
 window starts from the previous pass's estimate of the state just before it (``start="filtered"``,
 the default, or ``"smoothed"``, the RTS estimate), refreshed every ``refresh_every`` iterations
 with the current parameters. ``x0`` may itself be a learnable tensor listed in ``parameters``.
+
+**Subsets of windows.** With more windows than ``per_iteration``, each Adam iteration steps on
+``per_iteration`` windows drawn by :func:`window_subset` from ``(seed, iteration)`` alone, their
+log-likelihood scaled by ``windows / per_iteration``: an unbiased estimate of the full objective
+and its gradient, at a fraction of the cost. The full objective is evaluated (without a graph)
+every ``full_every`` iterations and at the last one; those evaluations, recorded as
+``"objective"``, drive the stopping rules and the choice of the returned parameters.
 """
 
 from __future__ import annotations
@@ -64,6 +71,7 @@ from torchfilt.optim import (
     restore,
     snapshot,
 )
+from torchfilt.training.windows import _Windows, window_data, window_subset
 
 __all__ = [
     "LikelihoodFit",
@@ -72,6 +80,7 @@ __all__ = [
     "fit_likelihood",
     "step_log_likelihood",
     "window_data",
+    "window_subset",
 ]
 
 #: Checkpoint format identifier.
@@ -229,71 +238,6 @@ def _check_prior(X0: Tensor, C0: Tensor, prefix: str) -> None:
             f"{prefix}P0: must be positive definite (recording {bad} is not: its Cholesky "
             "factorisation fails); give a covariance such as a positive multiple of the identity"
         )
-
-
-class _Windows(NamedTuple):
-    y: Tensor  # (W, L, m)
-    u: Tensor | None  # (W, L, nu)
-    counted: Tensor  # (W, L) bool: steps counted in the likelihood
-    rec: Tensor  # (W,) recording index
-    start: Tensor  # (W,) first step of the window in its recording
-
-
-def window_data(
-    y: Tensor, u: Tensor | None, lengths: Sequence[int], window: int | None, burn_in: int
-) -> _Windows:
-    """Cut padded recordings ``y (R, T, m)`` into overlapping windows (see the module docstring).
-
-    Args:
-        y: measurements ``(R, T, m)``, NaN-padded past each recording's length.
-        u: inputs ``(R, T, nu)`` or ``None``.
-        lengths: steps of each recording.
-        window: window length ``L`` (``None``: whole recordings).
-        burn_in: uncounted steps at the start of each window, ``0 <= burn_in < L``.
-
-    Returns:
-        Windows ``y (W, L, m)``, ``u (W, L, nu)``, the counted steps ``(W, L)``, and for each
-        window its recording and first step ``(W,)``.
-    """
-    R, T = int(y.shape[0]), int(y.shape[1])
-    L = T if window is None else int(window)
-    if L < 1:
-        raise InputError(f"window must be at least 1 step, got {window}")
-    if not 0 <= burn_in < L:
-        raise InputError(f"burn_in must be in [0, window) = [0, {L}), got {burn_in}")
-    stride = L - burn_in
-    ys, us, counts, recs, starts = [], [], [], [], []
-    for r in range(R):
-        s = 0
-        while s + burn_in < lengths[r]:
-            stop = min(s + L, lengths[r])
-            yw = y.new_full((L, y.shape[-1]), math.nan)
-            yw[: stop - s] = y[r, s:stop]
-            ys.append(yw)
-            if u is not None:
-                uw = u.new_zeros(L, u.shape[-1])
-                uw[: stop - s] = u[r, s:stop]
-                us.append(uw)
-            c = torch.zeros(L, dtype=torch.bool)
-            c[burn_in : stop - s] = True
-            counts.append(c)
-            recs.append(r)
-            starts.append(s)
-            if stop >= lengths[r]:
-                break
-            s += stride
-    if not ys:
-        raise InputError(
-            f"y: every recording is at most burn_in = {burn_in} steps long (lengths "
-            f"{list(lengths)[:5]}): no step would be counted; use a smaller burn_in"
-        )
-    return _Windows(
-        torch.stack(ys),
-        None if u is None else torch.stack(us),
-        torch.stack(counts),
-        torch.tensor(recs),
-        torch.tensor(starts),
-    )
 
 
 # ----------------------------------------------------------------------------------- results
@@ -484,6 +428,12 @@ def _fit_likelihood(
     o = options
     if not isinstance(model, StateSpaceModel):
         raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
+    if o.windows.per_iteration is not None and o.optimizer.optimizer != "adam":
+        raise InputError(
+            f"per_iteration={o.windows.per_iteration}: subsets of windows need optimizer='adam' "
+            "(L-BFGS's line search needs a deterministic objective); give "
+            "WindowOptions(per_iteration=None)"
+        )
     if dtype not in (torch.float32, torch.float64):
         raise InputError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
     model.to(dtype)
@@ -524,11 +474,15 @@ class _Objective:
         counted = int((torch.isfinite(win.y) & win.counted.unsqueeze(-1)).sum())
         if counted == 0:
             raise InputError("y: no measurement is counted (all missing, or burn_in covers them)")
-        windows = int(win.y.shape[0])
+        windows, recordings = int(win.y.shape[0]), len(recs.lengths)
         if all_reduce is not None:  # the counts of the whole fit, as one process on all recordings
-            total = self.summed(torch.tensor([float(counted), float(windows)]))
-            counted, windows = int(total[0]), int(total[1])
-        self.counted, self.windows = counted, windows
+            total = self.summed(torch.tensor([float(counted), float(windows), float(recordings)]))
+            counted, windows, recordings = int(total[0]), int(total[1]), int(total[2])
+        self.counted, self.windows, self.recordings = counted, windows, recordings
+        # subsets of windows: when the whole fit has more windows than per_iteration (the same
+        # decision on every process of a data-parallel fit: the full evaluations are collectives)
+        k = options.per_iteration
+        self.subsets = k is not None and windows > k
         self.val_count = 0 if val is None else int(torch.isfinite(val.y).sum())
         self.first = win.start == 0
         # windows that start a recording take the learnable prior mean, with its graph
@@ -562,21 +516,40 @@ class _Objective:
         wP0[later] = cov[win.rec[later], idx]
         return wx0, wP0
 
-    def train(self, wx0: Tensor, wP0: Tensor) -> Tensor:
-        """The training log-likelihood of this process's windows (with its graph)."""
+    def subset(self, iteration: int) -> Tensor | None:
+        """This process's windows of ``iteration`` (``None``: all of them)."""
+        k = self.options.per_iteration
+        local = int(self.win.y.shape[0])
+        if not self.subsets or k is None or local <= k:
+            return None
+        return window_subset(local, k, self.options.seed, iteration)
+
+    def train(self, wx0: Tensor, wP0: Tensor, subset: Tensor | None = None) -> Tensor:
+        """The training log-likelihood of this process's windows (with its graph); of the
+        windows ``subset`` only, scaled by ``windows / len(subset)`` (an unbiased estimate)."""
         if self.prepare is not None:
             self.prepare()
+        win, first = self.win, self.first
+        if subset is not None:
+            win = _Windows(
+                win.y[subset], None if win.u is None else win.u[subset], win.counted[subset],
+                win.rec[subset], win.start[subset],
+            )  # fmt: skip
+            first, wx0, wP0 = first[subset], wx0[subset], wP0[subset]
         if self.x0 is not None:
             X0 = _prior_batch(
                 self.x0.to(wx0.dtype), int(self.recs.y.shape[0]), (self.model.state_dim,), "x0"
             )
-            wx0 = torch.where(self.first.unsqueeze(-1), X0[self.win.rec], wx0)
+            wx0 = torch.where(first.unsqueeze(-1), X0[win.rec], wx0)
         with warnings.catch_warnings():
             # a trial step of the optimiser may diverge: the fit scores it -inf and steps back
             warnings.simplefilter("ignore", DivergenceWarning)
-            res = self.filt.filter(self.win.y, self.win.u, x0=wx0, P0=wP0)
+            res = self.filt.filter(win.y, win.u, x0=wx0, P0=wP0)
         ll = step_log_likelihood(res)
-        return (ll * self.win.counted.to(ll.dtype)).sum()
+        total = (ll * win.counted.to(ll.dtype)).sum()
+        if subset is None:
+            return total
+        return total * (int(self.win.y.shape[0]) / int(subset.numel()))
 
     def total(self, wx0: Tensor, wP0: Tensor) -> float:
         """The training log-likelihood summed over the processes (no gradient)."""
@@ -593,12 +566,15 @@ class _Objective:
             res = self.filt.filter(val.y, val.u, x0=val.x0, P0=val.P0)
         return float(res.log_likelihood.sum()) / self.val_count
 
-    def loss(self, plist: list[nn.Parameter], wx0: Tensor, wP0: Tensor) -> Tensor:
+    def loss(
+        self, plist: list[nn.Parameter], wx0: Tensor, wP0: Tensor, subset: Tensor | None = None
+    ) -> Tensor:
         """The loss per counted measurement and its gradient in ``plist`` (``+inf`` where it
-        is not finite, without a gradient): an optimiser's closure."""
+        is not finite, without a gradient): an optimiser's closure; on the windows ``subset``
+        only, an unbiased estimate of it."""
         counted = self.counted
         if self.all_reduce is None:
-            loss = -self.train(wx0, wP0) / counted
+            loss = -self.train(wx0, wP0, subset) / counted
             if bool(torch.isfinite(loss)):
                 loss.backward()
                 return loss.detach()
@@ -606,7 +582,7 @@ class _Objective:
             return torch.full_like(loss.detach(), math.inf)
         # data-parallel: local sums, then one collective for the loss and the gradient (called on
         # every process whatever its loss, so that none waits forever)
-        ll = self.train(wx0, wP0)
+        ll = self.train(wx0, wP0, subset)
         if bool(torch.isfinite(ll)):
             (-ll).backward()
         grads = [
@@ -651,7 +627,8 @@ def _run(
     loop = FitLoop(
         iterations=iterations, progress=bar, callback=callback, all_reduce=obj.all_reduce,
         stopping=early, tol=tol, rtol=stop_o.rtol, rtol_window=stop_o.rtol_window,
-        checkpoint=ckpt, every=int(ckpt_o.every or 1),
+        atol=stop_o.atol, scale=counted / obj.recordings,
+        monitor="objective" if obj.subsets else "loss", checkpoint=ckpt, every=int(ckpt_o.every or 1),
     )  # fmt: skip
     wx0: Tensor | None = None
     wP0: Tensor | None = None
@@ -674,6 +651,9 @@ def _run(
     if initial is None:
         initial = obj.total(wx0, wP0)
         early.best_score = obj.held_out() if obj.val is not None else initial / counted
+        if obj.subsets:  # the start, scored by the full objective
+            best_train = (-initial / counted, best_train[1], 0)
+    full_every = obj.options.full_every
 
     def step(it: int) -> Outcome:
         nonlocal wx0, wP0, best_train
@@ -682,13 +662,16 @@ def _run(
         assert wx0 is not None and wP0 is not None
         ux0, uP0 = wx0, wP0
 
+        subset = obj.subset(it)
+
         def closure() -> Tensor:
             guarded.optimizer.zero_grad()
-            return obj.loss(plist, ux0, uP0)
+            return obj.loss(plist, ux0, uP0, subset)
 
         res = guarded(closure)
         loss = res.loss
-        if res.loss_finite and loss < best_train[0]:  # it scores the parameters before the step
+        # it scores the parameters before the step (with subsets: only an estimate)
+        if not obj.subsets and res.loss_finite and loss < best_train[0]:
             best_train = (loss, res.good, it - 1)
         if res.status == "retry":
             return Outcome(None)
@@ -696,6 +679,11 @@ def _run(
             return Outcome(None, abort="non-finite")
         elapsed = time.perf_counter() - t_start
         rec: dict[str, Any] = {"iteration": it, "loss": loss, "elapsed": elapsed}
+        if obj.subsets and (it % full_every == 0 or it == iterations):
+            # the full objective at the parameters after the step
+            rec["objective"] = objective = -obj.total(wx0, wP0) / counted
+            if math.isfinite(objective) and objective < best_train[0]:
+                best_train = (objective, snapshot(plist), it)
         vscore = early.observe(it)
         if vscore is not None:
             rec["validation"] = vscore

@@ -417,7 +417,8 @@ def fit_em(
     reduce = None if all_reduce is None else _Reducer(all_reduce)
     # the steps of each recording (a shorter one is NaN-padded: those steps are no transitions)
     valid = torch.arange(Y.shape[-2]).unsqueeze(0) < torch.tensor(recs.lengths).unsqueeze(-1)
-    counted = int(_summed(reduce, torch.tensor(float(torch.isfinite(Y).sum())))[0])
+    counts = torch.tensor([float(torch.isfinite(Y).sum()), float(len(recs.lengths))])
+    counted, recordings = (int(c) for c in _summed(reduce, counts)[0])
     if counted == 0:
         raise InputError("y: no measurement observed")
     lin = _linear_start(model, dtype, known)
@@ -447,8 +448,8 @@ def fit_em(
     bar = ProgressBar("fit EM", iterations, enabled=progress)
     loop = FitLoop(
         iterations=iterations, progress=bar, callback=callback, all_reduce=reduce,
-        rtol=stop_o.rtol, rtol_window=stop_o.rtol_window, checkpoint=ckpt,
-        every=int(ckpt_o.every or 1),
+        rtol=stop_o.rtol, rtol_window=stop_o.rtol_window, atol=stop_o.atol,
+        scale=counted / recordings, checkpoint=ckpt, every=int(ckpt_o.every or 1),
     )  # fmt: skip
     initial: float | None = None
     ck = loop.resume() if ckpt_o.resume else None
