@@ -257,7 +257,7 @@ def test_calibrate_default_budget_is_the_recipes():
     y = simulate(30, seed=6)
     fit = calibrate(
         ar1(), Sequences(y), x0=X0, P0=P0, windows=WindowOptions(window=None),
-        stopping=StoppingOptions(rtol=0.0),
+        stopping=StoppingOptions(rtol=0.0, atol=0.0),
     ).fit  # fmt: skip
     assert fit.iterations == 100 and math.isfinite(fit.log_likelihood)
 

@@ -41,6 +41,8 @@ def python_default(fit: str, key: str) -> object:
         "window": o.windows.window,
         "burn_in": o.windows.burn_in,
         "patience": o.stopping.patience,
+        "atol": o.stopping.atol,
+        "per_iteration": o.windows.per_iteration,
     }[key]
 
 
@@ -99,7 +101,7 @@ def test_a_flat_table_becomes_the_option_groups(tmp_path):
     assert opts == {
         "iterations": 7,
         "optimizer": OptimizerOptions("adam", lr=0.3),
-        "windows": WindowOptions(window=50, burn_in=20),
+        "windows": WindowOptions(window=50, burn_in=20, per_iteration=16),
     }  # no "stopping": the recipe did not set patience
     assert resolve_options("calibrate", **opts).stopping.patience == 15
     assert not resolve_options("calibrate", **opts).patience_given

@@ -15,7 +15,13 @@ from torch import nn
 import torchfilt
 from torchfilt.exceptions import InputError, RecipeError
 from torchfilt.models.params import ScalarCovariance
-from torchfilt.optim import DEFAULTS, StoppingOptions, WindowOptions
+from torchfilt.optim import (
+    DEFAULTS,
+    CheckpointOptions,
+    OptimizerOptions,
+    StoppingOptions,
+    WindowOptions,
+)
 from torchfilt.training import calibrate, fit_likelihood
 from torchfilt.training.likelihood import Sequences, window_data, window_subset
 
@@ -58,8 +64,8 @@ def state(model: torchfilt.StateSpaceModel) -> list[torch.Tensor]:
 # ----------------------------------------------------------------------------- atol
 def test_atol_defaults_and_checks():
     assert StoppingOptions().atol == 0.01
-    assert DEFAULTS["calibrate"].window.per_iteration == 16
-    assert DEFAULTS["likelihood"].window.per_iteration is None
+    assert DEFAULTS["calibrate"].windows.per_iteration == 16
+    assert DEFAULTS["likelihood"].windows.per_iteration is None
     with pytest.raises(InputError, match="atol"):
         StoppingOptions(atol=-1.0)
     with pytest.raises(InputError, match="per_iteration"):
@@ -74,14 +80,18 @@ def test_a_fit_started_at_its_optimum_stops_early_in_nats():
     with atol = 0 it runs its budget."""
     y = simulate(0.8, 0.5, 0.3, 4, 40, seed=0)
     model = ar1()
-    fit_likelihood(model, y, x0=X0, P0=P0, optimizer="lbfgs", iterations=30, atol=0.0)
+    fit_likelihood(
+        model, y, x0=X0, P0=P0, optimizer="lbfgs", iterations=30,
+        stopping=StoppingOptions(atol=0.0),
+    )  # fmt: skip
     opt = state(model)
-    kw = dict(x0=X0, P0=P0, lr=1e-3, iterations=40, rtol=0.0, rtol_window=20)
+    kw = dict(x0=X0, P0=P0, optimizer=OptimizerOptions(lr=1e-3), iterations=40)
+    at = dict(rtol=0.0, rtol_window=20)
     m1 = ar1()
     with torch.no_grad():
         for p, v in zip(m1.parameters(), opt, strict=True):
             p.copy_(v)
-    fit = fit_likelihood(m1, y, **kw)
+    fit = fit_likelihood(m1, y, stopping=StoppingOptions(**at), **kw)
     assert fit.stopped == "converged" and fit.iterations == 21
     L = [h["loss"] for h in fit.history]
     assert (L[-21] - L[-1]) * fit.measurements / 4 < 0.01
@@ -89,7 +99,10 @@ def test_a_fit_started_at_its_optimum_stops_early_in_nats():
     with torch.no_grad():
         for p, v in zip(m2.parameters(), opt, strict=True):
             p.copy_(v)
-    assert fit_likelihood(m2, y, atol=0.0, **kw).stopped == "iterations"
+    assert (
+        fit_likelihood(m2, y, stopping=StoppingOptions(atol=0.0, **at), **kw).stopped
+        == "iterations"
+    )
 
 
 def test_a_fit_still_gaining_more_than_atol_runs_on():
@@ -97,7 +110,13 @@ def test_a_fit_still_gaining_more_than_atol_runs_on():
     recording: the fit runs its whole budget."""
     y = simulate(0.8, 0.5, 0.3, 4, 40, seed=0)
     fit = fit_likelihood(
-        ar1(a=0.0, q=3.0, r=3.0), y, x0=X0, P0=P0, lr=0.005, iterations=30, rtol=0.0, atol=0.01
+        ar1(a=0.0, q=3.0, r=3.0),
+        y,
+        x0=X0,
+        P0=P0,
+        optimizer=OptimizerOptions(lr=0.005),
+        iterations=30,
+        stopping=StoppingOptions(rtol=0.0, atol=0.01),
     )
     assert fit.stopped == "iterations" and fit.iterations == 30
     L = [h["loss"] for h in fit.history]
@@ -128,7 +147,13 @@ def test_subset_objectives_average_to_the_full_one():
     counted = 5 * 30
     for seed in range(6):
         fit = fit_likelihood(
-            ar1(), y, x0=X0, P0=P0, per_iteration=2, seed=seed, iterations=1, progress=False
+            ar1(),
+            y,
+            x0=X0,
+            P0=P0,
+            windows=WindowOptions(per_iteration=2, seed=seed),
+            iterations=1,
+            progress=False,
         )
         drawn = window_subset(5, 2, seed, 1)
         want = -2.5 * float(ref[drawn].sum()) / counted
@@ -143,8 +168,10 @@ def test_subsets_evaluate_the_full_objective_and_return_its_best():
     y = simulate(0.8, 0.5, 0.3, 3, 120, seed=2)
     model = ar1()
     fit = fit_likelihood(
-        model, y, x0=X0, P0=P0, window=30, burn_in=5, per_iteration=3, full_every=4,
-        iterations=30, lr=0.05, rtol=0.0, atol=0.0,
+        model, y, x0=X0, P0=P0,
+        windows=WindowOptions(window=30, burn_in=5, per_iteration=3, full_every=4),
+        iterations=30, optimizer=OptimizerOptions(lr=0.05),
+        stopping=StoppingOptions(rtol=0.0, atol=0.0),
     )  # fmt: skip
     assert window_data(y, None, [120] * 3, 30, 5).y.shape[0] > 3
     full = [h for h in fit.history if "objective" in h]
@@ -159,10 +186,13 @@ def test_subsets_evaluate_the_full_objective_and_return_its_best():
 
 def test_resumed_fit_on_subsets_equals_uninterrupted(tmp_path):
     y = simulate(0.8, 0.5, 0.3, 3, 120, seed=3)
-    kw = dict(x0=X0, P0=P0, window=30, burn_in=5, per_iteration=3, full_every=4, seed=5)
-    kw.update(iterations=14, refresh_every=4, checkpoint_every=3, lr=0.05, rtol=0.0, atol=0.0)
+    windows = WindowOptions(
+        window=30, burn_in=5, per_iteration=3, full_every=4, seed=5, refresh_every=4
+    )
+    kw = dict(x0=X0, P0=P0, windows=windows, iterations=14, optimizer=OptimizerOptions(lr=0.05))
+    kw.update(stopping=StoppingOptions(rtol=0.0, atol=0.0))
     m1 = ar1()
-    full = fit_likelihood(m1, y, **kw)
+    full = fit_likelihood(m1, y, checkpoint=CheckpointOptions(tmp_path / "u.ckpt", every=3), **kw)
 
     class Killed(Exception):
         pass
@@ -173,9 +203,9 @@ def test_resumed_fit_on_subsets_equals_uninterrupted(tmp_path):
 
     ck = tmp_path / "fit.ckpt"
     with pytest.raises(Killed):
-        fit_likelihood(ar1(), y, checkpoint=ck, callback=kill, **kw)
+        fit_likelihood(ar1(), y, checkpoint=CheckpointOptions(ck, every=3), callback=kill, **kw)
     m3 = ar1()
-    resumed = fit_likelihood(m3, y, checkpoint=ck, resume=True, **kw)
+    resumed = fit_likelihood(m3, y, checkpoint=CheckpointOptions(ck, every=3, resume=True), **kw)
     assert all(torch.equal(a, b) for a, b in zip(state(m3), state(m1), strict=True))
 
     def strip(history):
@@ -189,7 +219,9 @@ def test_resumed_fit_on_subsets_equals_uninterrupted(tmp_path):
 def test_lbfgs_refuses_subsets():
     y = simulate(0.8, 0.5, 0.3, 3, 40, seed=0)
     with pytest.raises(InputError, match="per_iteration"):
-        fit_likelihood(ar1(), y, x0=X0, P0=P0, optimizer="lbfgs", per_iteration=2)
+        fit_likelihood(
+            ar1(), y, x0=X0, P0=P0, optimizer="lbfgs", windows=WindowOptions(per_iteration=2)
+        )
 
 
 def test_calibrate_on_subsets_and_lbfgs_on_all_windows():
@@ -197,14 +229,24 @@ def test_calibrate_on_subsets_and_lbfgs_on_all_windows():
     every window (no error), an explicit subset is refused."""
     y = simulate(0.8, 0.5, 0.3, 2, 200, seed=4)
     model = ar1(a=0.8)
-    kw = dict(x0=X0, P0=P0, window=20, burn_in=5, iterations=6)
-    res = calibrate(model, Sequences(y), **kw)
+    default = DEFAULTS["calibrate"].windows.per_iteration
+    kw = dict(x0=X0, P0=P0, iterations=6)
+    res = calibrate(
+        model, Sequences(y), windows=WindowOptions(window=20, burn_in=5, per_iteration=default),
+        **kw,
+    )  # fmt: skip
     assert res.fit.windows > 16
     assert any("objective" in h for h in res.fit.history)
-    res = calibrate(model, Sequences(y), optimizer="lbfgs", **kw)
+    res = calibrate(
+        model, Sequences(y), optimizer="lbfgs",
+        windows=WindowOptions(window=20, burn_in=5, per_iteration=default), **kw,
+    )  # fmt: skip
     assert not any("objective" in h for h in res.fit.history)
     with pytest.raises(InputError, match="per_iteration"):
-        calibrate(model, Sequences(y), optimizer="lbfgs", per_iteration=4, **kw)
+        calibrate(
+            model, Sequences(y), optimizer="lbfgs",
+            windows=WindowOptions(window=20, burn_in=5, per_iteration=4), **kw,
+        )  # fmt: skip
 
 
 def test_recipe_calibrate_keys(tmp_path):

@@ -56,7 +56,7 @@ def fit_options(
     groups: dict[type, dict[str, Any]] = {}
     out: dict[str, Any] = {}
     for key, (cls, name) in OPTION_KEYS.items():
-        if key not in table or (key == "patience" and key not in given):
+        if key not in table or (cls is StoppingOptions and key not in given):
             continue
         if cls is FitDefaults:
             out[name] = int(table[key])
