@@ -34,6 +34,7 @@ from torch import Tensor
 from torchfilt.exceptions import InputError, InputTypeError, ModelError, ShapeError
 from torchfilt.filters import kalman_runners as _runners
 from torchfilt.filters.inputs import broadcast_batch, check_prior, observed
+from torchfilt.filters.kalman_checks import warn_precision
 from torchfilt.filters.kalman_runners import _STEADY_ULPS
 from torchfilt.filters.kalman_steps import (
     Belief,
@@ -409,7 +410,9 @@ def filter_steps(
 ) -> FilterResult:
     """:func:`kalman_filter` on already checked inputs, by the runner that
     :func:`~torchfilt.filters.plan.plan` names (a runner whose factorisation fails hands over to
-    the next one the plan names, and the result's ``numerics.fallback`` says so)."""
+    the next one the plan names, and the result's ``numerics.fallback`` says so). Results that
+    the working precision made unreliable (:mod:`torchfilt.filters.kalman_checks`) come with a
+    :class:`~torchfilt.exceptions.PrecisionWarning`."""
     params = [data.x0, data.P0, data.y, *(x for x in steps if x is not None)]
     grad = torch.is_grad_enabled() and any(x.requires_grad for x in params)
     facts = LinearFacts(*_runners.linear_facts(data, steps, keep)) if not parallel else None
@@ -428,10 +431,14 @@ def filter_steps(
             fallbacks=fallbacks,
         )
         if p.parallel:
-            return _parallel_filter(data, steps, keep, p.numerics)
+            res = _parallel_filter(data, steps, keep, p.numerics)
+            warn_precision(res, sqrt=sqrt, stacklevel=3)
+            return res
         out = _runners.run_exact(data, steps, keep, p)
         if out is not None:
-            return assemble(data, steps, out, keep, KalmanFilterResult, p.numerics)
+            res = assemble(data, steps, out, keep, KalmanFilterResult, p.numerics)
+            warn_precision(res, sqrt=sqrt, stacklevel=3)
+            return res
         fallbacks += (Fallback(p.execution, "a covariance failed to factor"),)
 
 
