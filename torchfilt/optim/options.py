@@ -82,10 +82,11 @@ class OptimizerOptions:
     def __post_init__(self) -> None:
         if self.optimizer not in ("adam", "lbfgs"):
             raise InputError(f"optimizer must be 'adam' or 'lbfgs', got {self.optimizer!r}")
-        if self.iterations < 1:
+        it = self.iterations
+        if isinstance(it, bool) or not isinstance(it, int) or it < 1:
             raise InputError(
-                f"iterations must be at least 1, got {self.iterations} (a fit of no iterations "
-                "would return its start unchanged)"
+                f"iterations must be at least 1 (an integer), got {it!r} (a fit of no "
+                "iterations would return its start unchanged)"
             )
         _at_least_one(max_iter=self.max_iter, history_size=self.history_size)
         lr = self.learning_rate

@@ -169,7 +169,11 @@ def _stack(
 def _prior_batch(v: Tensor, R: int, shape: tuple[int, ...], name: str) -> Tensor:
     if v.shape == shape:
         return v.expand(R, *shape)
-    if v.dim() >= 1 and v.reshape(-1, *shape).shape[0] == R and v.shape[-len(shape) :] == shape:
+    if (
+        v.dim() >= len(shape)
+        and v.shape[-len(shape) :] == shape
+        and v.numel() == R * math.prod(shape)
+    ):
         return v.reshape(R, *shape)
     raise ShapeError(
         f"{name}: expected {shape} or one per recording ({R}, {', '.join(map(str, shape))}), "

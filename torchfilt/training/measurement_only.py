@@ -381,8 +381,8 @@ def fit_em(
     """
     if not isinstance(model, StateSpaceModel):
         raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
-    if iterations < 1:
-        raise InputError(f"iterations must be at least 1, got {iterations}")
+    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
+        raise InputError(f"iterations must be at least 1 (an integer), got {iterations!r}")
     CheckpointOptions(checkpoint, checkpoint_every, resume)  # resume=True needs a checkpoint
     stop_o = stopping_options(_EM.stopping, None, 1, tol, rtol, rtol_window)
     for name, v in (
