@@ -238,7 +238,8 @@ def _run_fast(
     # (one matmul over the batch for a shared A, where _mv broadcasts A to a batched product),
     # the masks are prepared once, the factor is not retried with jitter (a host synchronisation
     # per step; failures are checked once after the loop and the sequential runner takes over),
-    # no symmetrization, and the fields are the loop's intermediate results written in place.
+    # no symmetrization in float64 (see _drifts), and the fields are the loop's intermediate
+    # results written in place.
     for t in range(T):
         cross = P @ AT[t]
         mp = mean @ AT[t]
@@ -598,7 +599,8 @@ def _run_riccati(
     # cannot be used because they couple the gain to one mean each (here one covariance serves
     # the batch, or the means are run afterwards as an affine recursion), factor with a jitter
     # retry (a host synchronisation per step; here failures are collected and checked once) and
-    # symmetrize (two more operations per step); the gain solve is batched by the system size.
+    # symmetrize (two more operations per step, done here below float64 only: see _drifts); the
+    # gain solve is batched by the system size.
     for t in range(T):
         if not invariant:
             A, Q, H, R = (x[t] for x in (steps.A, steps.Q, steps.H, steps.R))
