@@ -110,3 +110,13 @@ def test_model_input_width() -> None:
     assert model_input_width(_model(nu=2)) == 2
     ind = InducingTransition(2, 4, input_dim=0, dtype=D)
     assert ind.input_dim == 0
+
+
+def test_calibrate_refuses_inputs_for_a_model_without_inputs() -> None:
+    """The calibrated wrapper hides the model's width: checked on the model given."""
+    from torchfilt import calibrate
+    from torchfilt.training.likelihood import Sequences
+
+    y, u = _y().unsqueeze(0), torch.ones(1, T, 2, dtype=D)
+    with pytest.raises(InputError, match=r"^u: the model takes no inputs"):
+        calibrate(_model(), Sequences(y, u), x0=X0, P0=P0, iterations=1, burn_in=0)

@@ -25,6 +25,7 @@ from torch import Tensor, nn
 
 from torchfilt.exceptions import InputError, ShapeError
 from torchfilt.filters import CKF, coverage, nees, nis
+from torchfilt.filters.inputs import check_model_input
 from torchfilt.io import Recording
 from torchfilt.models import CalibratedModel, ConditionalModel, StateSpaceModel
 from torchfilt.models.drift import DriftMeasurement, DriftModel, DriftTransition
@@ -224,6 +225,7 @@ def calibrate(
     _check_options(model, sides, gp)
     check_compute_dtype(dtype)  # before the model is converted to it
     y, u, x0, P0, val = _data(recordings, validation, x0, P0, dtype)
+    check_model_input(model, u)  # the calibrated wrapper no longer says what the model takes
     n = model.state_dim
     if x0.dim() < 1 or x0.shape[-1] != n:
         raise ShapeError(f"x0: expected shape (..., n) with n = {n}, got {tuple(x0.shape)}")
