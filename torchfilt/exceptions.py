@@ -25,6 +25,7 @@ __all__ = [
     "NotDetectableError",
     "NumericsWarning",
     "OutputError",
+    "PrecisionWarning",
     "RecipeError",
     "RunError",
     "ShapeError",
@@ -52,6 +53,14 @@ class ConvergenceWarning(NumericsWarning):
 
 class DivergenceWarning(NumericsWarning):
     """A filter produced non-finite estimates for some sequences of a batch."""
+
+
+class PrecisionWarning(DivergenceWarning):
+    """The exact Kalman filter's results are not reliable in the working precision (typically
+    float32): a covariance lost positive definiteness, or the means are so large that their
+    rounding is comparable to their standard deviations. The estimates are finite but
+    over-confident; the message says how to fix it (float64, the square-root form, a jitter floor
+    on ``Q``, or re-centring the state)."""
 
 
 # ---------------------------------------------------------------------------------------- errors

@@ -23,7 +23,13 @@ from torchfilt.exceptions import InputError, InputTypeError, ShapeError
 from torchfilt.filters.cubature_step import CubatureStep
 from torchfilt.filters.engine import Engine, OnlineStep, StepFunction, TraceFailure, records_grad
 from torchfilt.filters.forecast_core import Forecast, free_run_with, k_step_ahead_with
-from torchfilt.filters.inputs import FilterInputs, check_inputs, check_prior, observed
+from torchfilt.filters.inputs import (
+    FilterInputs,
+    check_inputs,
+    check_model_input,
+    check_prior,
+    observed,
+)
 from torchfilt.filters.kalman import _keep, kalman_filter, kalman_smoother, select_outputs
 from torchfilt.filters.plan import (
     CompileMode,
@@ -44,6 +50,7 @@ from torchfilt.filters.results import (
 from torchfilt.filters.steps import Belief, Noise, PredictCache, UnitPoints, UpdateStats
 from torchfilt.models import StateSpaceModel
 from torchfilt.numerics import safe_cholesky
+from torchfilt.numerics.dtypes import check_real_tensor
 from torchfilt.settings import small_matrix_kernels
 
 if TYPE_CHECKING:
@@ -514,8 +521,10 @@ class GaussianFilter(nn.Module):
         """
         x0 = self._as_tensor("x0", x0, None)
         P0 = self._as_tensor("P0", P0, x0.device)
+        check_real_tensor(P0, "P0", integers=True)
         if not x0.is_floating_point():
             raise InputTypeError(f"x0 must be floating point, got {x0.dtype}")
+        check_real_tensor(x0, "x0")
         dtype = torch.promote_types(x0.dtype, P0.dtype) if P0.is_floating_point() else x0.dtype
         x0, P0 = x0.to(dtype), P0.to(dtype)
         check_prior(x0, P0, self.model.state_dim)
@@ -559,6 +568,7 @@ class GaussianFilter(nn.Module):
         v = self._as_tensor(name, v, like.device)
         if not v.is_floating_point():
             raise InputTypeError(f"{name} must be floating point, got {v.dtype}")
+        check_real_tensor(v, name)
         v = v.to(like.dtype)
         if v.dim() < 1 or (dim >= 0 and v.shape[-1] != dim):
             want = "nu" if dim < 0 else dim
@@ -610,6 +620,7 @@ class GaussianFilter(nn.Module):
         u = self._step_input("u", u, -1, state.mean)
         if u is not None and not bool(torch.isfinite(u).all()):
             raise InputError("u contains non-finite entries; inputs cannot be missing")
+        check_model_input(self.model, u)
         t = state.t + 1
         Q = self._step.noise(self.model.transition, t, state.mean)
         pts = self._step.points(state.mean)
@@ -653,6 +664,7 @@ class GaussianFilter(nn.Module):
             )
         y, obs = self._measurement(y, mask, state.mean)
         u = self._step_input("u", u, -1, state.mean)
+        check_model_input(self.model, u)
         try:
             batch = torch.broadcast_shapes(state.mean.shape[:-1], obs.shape[:-1])
         except RuntimeError:

@@ -9,10 +9,18 @@ import torch
 from torch import Tensor, nn
 
 from torchfilt.exceptions import InputError, InputTypeError, ShapeError
-from torchfilt.models import StateSpaceModel
+from torchfilt.models import LinearModel, StateSpaceModel
 from torchfilt.numerics.dtypes import check_real_tensor
 
-__all__ = ["FilterInputs", "check_inputs", "check_prior", "model_noise", "observed"]
+__all__ = [
+    "FilterInputs",
+    "check_inputs",
+    "check_model_input",
+    "check_prior",
+    "model_input_width",
+    "model_noise",
+    "observed",
+]
 
 
 class FilterInputs(NamedTuple):
@@ -70,6 +78,61 @@ def observed(y: Tensor, mask: Tensor | None) -> Tensor:
         raise ShapeError(
             f"mask: shape {tuple(mask.shape)} does not broadcast with y {tuple(y.shape)}"
         ) from None
+
+
+def _side_input_width(side: nn.Module) -> int | None:
+    """The input width ``nu`` a model side declares (0: it takes no inputs), or None if unknown
+    (a callable may read ``u`` or not)."""
+    if isinstance(side, LinearModel):
+        return 0 if side.D is None else int(side.D.shape[-1])
+    for owner in (side, getattr(side, "config", None)):
+        width = getattr(owner, "input_dim", None)
+        if isinstance(width, int) and not isinstance(width, bool):
+            return width
+    return None
+
+
+def model_input_width(model: StateSpaceModel) -> int | None:
+    """The input width ``nu`` of a model: 0 when both sides declare that they take no inputs
+    (a :class:`~torchfilt.models.LinearGaussianModel` without ``B`` and ``D``, a GP or inducing
+    transition with ``input_dim=0``), the one width the sides that take inputs declare, or None
+    when a side does not say (a model of callables) or the sides disagree."""
+    widths = [_side_input_width(side) for side in (model.transition, model.measurement)]
+    if any(w is None for w in widths):
+        return None
+    used = {w for w in widths if w}
+    if not used:
+        return 0
+    return used.pop() if len(used) == 1 else None
+
+
+def check_model_input(model: StateSpaceModel, u: Tensor | None, name: str = "u") -> None:
+    """Refuse inputs the model would silently drop, or of the wrong width.
+
+    Args:
+        model: the state-space model (see :func:`model_input_width`).
+        u: the inputs ``(..., nu)`` (per step or over time), or None.
+        name: the argument's name, for the message.
+
+    Raises:
+        InputError: ``u`` is given but the model takes no inputs.
+        ShapeError: ``u``'s last dimension is not the model's input width.
+    """
+    if u is None:
+        return
+    width = model_input_width(model)
+    shape = tuple(u.shape) if isinstance(u, Tensor) else None
+    if width == 0:
+        raise InputError(
+            f"{name}: the model takes no inputs (its input width is 0), but inputs of shape "
+            f"{shape} were given and would be ignored; drop {name}, or give the model its input "
+            "matrices (B, D) or input_dim"
+        )
+    if width is not None and isinstance(u, Tensor) and (u.dim() < 1 or u.shape[-1] != width):
+        raise ShapeError(
+            f"{name}: expected shape (..., nu) with nu = {width} (the model's input width), "
+            f"got {shape}"
+        )
 
 
 def broadcast_batch(shapes: dict[str, torch.Size]) -> torch.Size:
@@ -168,7 +231,10 @@ def check_inputs(
     check_prior(x0, P0, n)
     shapes = {"y": y.shape[:-2], "x0": x0.shape[:-1], "P0": P0.shape[:-2]}
     if u is not None:
-        u = torch.as_tensor(u, device=device).to(dtype)
+        u = torch.as_tensor(u, device=device)
+        check_real_tensor(u, "u", integers=True)
+        check_model_input(model, u)
+        u = u.to(dtype)
         if u.dim() < 2 or u.shape[-2] != T:
             raise ShapeError(f"u: expected shape (..., T, nu) with T = {T}, got {tuple(u.shape)}")
         if not bool(torch.isfinite(u).all()):

@@ -33,7 +33,8 @@ from torch import Tensor
 
 from torchfilt.exceptions import InputError, InputTypeError, ModelError, ShapeError
 from torchfilt.filters import kalman_runners as _runners
-from torchfilt.filters.inputs import broadcast_batch, check_prior, observed
+from torchfilt.filters.inputs import broadcast_batch, check_model_input, check_prior, observed
+from torchfilt.filters.kalman_checks import warn_precision
 from torchfilt.filters.kalman_runners import _STEADY_ULPS
 from torchfilt.filters.kalman_steps import (
     Belief,
@@ -60,6 +61,7 @@ from torchfilt.numerics import (
     symmetrize,
     tria,
 )
+from torchfilt.numerics.dtypes import check_real_tensor
 from torchfilt.settings import NumericsPath
 
 __all__ = [
@@ -111,14 +113,15 @@ def _check(
         raise InputTypeError(f"y must be a torch.Tensor, got {type(y).__name__}")
     if y.dim() < 2 or y.shape[-1] != m:
         raise ShapeError(f"y: expected shape (..., T, m) with m = {m}, got {tuple(y.shape)}")
-    if not y.is_floating_point():
-        raise InputTypeError(f"y must be floating point, got {y.dtype}")
+    check_real_tensor(y, "y")
     T = y.shape[-2]
     if T == 0:
         raise ShapeError("y: the time dimension T must be at least 1")
     device = y.device
     x0 = torch.as_tensor(x0, device=device)
     P0 = torch.as_tensor(P0, device=device)
+    check_real_tensor(x0, "x0", integers=True)
+    check_real_tensor(P0, "P0", integers=True)
     dtype = y.dtype
     for t in (x0, P0):
         if t.is_floating_point():
@@ -132,8 +135,17 @@ def _check(
     uses_u = system is None or system.B is not None or system.D is not None
     if system is not None and uses_u and u is None:
         raise InputError("u: the model has an input matrix (B or D); pass the inputs u")
+    if u is not None:
+        u = torch.as_tensor(u, device=device)
+        check_real_tensor(u, "u", integers=True)
+        check_model_input(model, u)
+        if not uses_u:
+            raise InputError(
+                f"u: the model takes no inputs (no input matrix B or D), but inputs of shape "
+                f"{tuple(u.shape)} were given and would be ignored; drop u"
+            )
     if u is not None and uses_u:
-        u = torch.as_tensor(u, device=device).to(dtype)
+        u = u.to(dtype)
         if u.dim() < 2 or u.shape[-2] != T:
             raise ShapeError(f"u: expected shape (..., T, nu) with T = {T}, got {tuple(u.shape)}")
         if not bool(torch.isfinite(u).all()):
@@ -409,7 +421,9 @@ def filter_steps(
 ) -> FilterResult:
     """:func:`kalman_filter` on already checked inputs, by the runner that
     :func:`~torchfilt.filters.plan.plan` names (a runner whose factorisation fails hands over to
-    the next one the plan names, and the result's ``numerics.fallback`` says so)."""
+    the next one the plan names, and the result's ``numerics.fallback`` says so). Results that
+    the working precision made unreliable (:mod:`torchfilt.filters.kalman_checks`) come with a
+    :class:`~torchfilt.exceptions.PrecisionWarning`."""
     params = [data.x0, data.P0, data.y, *(x for x in steps if x is not None)]
     grad = torch.is_grad_enabled() and any(x.requires_grad for x in params)
     facts = LinearFacts(*_runners.linear_facts(data, steps, keep)) if not parallel else None
@@ -428,10 +442,14 @@ def filter_steps(
             fallbacks=fallbacks,
         )
         if p.parallel:
-            return _parallel_filter(data, steps, keep, p.numerics)
+            res = _parallel_filter(data, steps, keep, p.numerics)
+            warn_precision(res, sqrt=sqrt, stacklevel=3)
+            return res
         out = _runners.run_exact(data, steps, keep, p)
         if out is not None:
-            return assemble(data, steps, out, keep, KalmanFilterResult, p.numerics)
+            res = assemble(data, steps, out, keep, KalmanFilterResult, p.numerics)
+            warn_precision(res, sqrt=sqrt, stacklevel=3)
+            return res
         fallbacks += (Fallback(p.execution, "a covariance failed to factor"),)
 
 

@@ -22,7 +22,7 @@ from torchfilt.filters.kalman_steps import (
 )
 from torchfilt.filters.linear_data import Data, LinearSteps
 from torchfilt.filters.plan import ExecutionPlan
-from torchfilt.numerics import gaussian_log_prob, safe_cholesky
+from torchfilt.numerics import gaussian_log_prob, safe_cholesky, symmetrize
 
 __all__ = ["linear_facts", "run_exact"]
 
@@ -117,6 +117,14 @@ def _run(
             if name in out:
                 out[name] = out[name] @ out[name].mT
     return out
+
+
+def _drifts(dtype: torch.dtype) -> bool:
+    """Whether the fast runners symmetrize the filtered covariance every step: below float64 the
+    rounding of ``P^- - P^- H^T K^T`` accumulates an antisymmetric part that grows until the
+    covariance loses definiteness (over thousands of steps); in float64 it stays at rounding, and
+    the runners skip the two operations (float64 results stay as they were)."""
+    return dtype != torch.float64
 
 
 def _per_step(x: Tensor | None, batch: torch.Size, B: int, tail: int) -> list[Tensor] | None:
@@ -225,11 +233,13 @@ def _run_fast(
     bufs = {k: mean.new_empty(B, T, *shapes[k]) for k in fields} if inplace else {}
     ll_sum: Tensor | None = None
     infos: list[Tensor] = []
+    sym = _drifts(P.dtype)
     # kalman_steps.predict / update written out rather than called: the means are row vectors
     # (one matmul over the batch for a shared A, where _mv broadcasts A to a batched product),
     # the masks are prepared once, the factor is not retried with jitter (a host synchronisation
     # per step; failures are checked once after the loop and the sequential runner takes over),
-    # no symmetrization, and the fields are the loop's intermediate results written in place.
+    # no symmetrization in float64 (see _drifts), and the fields are the loop's intermediate
+    # results written in place.
     for t in range(T):
         cross = P @ AT[t]
         mp = mean @ AT[t]
@@ -251,6 +261,8 @@ def _run_fast(
         KT = torch.cholesky_solve(PHt.mT, L)  # (B, m, n)
         mean = mp + e @ KT
         P = Pp - PHt @ KT
+        if sym:
+            P = symmetrize(P)
         infos.append(info)
         if want_ll and not vector_ll:
             dof = m if data.complete else o_rows[t].sum((-2, -1))
@@ -579,6 +591,7 @@ def _run_riccati(
     infos: list[Tensor] = []
     scalar = m == 1
     late = not one and not scalar
+    sym = _drifts(P.dtype)
     k = 0  # steps run
     A, Q, H, R = (x.select(-3, 0) for x in (steps.A, steps.Q, steps.H, steps.R))
     AT, HT = A.mT, H.mT
@@ -586,7 +599,8 @@ def _run_riccati(
     # cannot be used because they couple the gain to one mean each (here one covariance serves
     # the batch, or the means are run afterwards as an affine recursion), factor with a jitter
     # retry (a host synchronisation per step; here failures are collected and checked once) and
-    # symmetrize (two more operations per step); the gain solve is batched by the system size.
+    # symmetrize (two more operations per step, done here below float64 only: see _drifts); the
+    # gain solve is batched by the system size.
     for t in range(T):
         if not invariant:
             A, Q, H, R = (x[t] for x in (steps.A, steps.Q, steps.H, steps.R))
@@ -608,6 +622,8 @@ def _run_riccati(
             KT = torch.cholesky_solve(PHt.mT, L)
             infos.append(info)
         P_new = torch.addmm(Pp, PHt, KT, alpha=-1) if one else Pp - PHt @ KT
+        if sym:  # below float64 the unsymmetrized recursion drifts off the Riccati solution
+            P_new = symmetrize(P_new)
         if not one:  # the means' predict and update with this step's per-sequence gains
             prev = x0 if t == 0 else m_all[t - 1]
             mp_t = prev @ AT if c_t is None else torch.addmm(c_t[t], prev, AT)

@@ -4,7 +4,7 @@ The rule (one place; every public entry point applies it through the two helpers
 
 - **Floating data** (measurements, states, covariances, bounds, training data, model outputs) must
   be ``float32`` or ``float64``. ``float16`` and ``bfloat16`` are **refused** with an
-  :class:`~torchfilt.exceptions.InputError` that names the argument, never upcast behind the
+  :class:`~torchfilt.exceptions.InputTypeError` (an ``InputError``) that names the argument, never upcast behind the
   caller's back: torch has no half-precision Cholesky, eigen or triangular solves, and a result in
   a dtype other than the one passed in would be a silent change. Convert with ``.float()`` (or
   ``.double()``).
@@ -26,7 +26,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import InputError
+from torchfilt.exceptions import InputError, InputTypeError
 
 __all__ = ["COMPUTE_DTYPES", "check_compute_dtype", "check_real_tensor"]
 
@@ -71,8 +71,8 @@ def check_real_tensor(value: Tensor, name: str, *, integers: bool = False) -> Te
         ``value``, unchanged (any shape).
 
     Raises:
-        InputError: ``value`` is float16 / bfloat16, complex, bool, or an integer tensor where
-            ``integers`` is False.
+        InputTypeError: ``value`` is float16 / bfloat16, complex, bool, or an integer tensor
+            where ``integers`` is False (an :class:`~torchfilt.exceptions.InputError` too).
     """
     dtype = value.dtype
     if dtype in COMPUTE_DTYPES:
@@ -80,9 +80,9 @@ def check_real_tensor(value: Tensor, name: str, *, integers: bool = False) -> Te
     if integers and dtype in _INTEGER_DTYPES:
         return value
     if dtype in (torch.float16, torch.bfloat16):
-        raise InputError(
+        raise InputTypeError(
             f"{name}: {dtype} is not supported; torchfilt computes in float32 or float64 "
             f"(convert with {name}.float())"
         )
     what = "float32, float64 or an integer type" if integers else "float32 or float64"
-    raise InputError(f"{name}: expected real numbers ({what}), got dtype {dtype}")
+    raise InputTypeError(f"{name}: expected real numbers ({what}), got dtype {dtype}")

@@ -57,6 +57,7 @@ from torchfilt._version import __version__
 from torchfilt.exceptions import InputError, RecipeError, RunError
 from torchfilt.io import Dataset, atomic_write_text, load_dataset
 from torchfilt.io.atomic import output_dir
+from torchfilt.io.lock import DirectoryLock
 from torchfilt.io.recording import Recording
 from torchfilt.models import StateSpaceModel
 from torchfilt.pipeline.bundle import BUNDLE_SCHEMA, apply_calibration, build_side, save_bundle
@@ -148,7 +149,8 @@ def train_recipe(
         Path of the model bundle ``out/model.pt``.
 
     Raises:
-        RunError: ``out`` already holds a run (without ``resume`` or ``force``), or has none to
+        RunError: another live process is writing ``out`` (the message names its pid), or
+            ``out`` already holds a run (without ``resume`` or ``force``), or has none to
             resume, or the recipe or dataset changed since the run started, or the run started
             with other ``fitters`` (``StageFitters.name``).
         RecipeError, DataError: invalid recipe or dataset (raised before anything is written).
@@ -181,7 +183,12 @@ def train_recipe(
         raise RunError(f"{out}: no run to resume (config.json missing)")
     created_dir = not out.exists()
     output_dir(out)
-    _check_run_dir(out, r, fitters, resume, force)
+    lock = DirectoryLock(out).acquire()  # a live run in out: RunError naming its pid
+    try:
+        _check_run_dir(out, r, fitters, resume, force)
+    except BaseException:
+        lock.release()
+        raise
     before = {f for f in RUN_FILES if (out / f).exists()}
     log: _Log | None = None
     try:
@@ -198,12 +205,14 @@ def train_recipe(
             for f in RUN_FILES:
                 if f not in before and (out / f).is_file():
                     (out / f).unlink()
+            lock.release()
             if created_dir and not any(out.iterdir()):
                 out.rmdir()
         raise
     finally:
         if log is not None:
             log.close()
+        lock.release()
 
 
 def _check_run_dir(out: Path, r: Recipe, fitters: StageFitters, resume: bool, force: bool) -> None:

@@ -23,11 +23,13 @@ from typing import Any, Literal, NamedTuple
 import torch
 from torch import Tensor, nn
 
-from torchfilt.exceptions import InputError
+from torchfilt.exceptions import InputError, ShapeError
 from torchfilt.filters import CKF, coverage, nees, nis
+from torchfilt.filters.inputs import check_model_input
 from torchfilt.io import Recording
 from torchfilt.models import CalibratedModel, ConditionalModel, StateSpaceModel
 from torchfilt.models.drift import DriftMeasurement, DriftModel, DriftTransition
+from torchfilt.numerics.dtypes import check_compute_dtype
 from torchfilt.optim import (
     DEFAULTS,
     CheckpointOptions,
@@ -233,7 +235,14 @@ def calibrate(
         A :class:`CalibrationResult`.
     """
     _check_options(model, sides, gp)
+    check_compute_dtype(dtype)  # before the model is converted to it
     y, u, x0, P0, val = _data(recordings, validation, x0, P0, dtype)
+    check_model_input(model, u)  # the calibrated wrapper no longer says what the model takes
+    n = model.state_dim
+    if x0.dim() < 1 or x0.shape[-1] != n:
+        raise ShapeError(f"x0: expected shape (..., n) with n = {n}, got {tuple(x0.shape)}")
+    if P0.dim() < 2 or P0.shape[-2:] != (n, n):
+        raise ShapeError(f"P0: expected shape (..., n, n) with n = {n}, got {tuple(P0.shape)}")
     cal = _calibrated_model(
         model, u, x0, sides=sides, gp=gp, inflate_only=inflate_only, dtype=dtype
     )

@@ -48,10 +48,12 @@ from torch import Tensor, nn
 from torchfilt.cubature import CubatureRule
 from torchfilt.exceptions import DivergenceWarning, InputError, InputTypeError, ShapeError
 from torchfilt.filters import CKF, FilterResult, rts_smooth
+from torchfilt.filters.inputs import check_model_input
 from torchfilt.io import atomic_write
 from torchfilt.io.progress import ProgressBar
 from torchfilt.models import StateSpaceModel
 from torchfilt.numerics import gaussian_log_prob, safe_cholesky
+from torchfilt.numerics.dtypes import check_real_tensor
 from torchfilt.optim import (
     CheckpointFile,
     CheckpointOptions,
@@ -139,6 +141,7 @@ def _check_float(t: Tensor, name: str) -> None:
             f"{name}: expected a floating-point tensor (float32 or float64), got {t.dtype}; "
             "convert it with .double() (an integer tensor cannot hold missing values as NaN)"
         )
+    check_real_tensor(t, name)  # float16 / bfloat16: refused, never upcast
 
 
 def _stack(
@@ -177,7 +180,11 @@ def _stack(
 def _prior_batch(v: Tensor, R: int, shape: tuple[int, ...], name: str) -> Tensor:
     if v.shape == shape:
         return v.expand(R, *shape)
-    if v.dim() >= 1 and v.reshape(-1, *shape).shape[0] == R and v.shape[-len(shape) :] == shape:
+    if (
+        v.dim() >= len(shape)
+        and v.shape[-len(shape) :] == shape
+        and v.numel() == R * math.prod(shape)
+    ):
         return v.reshape(R, *shape)
     raise ShapeError(
         f"{name}: expected {shape} or one per recording ({R}, {', '.join(map(str, shape))}), "
@@ -202,6 +209,7 @@ def _recordings(
     U = None
     if u is not None:
         U, ulen = _stack(u, prefix + "u", 0.0, dtype)
+        check_model_input(model, U, prefix + "u")
         if U.shape[0] != R or ulen != lengths:
             raise ShapeError(
                 f"{prefix}u: needs one input row per measurement row of every recording "
