@@ -641,6 +641,6 @@ def test_the_rule_catches_each_kind_of_offence():
 def test_raised_errors_follow_the_package_checks():
     """A call to a checking helper counts as raising what the helper raises, transitively."""
     pkg = package()
-    assert checkers()["torchfilt.numerics.dtypes.check_real_tensor"] == {"InputError"}
+    assert checkers()["torchfilt.numerics.dtypes.check_real_tensor"] == {"InputTypeError"}
     assert "ShapeError" in raised_errors(pkg["filters.metrics.rmse"])  # through _check_pair
     assert raised_errors(pkg["numerics.linalg.symmetrize"]) == set()

@@ -115,8 +115,12 @@ def test_model_input_width() -> None:
 def test_calibrate_refuses_inputs_for_a_model_without_inputs() -> None:
     """The calibrated wrapper hides the model's width: checked on the model given."""
     from torchfilt import calibrate
+    from torchfilt.optim import WindowOptions
     from torchfilt.training.likelihood import Sequences
 
     y, u = _y().unsqueeze(0), torch.ones(1, T, 2, dtype=D)
     with pytest.raises(InputError, match=r"^u: the model takes no inputs"):
-        calibrate(_model(), Sequences(y, u), x0=X0, P0=P0, iterations=1, burn_in=0)
+        calibrate(
+            _model(), Sequences(y, u), x0=X0, P0=P0, iterations=1,
+            windows=WindowOptions(burn_in=0),
+        )  # fmt: skip

@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 
 from torchfilt import LinearGaussianModel, calibrate, fit_em, fit_likelihood
 from torchfilt.models.params import ScalarCovariance
+from torchfilt.optim import OptimizerOptions, WindowOptions
 from torchfilt.training.likelihood import Sequences
 
 D = torch.float64
@@ -51,6 +52,12 @@ def _model(n: int, rng: np.random.Generator) -> LinearGaussianModel:
 
 
 def _call(fit: str, model, y, u, x0, P0, options: dict):
+    options = dict(options)
+    # the option groups are built inside the attempt: a bad value is refused by the public API
+    if "lr" in options:
+        options["optimizer"] = OptimizerOptions(lr=options.pop("lr"))
+    if "burn_in" in options:
+        options["windows"] = WindowOptions(burn_in=options.pop("burn_in"))
     if fit == "fit_likelihood":
         return fit_likelihood(model, y, u, x0=x0, P0=P0, **options)
     if fit == "fit_em":
