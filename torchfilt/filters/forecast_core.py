@@ -56,7 +56,8 @@ class Forecast(NamedTuple):
 
 
 class ForecastFilter(Protocol):
-    """What the recursions read of a filter (a :class:`~torchfilt.filters.ForecastFilter`).
+    """What the recursions read of a filter (a :class:`~torchfilt.filters.GaussianFilter`
+    satisfies it).
 
     Attributes:
         model: the state-space model.
