@@ -65,7 +65,7 @@ def state(model: torchfilt.StateSpaceModel) -> list[torch.Tensor]:
 def test_atol_defaults_and_checks():
     assert StoppingOptions().atol == 0.01
     assert DEFAULTS["calibrate"].windows.per_iteration == 16
-    assert DEFAULTS["likelihood"].windows.per_iteration is None
+    assert DEFAULTS["likelihood"].windows.per_iteration == "auto"  # every window, resolved
     with pytest.raises(InputError, match="atol"):
         StoppingOptions(atol=-1.0)
     with pytest.raises(InputError, match="per_iteration"):
@@ -267,3 +267,22 @@ def test_recipe_calibrate_keys(tmp_path):
         p.write_text(base + f"[calibrate]\n{bad}\n")
         with pytest.raises(RecipeError, match=bad.split()[0]):
             load_recipe(p)
+
+
+def test_per_iteration_auto_is_the_fits_default():
+    """``WindowOptions(window=...)`` leaves ``per_iteration="auto"``: calibrate's subsets of 16,
+    every window for fit_likelihood; an explicit None is every window for calibrate too."""
+    from torchfilt.optim import resolve_options
+
+    w = WindowOptions(window=20, burn_in=5)
+    assert w.per_iteration == "auto"
+    assert resolve_options("calibrate", windows=w).windows.per_iteration == 16
+    assert resolve_options("likelihood", windows=w).windows.per_iteration is None
+    assert resolve_options("likelihood").windows.per_iteration is None
+    all_windows = WindowOptions(window=20, burn_in=5, per_iteration=None)
+    assert resolve_options("calibrate", windows=all_windows).windows.per_iteration is None
+    y = simulate(0.8, 0.5, 0.3, 2, 200, seed=4)
+    res = calibrate(ar1(a=0.8), Sequences(y), x0=X0, P0=P0, iterations=6, windows=w)
+    assert res.fit.windows > 16 and any("objective" in h for h in res.fit.history)
+    with pytest.raises(InputError, match="per_iteration"):
+        WindowOptions(per_iteration="some")  # type: ignore[arg-type]

@@ -124,7 +124,9 @@ class WindowOptions:
         start: where a later window starts: the previous pass's ``"filtered"`` or ``"smoothed"``
             estimate of the state just before it.
         refresh_every: iterations between refreshes of the window starts.
-        per_iteration: at most this many windows per Adam iteration (``None``: all). With more
+        per_iteration: at most this many windows per Adam iteration (``None``: all;
+            ``"auto"``, the default: the fit's own, 16 for ``calibrate``, all for
+            ``fit_likelihood`` and ``fit_measurement_only``). With more
             windows than that, each iteration steps on a random subset of ``per_iteration`` of
             them, drawn from ``(seed, iteration)`` alone (a resumed fit draws the same ones),
             its log-likelihood scaled by ``windows / per_iteration`` (an unbiased estimate of
@@ -139,7 +141,7 @@ class WindowOptions:
     burn_in: int = 0
     start: Literal["filtered", "smoothed"] = "filtered"
     refresh_every: int = 10
-    per_iteration: int | None = None
+    per_iteration: int | Literal["auto"] | None = "auto"
     full_every: int = 5
     seed: int = 0
 
@@ -147,7 +149,11 @@ class WindowOptions:
         if self.start not in ("filtered", "smoothed"):
             raise InputError(f"start must be 'filtered' or 'smoothed', got {self.start!r}")
         _at_least_one(refresh_every=self.refresh_every, full_every=self.full_every)
-        if self.per_iteration is not None:
+        if self.per_iteration not in (None, "auto"):
+            if isinstance(self.per_iteration, bool) or not isinstance(self.per_iteration, int):
+                raise InputError(
+                    f"per_iteration must be an integer, 'auto' or None, got {self.per_iteration!r}"
+                )
             _at_least_one(per_iteration=self.per_iteration)
 
 
@@ -384,10 +390,14 @@ def resolve_options(
         ckpt = CheckpointOptions(checkpoint) if isinstance(checkpoint, str | Path) else checkpoint
         if ckpt.every is None:
             ckpt = replace(ckpt, every=d.checkpoint.every)
+    win = d.windows if windows is None else windows
+    if win.per_iteration == "auto":  # the fit's default (the likelihood fits: every window)
+        fit_default = d.windows.per_iteration
+        win = replace(win, per_iteration=None if fit_default == "auto" else fit_default)
     return FitOptions(
         iterations,
         opt,
-        d.windows if windows is None else windows,
+        win,
         stop,
         given,
         ckpt,

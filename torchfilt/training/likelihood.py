@@ -489,8 +489,8 @@ class _Objective:
         self.counted, self.windows, self.recordings = counted, windows, recordings
         # subsets of windows: when the whole fit has more windows than per_iteration (the same
         # decision on every process of a data-parallel fit: the full evaluations are collectives)
-        k = options.per_iteration
-        self.subsets = k is not None and windows > k
+        k = options.per_iteration  # resolved: never "auto" here
+        self.subsets = isinstance(k, int) and windows > k
         self.val_count = 0 if val is None else int(torch.isfinite(val.y).sum())
         self.first = win.start == 0
         # windows that start a recording take the learnable prior mean, with its graph
@@ -528,7 +528,7 @@ class _Objective:
         """This process's windows of ``iteration`` (``None``: all of them)."""
         k = self.options.per_iteration
         local = int(self.win.y.shape[0])
-        if not self.subsets or k is None or local <= k:
+        if not self.subsets or not isinstance(k, int) or local <= k:
             return None
         return window_subset(local, k, self.options.seed, iteration)
 
