@@ -144,11 +144,6 @@ PENDING: set[str] = {
     "torchfilt.pipeline.evaluate.evaluate_outputs",
     "torchfilt.pipeline.recipe.load_recipe",
     "torchfilt.pipeline.run.train_recipe",
-    "torchfilt.training.calibrate.calibrate",
-    "torchfilt.training.calibrate.consistency",
-    "torchfilt.training.em_steps.SmoothedPairs",
-    "torchfilt.training.measurement_only.fit_em",
-    "torchfilt.training.measurement_only.fit_measurement_only",
 }
 
 #: A shape in the ``(..., T, n)`` notation: ````(..., T, n)````, ````(n, n)````, ````(...)````, the
