@@ -80,17 +80,6 @@ PACKAGES = (
 #: optim, models.gp, models/inducing.py, pipeline). This set is being emptied after the lead
 #: merges the parallel work: remove each name once its docstring follows the rule; never add one.
 PENDING: set[str] = {
-    "torchfilt.models.gp.optimize.FitState.hyperparameters",
-    "torchfilt.models.gp.predictor.FrozenGP.forward",
-    "torchfilt.models.gp.predictor.FrozenGP.mean",
-    "torchfilt.models.gp.standardize.Standardizer",
-    "torchfilt.models.gp.standardize.Standardizer.forward",
-    "torchfilt.models.gp.standardize.Standardizer.inverse",
-    "torchfilt.models.inducing.InducingTransition",
-    "torchfilt.models.inducing.InducingTransition.fit_residual",
-    "torchfilt.models.inducing.InducingTransition.from_linear",
-    "torchfilt.models.inducing.InducingTransition.init_inducing",
-    "torchfilt.models.inducing.InducingTransition.predict",
     "torchfilt.optim.checkpoint.CheckpointFile.load",
     "torchfilt.optim.checkpoint.fingerprint",
     "torchfilt.optim.loop.GuardedStep",
