@@ -80,18 +80,6 @@ PACKAGES = (
 #: optim, models.gp, models/inducing.py, pipeline). This set is being emptied after the lead
 #: merges the parallel work: remove each name once its docstring follows the rule; never add one.
 PENDING: set[str] = {
-    "torchfilt.optim.checkpoint.CheckpointFile.load",
-    "torchfilt.optim.checkpoint.fingerprint",
-    "torchfilt.optim.loop.GuardedStep",
-    "torchfilt.optim.loop.Reporter.update",
-    "torchfilt.optim.loop.StepResult",
-    "torchfilt.optim.loop.make_optimizer",
-    "torchfilt.optim.loop.restore",
-    "torchfilt.optim.loop.snapshot",
-    "torchfilt.optim.options.CheckpointOptions",
-    "torchfilt.optim.options.OptimizerOptions",
-    "torchfilt.optim.options.StoppingOptions",
-    "torchfilt.optim.options.WindowOptions",
     "torchfilt.pipeline.bundle.ModelSpec.channels",
     "torchfilt.pipeline.distributed.fits.calibrate_ray",
     "torchfilt.pipeline.distributed.fits.fit_measurement_only_ray",
