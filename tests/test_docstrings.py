@@ -77,16 +77,9 @@ PACKAGES = (
 )
 
 #: Offenders in the files being edited in parallel (filters other than metrics.py, training,
-#: optim, models.gp, models/inducing.py, pipeline). This set is being emptied after the lead
-#: merges the parallel work: remove each name once its docstring follows the rule; never add one.
-PENDING: set[str] = {
-    "torchfilt.pipeline.bundle.ModelSpec.channels",
-    "torchfilt.pipeline.distributed.fits.calibrate_ray",
-    "torchfilt.pipeline.distributed.fits.fit_measurement_only_ray",
-    "torchfilt.pipeline.evaluate.evaluate_outputs",
-    "torchfilt.pipeline.recipe.load_recipe",
-    "torchfilt.pipeline.run.train_recipe",
-}
+#: optim, models.gp, models/inducing.py, pipeline). Empty now: every public name follows the rule;
+#: never add one.
+PENDING: set[str] = set()
 
 #: A shape in the ``(..., T, n)`` notation: ````(..., T, n)````, ````(n, n)````, ````(...)````, the
 #: word "scalar", or "any shape" (a tensor whose shape the function does not constrain).
