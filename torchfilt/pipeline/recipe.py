@@ -576,15 +576,8 @@ def _side(table: Any, where: str, path: Path | None) -> dict[str, Any]:
 def load_recipe(path: str | Path) -> Recipe:
     """Read and validate a recipe TOML file.
 
-    Args:
-        path: the recipe file.
-
-    Returns:
-        The validated :class:`Recipe`.
-
     Raises:
-        RecipeError: the file is missing, is not valid TOML, or is not a valid recipe (the
-            message names the file and the key).
+        RecipeError: a missing, non-TOML or invalid recipe (the message names file and key).
     """
     path = Path(path)
     if not path.is_file():
