@@ -298,8 +298,12 @@ def constrained_update(
         model: the state-space model (its measurement side).
         box: the bounds, in the belief's dtype and device.
         u: inputs ``(..., nu)`` or ``None``.
-        theta, point_variance, covariance, tol, max_iter: as in :class:`ConstrainedCKF`.
+        theta: as in :class:`ConstrainedCKF`.
+        point_variance: as in :class:`ConstrainedCKF`.
+        covariance: as in :class:`ConstrainedCKF`.
         noise: the measurement noise ``R`` of the step (``None``: none).
+        tol: as in :class:`ConstrainedCKF`.
+        max_iter: as in :class:`ConstrainedCKF`.
 
     Returns:
         The filtered belief (the projected prediction where nothing was observed; its mean is
@@ -546,7 +550,8 @@ class ConstrainedCKF(GaussianFilter):
             learned models with per-point variances included).
         lower: lower bounds, ``(..., n)``, a sequence or a scalar; ``-inf`` entries (or ``None``)
             mean no lower bound.
-        upper: upper bounds, likewise with ``+inf``.
+        upper: upper bounds, ``(..., n)``, a sequence or a scalar; ``+inf`` entries (or
+            ``None``) mean no upper bound.
         covariance: ``"paper"`` (spread of the reconciled points, eq. (27)) or ``"corrected"``
             (adds ``K R_tot K^T``; consistent for a linear model).
         theta: ``"paper"`` evaluates the weights at ``F(theta)`` with theta in cubature steps, as
@@ -573,6 +578,9 @@ class ConstrainedCKF(GaussianFilter):
         >>> res = filt.filter(sim.measurements, x0=reaction.prior_mean(), P0=reaction.prior_cov())
         >>> bool((res.mean >= 0).all())
         True
+
+    Raises:
+        InputError: an invalid ``covariance``, ``theta`` or ``max_iter`` (or filter option).
     """
 
     def __init__(
@@ -659,7 +667,19 @@ class ConstrainedCKF(GaussianFilter):
         P0: Tensor,
         mask: Tensor | None = None,
     ) -> tuple[FilterResult, ConstrainedInfo]:
-        """:meth:`filter`, plus the solver's iterations and status per step and point."""
+        """:meth:`filter`, plus the solver's iterations and status per step and point.
+
+        Args:
+            y: measurements, shape ``(..., T, m)``. Non-finite entries (NaN) are missing.
+            u: inputs, shape ``(..., T, nu)``, or ``None``.
+            x0: prior mean, shape ``(..., n)``, inside the box.
+            P0: prior covariance, shape ``(..., n, n)``, symmetric positive definite.
+            mask: optional boolean ``(..., T, m)``; ``False`` marks a component as missing.
+
+        Returns:
+            The :class:`~torchfilt.filters.FilterResult` (means ``(..., T, n)``, covariances
+            ``(..., T, n, n)``) and the :class:`ConstrainedInfo` of the run.
+        """
         inputs = self._prepare(y, u, x0=x0, P0=P0, mask=mask)
         res, info = self._result_with_info(inputs, stacklevel=3)
         warn_nonfinite(res, stacklevel=3)
@@ -684,8 +704,20 @@ class ConstrainedCKF(GaussianFilter):
         covariances are left as the RTS pass gives them). For a linear model with no bound in
         reach and ``covariance="corrected"`` this is the CKF's smoother exactly.
 
-        Arguments as in :meth:`filter` (there is no exact path: ``path="kalman"`` and
-        ``parallel=True`` are refused).
+        There is no exact path: ``path="kalman"`` and ``parallel=True`` are refused.
+
+        Args:
+            y: measurements, shape ``(..., T, m)``. Non-finite entries (NaN) are missing.
+            u: inputs, shape ``(..., T, nu)``, or ``None``.
+            x0: prior mean, shape ``(..., n)``, inside the box.
+            P0: prior covariance, shape ``(..., n, n)``, symmetric positive definite.
+            mask: optional boolean ``(..., T, m)``; ``False`` marks a component as missing.
+            path: ``"auto"`` or ``"cubature"`` (``"kalman"`` is refused).
+            parallel: must be ``False``.
+
+        Returns:
+            A :class:`~torchfilt.filters.SmootherResult` with smoothed means ``(..., T, n)``
+            (projected onto the box) and covariances ``(..., T, n, n)``.
         """
         from torchfilt.filters.smoother import rts_smooth
 

@@ -75,7 +75,8 @@ class FilterState(NamedTuple):
     """The belief of an online filter (:meth:`GaussianFilter.init`) and its time index.
 
     Attributes:
-        mean: ``(..., n)``. cov: ``(..., n, n)``.
+        mean: the belief's mean, shape ``(..., n)``.
+        cov: the belief's covariance, shape ``(..., n, n)``.
         sqrt: lower factor of ``cov`` ``(..., n, n)`` (propagated by the square-root form).
         t: time index of the belief: ``-1`` for the prior, ``t`` after the ``t``-th prediction
             (0-based) and its update. Time-varying noise is read at this index.
@@ -128,6 +129,12 @@ class GaussianFilter(nn.Module):
             as written, and a failed factorisation is retried with jitter and reported.
         chunk: steps per compiled chunk of the time loop, where the while-loop cannot be used. A
             recording whose length is not a multiple compiles its last, shorter chunk too.
+
+    Raises:
+        InputTypeError: ``model`` is not a :class:`~torchfilt.models.StateSpaceModel` or
+            ``rule`` not a :class:`~torchfilt.cubature.CubatureRule`.
+        InputError: an invalid ``point_variance``, ``compile`` or ``chunk``, or ``sqrt=True``
+            with a rule that has a negative covariance weight.
     """
 
     def __init__(
@@ -204,8 +211,24 @@ class GaussianFilter(nn.Module):
         R: Noise,
     ) -> tuple[Belief, StepRecord, tuple[Tensor, ...]]:
         """One filter step with this filter's options: the step the engines run (see
-        :meth:`CubatureStep.step <torchfilt.filters.cubature_step.CubatureStep.step>` for the
-        arguments and results)."""
+        :meth:`CubatureStep.step <torchfilt.filters.cubature_step.CubatureStep.step>`).
+
+        Args:
+            points: the rule's unit points in the run's dtype and device.
+            belief: the filtered belief about ``x_{t-1}``, mean ``(..., n)``, covariance
+                ``(..., n, n)``.
+            y: measurement, shape ``(..., m)``, missing entries set to 0.
+            obs: which components of ``y`` are observed, boolean, shape ``(..., m)``.
+            u: the input row of the step, shape ``(..., nu)``, or ``None``.
+            Q: process noise of the step.
+            R: measurement noise of the step.
+
+        Returns:
+            The filtered belief about ``x_t`` (mean ``(..., n)``, covariance ``(..., n, n)``),
+            the step's :class:`~torchfilt.filters.results.StepRecord` and extra per-step
+            outputs (none for the cubature step; each of shape ``(...)`` plus its own
+            trailing dimensions).
+        """
         return self._step.step(points, belief, y, obs, u, Q, R)
 
     # ------------------------------------------------------------------ plan and run
@@ -359,7 +382,8 @@ class GaussianFilter(nn.Module):
         Args:
             y: example measurements ``(..., T, m)`` on a CUDA device.
             u: example inputs ``(..., T, nu)`` or ``None``.
-            x0: prior mean ``(..., n)``. P0: prior covariance ``(..., n, n)``; both fixed.
+            x0: prior mean ``(..., n)``, fixed.
+            P0: prior covariance ``(..., n, n)``, fixed.
             warmup: eager runs before the capture.
 
         Raises:
@@ -384,8 +408,18 @@ class GaussianFilter(nn.Module):
         linear-Gaussian model the exact smoother, sequential or with ``parallel=True`` by
         associative scan).
 
-        Arguments as in :meth:`filter`. Returns a :class:`~torchfilt.filters.SmootherResult` with
-        smoothed means ``(..., T, n)`` and covariances ``(..., T, n, n)``.
+        Args:
+            y: measurements, shape ``(..., T, m)``. Non-finite entries (NaN) are missing.
+            u: inputs, shape ``(..., T, nu)``, or ``None``.
+            x0: prior mean, shape ``(..., n)``.
+            P0: prior covariance, shape ``(..., n, n)``, symmetric positive definite.
+            mask: optional boolean ``(..., T, m)``; ``False`` marks a component as missing.
+            path: ``"auto"``, ``"kalman"`` or ``"cubature"``, as in :meth:`filter`.
+            parallel: the parallel-in-time exact smoother (linear models only).
+
+        Returns:
+            A :class:`~torchfilt.filters.SmootherResult` with smoothed means ``(..., T, n)`` and
+            covariances ``(..., T, n, n)``.
         """
         from torchfilt.filters.smoother import rts_smooth
 
@@ -510,7 +544,8 @@ class GaussianFilter(nn.Module):
         """Start an online filter from the prior ``N(x0, P0)`` (the belief about ``x_{-1}``).
 
         Args:
-            x0: prior mean ``(..., n)``. P0: prior covariance ``(..., n, n)``, symmetric PSD.
+            x0: prior mean ``(..., n)``.
+            P0: prior covariance ``(..., n, n)``, symmetric PSD.
 
         Returns:
             A :class:`FilterState` at ``t = -1``. Call :meth:`predict` then :meth:`update` for each
@@ -518,6 +553,8 @@ class GaussianFilter(nn.Module):
 
         Raises:
             InputTypeError: ``x0`` or ``P0`` is not a floating-point tensor (or convertible).
+            InputError: the prior is invalid (not finite, or ``P0`` not symmetric).
+            ShapeError: ``x0`` or ``P0`` does not match the state dimension.
         """
         x0 = self._as_tensor("x0", x0, None)
         P0 = self._as_tensor("P0", P0, x0.device)
@@ -614,7 +651,9 @@ class GaussianFilter(nn.Module):
             The predicted :class:`FilterState` at ``t + 1``.
 
         Raises:
-            InputTypeError: ``u`` is not floating point. InputError: ``u`` is not finite.
+            InputTypeError: ``u`` is not floating point.
+            InputError: ``u`` is not finite, or ``state`` is not a filter state.
+            ShapeError: ``u`` has the wrong shape.
         """
         self._check_state(state, "predict")
         u = self._step_input("u", u, -1, state.mean)
@@ -655,6 +694,9 @@ class GaussianFilter(nn.Module):
 
         Raises:
             InputTypeError: ``y`` is not a floating-point tensor, or ``u`` not floating point.
+            InputError: ``state`` is not a predicted state.
+            ShapeError: ``y``'s batch shape does not broadcast with the state's, or ``y`` or
+                ``u`` has the wrong shape.
         """
         self._check_state(state, "update")
         if not state.predicted:
@@ -696,4 +738,9 @@ class CKF(GaussianFilter):
         >>> res = torchfilt.CKF(model).filter(y, x0=torch.zeros(2), P0=torch.eye(2))
         >>> res.mean.shape
         torch.Size([8, 50, 2])
+
+    Raises:
+        InputTypeError: ``model`` is not a :class:`~torchfilt.models.StateSpaceModel` or
+            ``rule`` not a :class:`~torchfilt.cubature.CubatureRule`.
+        InputError: an invalid option (see :class:`GaussianFilter`).
     """

@@ -131,13 +131,19 @@ class GraphedFilter:
         Args:
             y: measurements of the captured shape ``(..., T, m)`` (dtype and device as captured).
                 NaN entries are missing.
-            u: inputs of the captured shape, if the capture had inputs.
+            u: inputs of the captured shape ``(..., T, nu)``, if the capture had inputs.
             mask: optional bool ``(..., T, m)``; ``False`` marks a component as missing.
             clone: return copies of the output buffers (default). ``False`` returns the buffers
                 themselves, overwritten by the next replay.
 
         Returns:
             A :class:`~torchfilt.filters.FilterResult`, as :meth:`GaussianFilter.filter` gives.
+
+        Raises:
+            InputTypeError: ``y`` (or ``u``) is not a tensor, or of the wrong dtype.
+            ShapeError: ``y``, ``u`` or ``mask`` is not of the captured shape.
+            InputError: ``y`` or ``u`` not of the captured dtype and device, or inputs given
+                to (or missing from) a capture without (or with) them.
         """
         if not isinstance(y, Tensor):
             raise InputTypeError(f"y must be a torch.Tensor, got {type(y).__name__}")

@@ -123,7 +123,8 @@ def iterated_smoother(
         model: any state-space model (its maps are evaluated at cubature points).
         y: measurements ``(..., T, m)``; NaN entries are missing.
         u: inputs ``(..., T, nu)`` or ``None``.
-        x0: prior mean ``(..., n)``.  P0: prior covariance ``(..., n, n)``.
+        x0: prior mean ``(..., n)``.
+        P0: prior covariance ``(..., n, n)``.
         mask: optional bool ``(..., T, m)``; ``False`` marks a component as missing.
         rule: cubature rule of the linearisation; default third-degree spherical-radial.
         parallel: smooth each linearised model by associative scan
@@ -137,6 +138,12 @@ def iterated_smoother(
         ``(..., T, n)``, covariances ``(..., T, n, n)``; its ``filtered`` pass and
         ``log_likelihood`` are those of the linearised model. A
         :class:`~torchfilt.exceptions.ConvergenceWarning` says if ``tol`` was not met.
+
+    Raises:
+        InputError: an invalid ``rule`` or ``max_iter``, or invalid data (non-finite prior,
+            ``P0`` not symmetric).
+        InputTypeError: a tensor argument of the wrong dtype (such as complex).
+        ShapeError: ``y``, ``u``, ``x0``, ``P0`` or ``mask`` of the wrong shape.
     """
     rule = rule if rule is not None else SphericalRadialRule(3)
     if not isinstance(rule, CubatureRule):

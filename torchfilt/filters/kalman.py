@@ -339,7 +339,8 @@ def kalman_filter(
             :class:`~torchfilt.models.TimeVarying`.
         y: measurements ``(..., T, m)``; NaN entries are missing.
         u: inputs ``(..., T, nu)``; required when the model has ``B`` or ``D``.
-        x0: prior mean ``(..., n)``.  P0: prior covariance ``(..., n, n)``.
+        x0: prior mean ``(..., n)``.
+        P0: prior covariance ``(..., n, n)``.
         mask: optional bool ``(..., T, m)``; ``False`` marks a component as missing.
         sqrt: propagate Cholesky factors (square-root filter).
         parallel: run the parallel-in-time filter (associative scan,
@@ -399,9 +400,19 @@ def kalman_smoother(
 ) -> SmootherResult:
     """The closed-form Kalman filter followed by the Rauch-Tung-Striebel smoother.
 
-    Arguments as in :func:`kalman_filter`. With ``sqrt=True`` the backward pass propagates
-    Cholesky factors, ``S^s_t = tria([(I - G_t A_{t+1}) S_t, G_t Q_{t+1}^{1/2}, G_t S^s_{t+1}])``;
-    with ``parallel=True`` both passes are associative scans.
+    With ``sqrt=True`` the backward pass propagates Cholesky factors,
+    ``S^s_t = tria([(I - G_t A_{t+1}) S_t, G_t Q_{t+1}^{1/2}, G_t S^s_{t+1}])``; with
+    ``parallel=True`` both passes are associative scans.
+
+    Args:
+        model: a linear model, as in :func:`kalman_filter`.
+        y: measurements ``(..., T, m)``; NaN entries are missing.
+        u: inputs ``(..., T, nu)``; required when the model has ``B`` or ``D``.
+        x0: prior mean ``(..., n)``.
+        P0: prior covariance ``(..., n, n)``.
+        mask: optional bool ``(..., T, m)``; ``False`` marks a component as missing.
+        sqrt: propagate Cholesky factors (square-root filter and smoother).
+        parallel: run both passes as associative scans.
 
     Returns:
         A :class:`~torchfilt.filters.SmootherResult` with means ``(..., T, n)``, covariances

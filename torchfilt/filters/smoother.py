@@ -34,6 +34,9 @@ def rts_smooth(result: FilterResult) -> SmootherResult:
     Returns:
         A :class:`SmootherResult` with ``mean (..., T, n)``, ``cov (..., T, n, n)`` and gains
         ``(..., T-1, n, n)``.
+
+    Raises:
+        InputError: ``result`` is not a :class:`FilterResult`.
     """
     if not isinstance(result, FilterResult):
         raise InputError(

@@ -74,7 +74,13 @@ class Belief(NamedTuple):
 
 
 class UnitPoints(NamedTuple):
-    """A cubature rule's unit points ``xi (P, n)``, mean weights ``wm (P,)``, cov weights ``wc (P,)``."""
+    """A cubature rule's unit points and weights.
+
+    Attributes:
+        xi: the unit points, shape ``(P, n)``.
+        wm: the mean weights, shape ``(P,)``.
+        wc: the covariance weights, shape ``(P,)``.
+    """
 
     xi: Tensor
     wm: Tensor
@@ -82,7 +88,12 @@ class UnitPoints(NamedTuple):
 
 
 class Noise(NamedTuple):
-    """An additive noise covariance ``(..., d, d)`` and (square-root form) a square root of it."""
+    """An additive noise covariance and (square-root form) a square root of it.
+
+    Attributes:
+        cov: the covariance, shape ``(..., d, d)``, or ``None`` (no additive noise).
+        sqrt: a square root of ``cov``, shape ``(..., d, d)``, or ``None``.
+    """
 
     cov: Tensor | None
     sqrt: Tensor | None = None
@@ -95,7 +106,8 @@ class PredictCache(NamedTuple):
         points: the propagated points ``X*_i``, ``(..., P, n)``.
         deviations: ``X*_i - m^-``, ``(..., P, n)``.
         cross_cov: ``Cov(x_{t-1}, x_t)`` from the prediction, ``(..., n, n)`` (RTS smoother).
-        extra_sqrt: square root of the added ``sum wc_i V_f + Q`` (square-root form), or None.
+        extra_sqrt: square root of the added ``sum wc_i V_f + Q`` (square-root form),
+            ``(..., n, n)``, or None.
     """
 
     points: Tensor
@@ -303,6 +315,9 @@ def update(
 
     Returns:
         The filtered :class:`Belief` and the step's :class:`UpdateStats`.
+
+    Raises:
+        InputError: ``redraw=False`` without the prediction's ``cache``.
     """
     h = model.measurement
     m_pred, P_pred = belief.mean, belief.cov

@@ -65,15 +65,20 @@ class InducingTransition(ConditionalModel):
             ``M`` (then ``Z`` starts at zero and must be set before use, e.g. with
             :meth:`init_inducing`).
         input_dim: ``nu`` (0: no inputs).
-        linear: initial ``W (n, n + nu)`` (default ``[I, 0]``: a random walk; ``0`` with a
-            ``nominal`` model).
-        bias: initial ``b (n,)`` (default 0).
+        linear: initial ``W``, shape ``(n, n + nu)`` (default ``[I, 0]``: a random walk; ``0``
+            with a ``nominal`` model).
+        bias: initial ``b``, shape ``(n,)`` (default 0).
         lengthscale: initial lengthscales, a float or ``(n + nu,)``.
         outputscale: initial GP variances ``s_j``, a float or ``(n,)``.
         floor: a fixed variance floor added to ``var`` (float or ``(n,)``, default 0).
         jitter: added to the diagonal of ``C_ZZ``.
         nominal: a fixed physics model ``g(x, u)``, ``(..., n) -> (..., n)``, added to the mean.
         dtype: parameter dtype.
+
+    Raises:
+        InputError: a non-positive ``state_dim``, negative ``input_dim`` or ``inducing``, a
+            ``nominal`` that is not callable, or a non-positive scale or negative floor.
+        ShapeError: ``inducing``, ``linear`` or ``bias`` of the wrong shape.
     """
 
     floor: Tensor
@@ -166,8 +171,8 @@ class InducingTransition(ConditionalModel):
                 e.g. the smoothed means of the linear model.
             inputs: ``(N, nu)`` inputs aligned with ``states``.
             lengthscale: initial lengthscales, a float or ``(n + nu,)``.
-            outputscale: initial GP variances ``s_j`` (default :data:`NEGLIGIBLE_OUTPUTSCALE`:
-                the linear model exactly, to float64 precision).
+            outputscale: initial GP variances ``s_j``, a float or ``(n,)`` (default
+                :data:`NEGLIGIBLE_OUTPUTSCALE`: the linear model exactly, to float64 precision).
 
         Returns:
             The transition (frozen nothing: every parameter learnable).
@@ -269,6 +274,9 @@ class InducingTransition(ConditionalModel):
         Args:
             states: ``(N, n)`` states (smoothed estimates, a nominal simulation, ...).
             inputs: ``(N, nu)`` inputs aligned with them, or ``None``.
+
+        Raises:
+            InputError: fewer points than inducing inputs.
         """
         M = self.num_inducing
         if M == 0:
@@ -308,6 +316,10 @@ class InducingTransition(ConditionalModel):
             inputs: ``(N, nu)`` the input rows that drove each step from ``states`` to
                 ``next_states`` (the input convention of :mod:`torchfilt.filters`), or ``None``.
             noise: the residual noise variance, a float or ``(n,)`` (e.g. the process noise).
+
+        Raises:
+            ShapeError: ``states``, ``next_states`` or ``inputs`` of the wrong shape.
+            InputError: non-finite states, or a non-positive ``noise``.
         """
         n, M = self.out_dim, self.num_inducing
         x = torch.as_tensor(states).to(self.linear.dtype)
@@ -351,7 +363,15 @@ class InducingTransition(ConditionalModel):
         return torch.cat([x, u.to(x.dtype).expand(*x.shape[:-1], -1)], -1)
 
     def predict(self, x: Tensor, u: Tensor | None = None) -> Prediction:
-        """Mean and variance ``(..., P, n)`` at points ``x (..., P, n)`` (inputs ``(..., P, nu)``)."""
+        """Mean and variance at points ``x``.
+
+        Args:
+            x: states, shape ``(..., P, n)``.
+            u: inputs, shape ``(..., P, nu)``, or ``None``.
+
+        Returns:
+            The :class:`~torchfilt.models.Prediction`: mean and variance, each ``(..., P, n)``.
+        """
         z = self._inputs(x, u)
         mean = z @ self.linear.to(z.dtype).mT + self.bias.to(z.dtype)
         if self.nominal is not None:

@@ -26,7 +26,14 @@ AtomicWrite = Callable[[Path, Callable[[BinaryIO], None]], Any]
 
 def fingerprint(*tensors: Tensor | None) -> str:
     """SHA-256 of the shapes and bytes of ``tensors`` (``None`` skipped): what a checkpoint of a
-    fit must match (its data and initial values)."""
+    fit must match (its data and initial values).
+
+    Args:
+        *tensors: the tensors, each of any shape, or ``None``.
+
+    Returns:
+        The hexadecimal digest.
+    """
     h = hashlib.sha256()
     for t in tensors:
         if t is not None:
@@ -72,7 +79,15 @@ class CheckpointFile:
         self.saved: dict[str, Any] | None = None  # the last checkpoint (data-parallel)
 
     def load(self) -> dict[str, Any]:
-        """This fit's checkpoint, or a :class:`RunError` naming the file."""
+        """This fit's checkpoint.
+
+        Returns:
+            The checkpoint's dict.
+
+        Raises:
+            RunError: the file is unreadable, not a checkpoint of this kind, or one of another
+                fit (it names the file).
+        """
         path = self.path
         try:
             ck = torch.load(path, map_location="cpu", weights_only=True)

@@ -59,16 +59,35 @@ __all__ = [
 class Reporter(Protocol):
     """Shows progress (e.g. :class:`torchfilt.io.progress.ProgressBar`)."""
 
-    def update(self, done: int, info: str = "") -> None: ...
+    def update(self, done: int, info: str = "") -> None:
+        """Report progress.
+
+        Args:
+            done: iterations done so far.
+            info: a short status text shown with the count.
+        """
+        ...
 
 
 def snapshot(params: Iterable[Tensor]) -> list[Tensor]:
-    """Detached copies of ``params``."""
+    """Detached copies of ``params``.
+
+    Args:
+        params: the parameters, each of any shape.
+
+    Returns:
+        A detached copy of each parameter, each of its parameter's shape (any shape).
+    """
     return [p.detach().clone() for p in params]
 
 
 def restore(params: Sequence[Tensor], values: Sequence[Tensor]) -> None:
-    """Copy ``values`` into ``params`` in place (no gradient)."""
+    """Copy ``values`` into ``params`` in place (no gradient).
+
+    Args:
+        params: the parameters, each of any shape.
+        values: one value per parameter, each of any shape that broadcasts to its parameter's.
+    """
     with torch.no_grad():
         for p, v in zip(params, values, strict=True):
             p.copy_(v)
@@ -111,7 +130,15 @@ def free_parameters(
 
 def make_optimizer(params: Sequence[Tensor], options: OptimizerOptions) -> torch.optim.Optimizer:
     """The optimiser of ``options`` over ``params``: Adam, or L-BFGS with a strong-Wolfe line
-    search and the options' tolerances."""
+    search and the options' tolerances.
+
+    Args:
+        params: the parameters to step, each of any shape.
+        options: the optimiser and its settings.
+
+    Returns:
+        The ``torch.optim`` optimiser.
+    """
     lr = options.learning_rate
     if options.optimizer == "adam":
         return torch.optim.Adam(list(params), lr=lr)
@@ -134,7 +161,8 @@ class StepResult(NamedTuple):
             L-BFGS search).
         loss_finite: whether ``loss`` is finite.
         good: the parameters ``loss`` scores (before the step) when it is finite; else the last
-            parameters scored finite (where a failed step leaves them).
+            parameters scored finite (where a failed step leaves them); each of any shape (its
+            parameter's).
         status: ``"ok"``; ``"retry"`` (L-BFGS left the finite region: the parameters are back at
             ``good``, its curvature is forgotten, the iteration does not count); ``"failed"``
             (non-finite again: the parameters are back at ``good``).
@@ -150,7 +178,7 @@ class GuardedStep:
     """One optimiser iteration over ``params`` that never leaves the finite region.
 
     Args:
-        params: the parameters.
+        params: the parameters, each of any shape.
         options: the optimiser.
         project: called after every step to project the parameters back onto their feasible set
             in place.

@@ -87,6 +87,10 @@ class OptimizerOptions:
         tolerance_change: L-BFGS's tolerance on the change of the loss or the parameters.
         tolerance_grad: L-BFGS's tolerance on the gradient.
         history_size: L-BFGS's curvature pairs.
+
+    Raises:
+        InputError: an unknown ``optimizer``, a learning rate that is not finite and positive
+            (or too large), or a count below 1.
     """
 
     optimizer: Literal["adam", "lbfgs"] = "adam"
@@ -135,6 +139,9 @@ class WindowOptions:
             likelihood.
         full_every: iterations between evaluations of the full objective with subsets.
         seed: the seed of the subsets.
+
+    Raises:
+        InputError: an unknown ``start``, or a count below 1.
     """
 
     window: int | None = None
@@ -193,6 +200,10 @@ class StoppingOptions:
         rtol: the windowed rule's relative tolerance (0: off).
         rtol_window: its window ``w`` in iterations.
         atol: the windowed rule in nats per recording (0: off).
+
+    Raises:
+        InputError: a ``tol``, ``rtol`` or ``atol`` that is negative or not finite, or a count
+            below 1.
     """
 
     patience: int | None = None
@@ -230,6 +241,9 @@ class CheckpointOptions:
         path: the checkpoint file (``None``: none).
         every: iterations between checkpoints (``None``: the fit's default).
         resume: continue from ``path`` if it exists.
+
+    Raises:
+        InputError: ``every`` below 1, or ``resume`` without a ``path``.
     """
 
     path: str | Path | None = None

@@ -118,6 +118,7 @@ class ModelSpec:
 
     @property
     def channels(self) -> tuple[Channel, ...]:
+        """Every channel: the states, then the inputs, then the measurements."""
         return (
             *(Channel(n, "state", u) for n, u in self.states),
             *(Channel(n, "input", u) for n, u in self.inputs),

@@ -36,6 +36,8 @@ def evaluate_outputs(
         The evaluation (also written to ``evaluation_{which}.json`` in ``out``).
 
     Raises:
+        InputError: ``which`` is neither ``"filtered"`` nor ``"smoothed"``, or ``level`` is not
+            in ``(0, 1)``.
         DataError: ``out`` is not a filter output folder, or its files are invalid.
         OutputError: the evaluation file exists (without ``force``).
     """

@@ -574,7 +574,11 @@ def _side(table: Any, where: str, path: Path | None) -> dict[str, Any]:
 
 
 def load_recipe(path: str | Path) -> Recipe:
-    """Read and validate a recipe TOML file."""
+    """Read and validate a recipe TOML file.
+
+    Raises:
+        RecipeError: a missing, non-TOML or invalid recipe (the message names file and key).
+    """
     path = Path(path)
     if not path.is_file():
         raise RecipeError(f"{path}: recipe not found")

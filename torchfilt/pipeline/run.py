@@ -153,7 +153,10 @@ def train_recipe(
             ``out`` already holds a run (without ``resume`` or ``force``), or has none to
             resume, or the recipe or dataset changed since the run started, or the run started
             with other ``fitters`` (``StageFitters.name``).
-        RecipeError, DataError: invalid recipe or dataset (raised before anything is written).
+        InputError: both ``resume`` and ``force``, or ``fitters`` dealing the recordings to
+            more processes than the training split has.
+        RecipeError: an invalid recipe (raised before anything is written).
+        DataError: an invalid dataset (raised before anything is written).
         OutputError: ``out`` is a file, is read-only, or the disk is full.
     """
     if resume and force:

@@ -233,6 +233,10 @@ def calibrate(
 
     Returns:
         A :class:`CalibrationResult`.
+
+    Raises:
+        InputError: an invalid argument (an unknown side, ``gp`` value or fixed name).
+        ShapeError: ``x0`` or ``P0`` does not match the model's state dimension.
     """
     _check_options(model, sides, gp)
     check_compute_dtype(dtype)  # before the model is converted to it
@@ -444,12 +448,16 @@ def consistency(
     Args:
         model: the model.
         recordings: recordings (row 0 is the prior's time).
-        x0, P0: the prior ``(n,)``, ``(n, n)``.
+        x0: prior mean ``(n,)``.
+        P0: prior covariance ``(n, n)``.
         level: nominal probability of the coverage intervals.
 
     Returns:
         ``{"nis_mean", "nis_dof_mean", "nees_mean", "coverage95", "steps", "recordings"}``
         (NEES and coverage only where states are logged).
+
+    Raises:
+        InputError: no recordings given.
     """
     recs = list(recordings)
     if not recs:

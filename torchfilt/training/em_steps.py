@@ -38,10 +38,10 @@ class SmoothedPairs(NamedTuple):
     prior).
 
     Attributes:
-        prev_mean: ``E[x_{t-1} | y] (..., T, n)``.
-        prev_cov: ``Cov(x_{t-1} | y) (..., T, n, n)``.
-        mean: ``E[x_t | y] (..., T, n)``.
-        cov: ``Cov(x_t | y) (..., T, n, n)``.
+        prev_mean: ``E[x_{t-1} | y]``, shape ``(..., T, n)``.
+        prev_cov: ``Cov(x_{t-1} | y)``, shape ``(..., T, n, n)``.
+        mean: ``E[x_t | y]``, shape ``(..., T, n)``.
+        cov: ``Cov(x_t | y)``, shape ``(..., T, n, n)``.
         cross_cov: ``Cov(x_{t-1}, x_t | y) = G_{t-1} P^s_t`` ``(..., T, n, n)``.
     """
 

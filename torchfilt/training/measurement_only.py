@@ -386,8 +386,11 @@ def fit_em(
         An :class:`EMFit` (log-likelihoods and ``measurements`` summed over the processes).
 
     Raises:
-        GaugeError: no gauge; InputError, ShapeError: invalid arguments; RunError: a checkpoint
-        of another fit; ModelError: time-varying noise.
+        GaugeError: no gauge.
+        InputError: an invalid argument (a ``ShapeError`` for a wrong shape).
+        InputTypeError: an argument of the wrong type (such as a complex tensor).
+        RunError: a checkpoint of another fit.
+        ModelError: time-varying noise.
     """
     if not isinstance(model, StateSpaceModel):
         raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
@@ -537,8 +540,10 @@ def fit_measurement_only(
             :func:`~torchfilt.training.fit_likelihood`).
         validation: held-out recordings for early stopping (``"likelihood"`` only).
         iterations: EM iterations, or optimiser iterations (default 30).
-        optimizer, windows: of :func:`~torchfilt.training.fit_likelihood` (``"likelihood"``
-            only; default L-BFGS on whole recordings).
+        optimizer: of :func:`~torchfilt.training.fit_likelihood` (``"likelihood"`` only;
+            default L-BFGS).
+        windows: of :func:`~torchfilt.training.fit_likelihood` (``"likelihood"`` only; default
+            whole recordings).
         stopping: :class:`~torchfilt.optim.StoppingOptions` (``tol``: EM per measurement,
             default ``1e-9``; likelihood: that of ``fit_likelihood``).
         checkpoint: :class:`~torchfilt.optim.CheckpointOptions` or the file's path (every
@@ -553,13 +558,15 @@ def fit_measurement_only(
         rule: cubature rule.
         method: ``"em"`` (:func:`fit_em`) or ``"likelihood"``
             (:func:`~torchfilt.training.fit_likelihood`).
-        learn_measurement_noise, m_step_iterations: of :func:`fit_em` (``"em"`` only).
+        learn_measurement_noise: of :func:`fit_em` (``"em"`` only).
+        m_step_iterations: of :func:`fit_em` (``"em"`` only).
 
     Returns:
         A :class:`MeasurementOnlyFit`.
 
     Raises:
-        GaugeError: no gauge (see :func:`check_gauge`); InputError: invalid arguments.
+        GaugeError: no gauge (see :func:`check_gauge`).
+        InputError: an invalid argument.
     """
     if method not in ("em", "likelihood"):
         raise InputError(f"method must be 'em' or 'likelihood', got {method!r}")

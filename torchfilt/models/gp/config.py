@@ -54,6 +54,10 @@ class GPConfig:
         constant_outputs: outputs whose (residual) target had no spread in the data, e.g. the
             increment of a constant parameter. They get no GP: their prediction is the base plus
             that constant, with zero variance.
+
+    Raises:
+        InputError: an unknown ``role``, ``kernel`` or ``structure``, ``increment`` with
+            ``prior_mean`` or for a measurement, or a non-positive size.
     """
 
     role: Role

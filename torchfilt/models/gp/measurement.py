@@ -29,6 +29,10 @@ class GPMeasurement(GPModel):
         >>> h = GPMeasurement.fit(x, y, inputs=[0], iterations=30, progress=False)
         >>> h.predict(x[:3]).var.shape
         torch.Size([3, 1])
+
+    Raises:
+        InputError: not one group per ``config`` group, or a ``prior_mean`` that does not match
+            ``config.prior_mean`` (build one with ``fit`` or ``from_state``).
     """
 
     role = "measurement"

@@ -79,6 +79,10 @@ class GPModel(ConditionalModel):
         input_std: standardiser of the features ``[x, u]``.
         target_std: standardiser of the residual targets.
         prior_mean: the nominal model, if ``config.prior_mean``.
+
+    Raises:
+        InputError: not one group per ``config`` group, or a ``prior_mean`` that does not match
+            ``config.prior_mean`` (see :meth:`attach_prior_mean`).
     """
 
     role: ClassVar[str] = ""
@@ -114,6 +118,10 @@ class GPModel(ConditionalModel):
         Args:
             prior_mean: ``fn(x, u)`` or ``fn(x)``, ``(..., n) -> (..., d)``, broadcasting over
                 leading dimensions; the same callable as at training time.
+
+        Raises:
+            InputError: ``prior_mean`` missing for a model trained with one, given for a model
+                trained without one, or not callable.
         """
         if prior_mean is None:
             if self.config.prior_mean:
@@ -300,6 +308,10 @@ class GPModel(ConditionalModel):
 
         Returns:
             The loss per iteration run (also appended to :attr:`history`).
+
+        Raises:
+            InputError: an optimizer other than Adam, an invalid rate or count, or an unknown
+                ``fixed`` name.
         """
         if iterations is None:
             iterations = _GP.iterations
@@ -360,6 +372,9 @@ class GPModel(ConditionalModel):
 
         Returns:
             ``self``. :attr:`variance_forms` tells which form each group got.
+
+        Raises:
+            InputError: an invalid ``variance``, ``rank``, ``tol`` or ``chunk_size``.
         """
         if variance not in ("exact", "lowrank", "auto"):
             raise InputError(f"variance must be 'auto', 'exact' or 'lowrank', got {variance!r}")
@@ -464,7 +479,17 @@ class GPModel(ConditionalModel):
     ) -> list[torch.nn.Parameter]:
         """The raw (constrained by GPyTorch) parameters of the likelihood noises (``"noise"``),
         or of the noises, lengthscales and outputscales (``"all"``); fixed noises excluded. The
-        mean constants are never included."""
+        mean constants are never included.
+
+        Args:
+            which: ``"noise"`` or ``"all"``.
+
+        Returns:
+            The parameters (each of any shape, as GPyTorch holds them).
+
+        Raises:
+            InputError: ``which`` is neither ``"noise"`` nor ``"all"``.
+        """
         if which not in ("noise", "all"):
             raise InputError(f"which must be 'noise' or 'all', got {which!r}")
         out = []
@@ -537,8 +562,16 @@ class GPModel(ConditionalModel):
         return Prediction(mean, out.var)
 
     def predict_mean(self, x: Tensor, u: Tensor | None = None) -> Tensor:
-        """The predictive mean alone, ``(..., P, d)``, equal to ``predict(x, u).mean``; a frozen
-        model skips the variance (for a low-rank or exact variance form, most of the work)."""
+        """The predictive mean alone, equal to ``predict(x, u).mean``; a frozen model skips the
+        variance (for a low-rank or exact variance form, most of the work).
+
+        Args:
+            x: states, shape ``(..., P, n)``.
+            u: inputs, shape ``(..., P, nu)`` (broadcastable), or ``None``, as in :meth:`predict`.
+
+        Returns:
+            The predictive mean, shape ``(..., P, d)``.
+        """
         if self.predictor is None:
             return self.predict(x, u).mean
         z = self._features(x, u)
@@ -553,8 +586,12 @@ class GPModel(ConditionalModel):
 
         Args:
             x: states, shape ``(..., P, n)``.
-            u: inputs, as in :meth:`predict`.
+            u: inputs, shape ``(..., P, nu)`` (broadcastable), or ``None``, as in :meth:`predict`.
             fast_pred_var: GPyTorch's default numerics with LOVE instead of the exact settings.
+
+        Returns:
+            The :class:`~torchfilt.models.Prediction`: mean ``(..., P, d)`` and variance
+            ``(..., P, d)`` (or covariance ``(..., P, d, d)`` for a multitask model).
         """
         z = self._features(x, u)
         out = self._gpytorch(z, fast_pred_var)
@@ -605,9 +642,9 @@ class GPModel(ConditionalModel):
         """Hyperparameters in target and input units (for logging).
 
         Returns:
-            ``noise (d,)`` (variance), ``noise_floor (d,)``; for independent/sparse outputs
-            ``outputscale (d,)`` (variance) and ``lengthscale.{j}`` per output ``j`` (one per
-            selected feature); for a multitask model ``task_covar (Q, d, d)`` and
+            ``noise`` ``(d,)`` (variance), ``noise_floor`` ``(d,)``; for independent/sparse
+            outputs ``outputscale`` ``(d,)`` (variance) and ``lengthscale.{j}`` per output ``j``
+            (one per selected feature); for a multitask model ``task_covar`` ``(Q, d, d)`` and
             ``lengthscale.{q}`` per latent kernel.
         """
         sc2 = self.target_std.scale.pow(2)
@@ -663,6 +700,10 @@ class GPModel(ConditionalModel):
 
         Returns:
             The model (frozen again if it was frozen when saved).
+
+        Raises:
+            InputError: ``state`` is not a dict written by :meth:`to_state` (or holds another
+                class), or ``prior_mean`` does not match the saved model.
         """
         if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
             raise InputError(f"state: expected a dict written by to_state() ({STATE_FORMAT})")

@@ -58,7 +58,9 @@ class FitState(NamedTuple):
     natural: tuple[torch.optim.Optimizer, ...] = ()
 
     def hyperparameters(self) -> dict[str, Tensor]:
-        """The model's current hyperparameters in target/input units (see ``GPModel.hyperparameters``)."""
+        """The model's current hyperparameters in target/input units (see
+        ``GPModel.hyperparameters``): ``noise`` ``(d,)``, ``noise_floor`` ``(d,)`` and the kernel
+        hyperparameters."""
         return dict(self.model.hyperparameters())
 
     def checkpoint(self) -> dict[str, Any]:

@@ -203,7 +203,18 @@ class FrozenGP(nn.Module):
         return cls(blocks, cache["fill_mean"], int(cache["out_dim"]), int(cache["chunk_size"]))
 
     def forward(self, z: Tensor) -> FrozenOutput:
-        """Predictive moments at features ``z`` ``(..., F)``; returns ``(..., d)`` tensors."""
+        """Predictive moments at features.
+
+        Args:
+            z: standardised features, shape ``(..., F)``.
+
+        Returns:
+            The predictive mean and variance, each of shape ``(..., d)`` (a multitask model
+            also gives the covariance ``(..., d, d)``).
+
+        Raises:
+            InputError: ``z`` is on another device than the model.
+        """
         if z.device != self.fill_mean.device:
             raise InputError(
                 f"x is on {z.device} but the GP model is on {self.fill_mean.device}; move one "
@@ -229,8 +240,18 @@ class FrozenGP(nn.Module):
         )
 
     def mean(self, z: Tensor) -> Tensor:
-        """The predictive mean alone at features ``z`` ``(..., F)``, ``(..., d)``: the same
-        numbers as ``forward(z).mean`` without the variance's work."""
+        """The predictive mean alone: the same numbers as ``forward(z).mean`` without the
+        variance's work.
+
+        Args:
+            z: standardised features, shape ``(..., F)``.
+
+        Returns:
+            The predictive mean, shape ``(..., d)``.
+
+        Raises:
+            InputError: ``z`` is on another device than the model.
+        """
         if z.device != self.fill_mean.device:
             raise InputError(
                 f"x is on {z.device} but the GP model is on {self.fill_mean.device}; move one "

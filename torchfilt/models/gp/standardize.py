@@ -21,6 +21,10 @@ class Standardizer(nn.Module):
         shift: per-column shift, shape ``(F,)``.
         scale: per-column positive scale, shape ``(F,)``.
         constant: per-column flag, shape ``(F,)``: the column had no spread in the data.
+
+    Raises:
+        InputError: ``shift`` and ``scale`` are not vectors of one shape, or ``scale`` is not
+            positive.
     """
 
     shift: Tensor
@@ -71,9 +75,23 @@ class Standardizer(nn.Module):
         return int(self.shift.shape[0])
 
     def forward(self, v: Tensor) -> Tensor:
-        """Standardise ``(..., F)``."""
+        """Standardise.
+
+        Args:
+            v: values, shape ``(..., F)``.
+
+        Returns:
+            ``(v - shift) / scale``, shape ``(..., F)``.
+        """
         return (v - self.shift) / self.scale
 
     def inverse(self, z: Tensor) -> Tensor:
-        """Undo :meth:`forward` on ``(..., F)``."""
+        """Undo :meth:`forward`.
+
+        Args:
+            z: standardised values, shape ``(..., F)``.
+
+        Returns:
+            ``z * scale + shift``, shape ``(..., F)``.
+        """
         return z * self.scale + self.shift

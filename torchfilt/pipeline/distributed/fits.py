@@ -61,10 +61,11 @@ def calibrate_ray(
     one before it), and the result equals an uninterrupted fit (tested).
 
     Args:
-        model, recordings, x0, P0, validation, iterations, optimizer, windows, stopping, dtype,
-        sides, inflate_only, gp: as in :func:`~torchfilt.training.calibrate` (``recordings`` a
-            list of recordings or a :class:`~torchfilt.training.likelihood.Sequences` whose
-            ``x0``/``P0`` are shared; the flat keywords of before warn as there).
+        model: the model to calibrate, as in :func:`~torchfilt.training.calibrate`.
+        recordings: a list of recordings or a
+            :class:`~torchfilt.training.likelihood.Sequences` whose ``x0``/``P0`` are shared.
+        x0: prior mean ``(n,)`` (or one per recording), as in :func:`~torchfilt.training.calibrate`.
+        P0: prior covariance ``(n, n)`` (or one per recording), as in :func:`~torchfilt.training.calibrate`.
         workers: Ray actors, one CPU each; the cluster must have that many free at once.
         address: Ray cluster (see :func:`ray_session`).
         callback: called in every actor's process after each iteration (its rank is
@@ -74,6 +75,15 @@ def calibrate_ray(
             :class:`~torchfilt.optim.CheckpointOptions` whose ``path`` is that folder (``None``:
             no checkpoints, and a lost worker means starting again); its ``resume=True``
             continues from the checkpoints in the folder.
+        validation: as in :func:`~torchfilt.training.calibrate`.
+        iterations: as in :func:`~torchfilt.training.calibrate`.
+        optimizer: as in :func:`~torchfilt.training.calibrate`.
+        windows: as in :func:`~torchfilt.training.calibrate`.
+        stopping: as in :func:`~torchfilt.training.calibrate` (the flat keywords of before warn as there).
+        dtype: as in :func:`~torchfilt.training.calibrate`.
+        sides: as in :func:`~torchfilt.training.calibrate`.
+        inflate_only: as in :func:`~torchfilt.training.calibrate`.
+        gp: as in :func:`~torchfilt.training.calibrate`.
         timeout: seconds a collective waits for the other actors before it fails (the longest
             one actor may compute between two collectives, e.g. filter its shard, must stay
             below it).
@@ -152,20 +162,34 @@ def fit_measurement_only_ray(
     and its gradient (any other), see :func:`~torchfilt.training.fit_em`.
 
     Args:
-        model, x0, P0, known_channels, validation, iterations, optimizer, windows, stopping,
-        dtype, method, learn_measurement_noise, m_step_iterations: as in
-            :func:`~torchfilt.training.fit_measurement_only` (the flat keywords of before warn
-            as there).
+        model: the model, as in :func:`~torchfilt.training.fit_measurement_only`.
         recordings: a :class:`~torchfilt.training.likelihood.Sequences` (``y``, ``u``; shared
             ``x0``/``P0``).
-        workers, address, callback, checkpoint, timeout, callback_on: as in
-            :func:`calibrate_ray`.
+        x0: prior mean ``(n,)`` or ``(..., n)``, as in :func:`~torchfilt.training.fit_measurement_only`.
+        P0: prior covariance ``(n, n)`` or ``(..., n, n)``, as in :func:`~torchfilt.training.fit_measurement_only`.
+        known_channels: as in :func:`~torchfilt.training.fit_measurement_only`.
+        workers: as in :func:`calibrate_ray`.
+        address: as in :func:`calibrate_ray`.
+        validation: as in :func:`~torchfilt.training.fit_measurement_only`.
+        iterations: as in :func:`~torchfilt.training.fit_measurement_only`.
+        optimizer: as in :func:`~torchfilt.training.fit_measurement_only`.
+        windows: as in :func:`~torchfilt.training.fit_measurement_only`.
+        stopping: as in :func:`~torchfilt.training.fit_measurement_only` (the flat keywords of before warn as there).
+        checkpoint: as in :func:`calibrate_ray`.
+        callback: as in :func:`calibrate_ray`.
+        dtype: as in :func:`~torchfilt.training.fit_measurement_only`.
+        method: as in :func:`~torchfilt.training.fit_measurement_only`.
+        learn_measurement_noise: as in :func:`~torchfilt.training.fit_measurement_only`.
+        m_step_iterations: as in :func:`~torchfilt.training.fit_measurement_only`.
+        timeout: as in :func:`calibrate_ray`.
+        callback_on: as in :func:`calibrate_ray`.
 
     Returns:
         Actor 0's :class:`~torchfilt.training.measurement_only.MeasurementOnlyFit`.
 
     Raises:
-        InputError: ``method`` not ``"em"`` or ``"likelihood"``; see :func:`calibrate_ray`.
+        MissingDependencyError: Ray is not installed.
+        InputError: ``method`` not ``"em"`` or ``"likelihood"``, or as in :func:`calibrate_ray`.
         WorkerError: an actor was lost.
     """
     if method not in ("em", "likelihood"):
