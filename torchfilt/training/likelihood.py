@@ -29,7 +29,10 @@ with the current parameters. ``x0`` may itself be a learnable tensor listed in `
 log-likelihood scaled by ``windows / per_iteration``: an unbiased estimate of the full objective
 and its gradient, at a fraction of the cost. The full objective is evaluated (without a graph)
 every ``full_every`` iterations and at the last one; those evaluations, recorded as
-``"objective"``, drive the stopping rules and the choice of the returned parameters.
+``"objective"``, drive the stopping rules and the choice of the returned parameters. In a
+data-parallel fit each process draws its subset from its own windows (the sum stays an unbiased
+estimate, but the steps differ from those of one process on all recordings; give
+``per_iteration=None`` for the same steps).
 """
 
 from __future__ import annotations
