@@ -65,6 +65,11 @@ def test_end_to_end_train_filter_evaluate(tmp_path, tiny_data, capsys):
     cal_lines = [r["iteration"] for r in lines if r["stage"] == "calibrate"]
     assert cal_lines == list(range(1, len(cal_lines) + 1)) and cal_lines
     assert "lengthscale" in " ".join(lines[0]["hyperparameters"])
+    # each stage logs its estimated remaining time once, after its first iterations
+    log_text = (run / "train.log").read_text()
+    for stage in ("transition", "measurement"):
+        estimates = [x for x in log_text.splitlines() if f"{stage}: about " in x]
+        assert len(estimates) == 1 and "s left at most" in estimates[0], stage
     dlog = json.loads((run / "dataset.json").read_text())
     assert len(dlog["fingerprint"]["files"]) == 6 and dlog["split"]["test"] == ["rec_005"]
     val = json.loads((run / "validation.json").read_text())

@@ -110,6 +110,39 @@ def _tensor_list(v: Tensor) -> Any:
     return v.item() if v.numel() == 1 else v.tolist()
 
 
+#: Iterations after which a stage logs its estimated remaining time.
+ESTIMATE_AFTER = 5
+
+
+class _StageClock:
+    """Logs, once, a stage's estimated remaining time: after :data:`ESTIMATE_AFTER` iterations
+    of this process (a resumed stage counts from where it resumed), at their mean rate."""
+
+    def __init__(self, stage: str, total: int, log: _Log) -> None:
+        self.stage, self.total, self.log = stage, int(total), log
+        self.first: tuple[int, float] | None = None
+        self.done = False
+
+    def tick(self, iteration: int, elapsed: float) -> None:
+        """Record iteration ``iteration`` ending ``elapsed`` seconds into the fit."""
+        if self.done:
+            return
+        if self.first is None:
+            self.first = (iteration, elapsed)
+            return
+        it0, t0 = self.first
+        if iteration - it0 < ESTIMATE_AFTER or iteration >= self.total:
+            return
+        self.done = True
+        rate = (elapsed - t0) / (iteration - it0)
+        left = rate * (self.total - iteration)
+        self.log(
+            f"{self.stage}: about {left:.0f} s left at most ({rate:.2g} s per iteration, "
+            f"{self.total - iteration} iterations to the budget; it stops earlier when it "
+            "converges)"
+        )
+
+
 class _Log:
     """Plain lines to ``train.log`` (always) and to the console when progress is off."""
 
@@ -215,6 +248,8 @@ def _fit_stage(
     every = r.checkpoint_every
     ckpt_path = out / "checkpoint.pt"
 
+    clock = _StageClock(stage, iterations, log)
+
     def callback(state: Any) -> None:
         hyper = {k: _tensor_list(v) for k, v in state.hyperparameters().items()}
         metrics.write(  # append-only log; a torn last line is dropped on resume
@@ -231,6 +266,7 @@ def _fit_stage(
         )
         metrics.flush()
         bar.update(state.iteration, f"loss {state.loss:.4g}")
+        clock.tick(state.iteration, state.elapsed)
         if state.iteration % every == 0 or state.iteration == state.iterations:
             _save(ckpt_path, {"stage": stage, "fit": state.checkpoint()})
             log(
@@ -407,6 +443,7 @@ def _fit_measurement_only_stage(
         f"inducing points, known channels {[ds.manifest.names('measurement')[i] for i in known]})"
     )
     bar = ProgressBar("train transition", iterations, stream, enabled=progress)
+    clock = _StageClock("transition", iterations, log)
     every = r.checkpoint_every
     try:
         metrics = open(out / "metrics.jsonl", "a", encoding="utf-8")
@@ -430,6 +467,7 @@ def _fit_measurement_only_stage(
         )
         metrics.flush()
         bar.update(state.iteration, f"loss {loss:.4g}")
+        clock.tick(state.iteration, state.elapsed)
         if state.iteration % every == 0 or state.iteration == state.iterations:
             log(
                 f"transition: iteration {state.iteration}/{state.iterations} loss {loss:.6g} (checkpoint)"
@@ -550,6 +588,7 @@ def _calibrate_stage(
     bar = ProgressBar("calibrate", iterations, stream, enabled=progress)
     every = r.checkpoint_every
     with open(out / "metrics.jsonl", "a", encoding="utf-8") as metrics:
+        clock = _StageClock("calibrate", iterations, log)
 
         def callback(state: Any) -> None:
             rec = {
@@ -562,6 +601,7 @@ def _calibrate_stage(
             metrics.write(json.dumps(rec) + "\n")
             metrics.flush()
             bar.update(state.iteration, f"-loglik/meas {state.loss:.4g}")
+            clock.tick(state.iteration, state.elapsed)
             if state.iteration % every == 0:
                 log(f"calibrate: iteration {state.iteration}/{iterations} loss {state.loss:.6g}")
 
