@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import replace
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -522,8 +522,12 @@ class _EMProblem:
         m_step_iterations: int,
         backtracks: int,
         fixed: frozenset[str] = frozenset(),
+        compile: Literal[False, "step", "loop"] = False,
     ) -> None:
         self.fixed = fixed
+        # one filter for the whole fit, so that a compiled one compiles once (the parameters
+        # change in place between runs and are inputs of the compiled graph)
+        self.ckf = None if lin is not None else CKF(model, rule=rule, compile=compile)
         self.model, self.lin, self.plist = model, lin, plist
         self.Y, self.U = recs.y, recs.u
         self.X0, self.C0 = recs.x0.detach(), recs.P0.detach()
@@ -561,7 +565,8 @@ class _EMProblem:
         """A non-linear model's filter log-likelihood (summed over the processes) and the CKF's
         result (a linear model's E-step smooths in one go: :meth:`e_step`)."""
         with torch.no_grad():
-            res = CKF(self.current(), rule=self.rule).filter(self.Y, self.U, x0=self.X0, P0=self.C0)
+            assert self.ckf is not None  # a linear model's E-step is exact: see e_step
+            res = self.ckf.filter(self.Y, self.U, x0=self.X0, P0=self.C0)
             ll = _summed(self.reduce, res.log_likelihood.sum())[0]
             return float(ll), res
 
