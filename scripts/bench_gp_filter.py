@@ -46,6 +46,7 @@ from _common import environment, table, timeit
 from torchfilt import CKF, StateSpaceModel
 from torchfilt.models import ConditionalModel, Prediction
 from torchfilt.models.gp import GPMeasurement, GPModel, GPTransition
+from torchfilt.pipeline.recipe import fit_options
 from torchfilt.systems import reentry
 
 DT = torch.float64
@@ -54,6 +55,8 @@ T = reentry.STEPS
 VAR_TOL = 0.05
 #: The product's training recipe.
 RECIPE = {"iterations": 150, "lr": 0.05, "subset": 1000}
+#: the recipe as the GP fits' keywords (``lr`` is the field of ``optimizer=``)
+FIT: dict[str, Any] = {"subset": RECIPE["subset"], **fit_options(RECIPE, "gp")}
 LOWRANKS = (32, 128, 512)
 #: the variance forms of the GPU filter rows, in order (``--gpu-forms``)
 GPU_FORMS = ["auto", "auto-float32", "lowrank-128", "lowrank-512", "sparse"]
@@ -105,11 +108,11 @@ def bench_size(S: int, args: argparse.Namespace, seq: Any) -> dict[str, Any]:
 
     # ---- training (product recipe), and per-iteration time of the full exact MLL
     t0 = time.perf_counter()
-    f = GPTransition.fit(rec.states, increment=True, progress=False, variance="exact", **RECIPE)
+    f = GPTransition.fit(rec.states, increment=True, progress=False, variance="exact", **FIT)
     t_f = time.perf_counter() - t0
     t0 = time.perf_counter()
     h = GPMeasurement.fit(
-        rec.states, rec.measurements, inputs=[0], progress=False, variance="exact", **RECIPE
+        rec.states, rec.measurements, inputs=[0], progress=False, variance="exact", **FIT
     )
     t_h = time.perf_counter() - t0
     full_iters = args.full_iters
@@ -343,9 +346,9 @@ def gpu_filter(args: argparse.Namespace) -> dict[str, Any]:
     out["device"] = torch.cuda.get_device_name() if dev == "cuda" else dev
     rec = reentry.record_training_data(S, seed=args.seed)
     t0 = time.perf_counter()
-    f = GPTransition.fit(rec.states, increment=True, progress=False, device=dev, **RECIPE)
+    f = GPTransition.fit(rec.states, increment=True, progress=False, device=dev, **FIT)
     h = GPMeasurement.fit(
-        rec.states, rec.measurements, inputs=[0], progress=False, device=dev, **RECIPE
+        rec.states, rec.measurements, inputs=[0], progress=False, device=dev, **FIT
     )
     _sync()
     out["train_seconds_f_and_h_gpu_float64"] = time.perf_counter() - t0

@@ -10,6 +10,7 @@ from reference import kalman_filter
 
 from torchfilt import CKF, StateSpaceModel
 from torchfilt.models.gp import GPMeasurement, GPTransition
+from torchfilt.optim import OptimizerOptions
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 __all__ = ["one_thread"]
@@ -55,8 +56,9 @@ def _linear_data(steps: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
 def linear_gps():
     torch.set_num_threads(1)
     states, meas = _linear_data(400, seed=0)
-    f = GPTransition.fit(states, iterations=60, lr=0.1, progress=False)
-    h = GPMeasurement.fit(states, meas, inputs=[0], iterations=60, lr=0.1, progress=False)
+    fit = dict(iterations=60, optimizer=OptimizerOptions("adam", lr=0.1), progress=False)
+    f = GPTransition.fit(states, **fit)
+    h = GPMeasurement.fit(states, meas, inputs=[0], **fit)
     return f, h
 
 
@@ -140,7 +142,10 @@ def test_filter_computes_the_law_of_total_variance(linear_gps, point_variance, s
 
 def test_multitask_gp_in_the_filter(linear_gps):
     states, _ = _linear_data(150, seed=3)
-    f = GPTransition.fit(states, structure="multitask", iterations=40, lr=0.1, progress=False)
+    f = GPTransition.fit(
+        states, structure="multitask", iterations=40, optimizer=OptimizerOptions("adam", lr=0.1),
+        progress=False,
+    )  # fmt: skip
     _, h = linear_gps
     _, y = _linear_data(20, seed=12)
     res = CKF(StateSpaceModel(f, h)).filter(

@@ -217,6 +217,49 @@ def test_signatures_show_one_spelling_per_idea(fit):
     assert inspect.unwrap(fit) is not fit  # the decorator keeps the signature of the fit
 
 
+def decorated_fits() -> list[Any]:
+    from torchfilt.models.gp import GPMeasurement, GPModel, GPTransition
+    from torchfilt.pipeline.distributed import calibrate_ray, fit_measurement_only_ray
+
+    fits = [fit_likelihood, calibrate, fit_em, fit_measurement_only, calibrate_ray]
+    fits += [fit_measurement_only_ray, GPModel.optimize, GPTransition.fit, GPMeasurement.fit]
+    return fits
+
+
+@pytest.mark.parametrize("fit", decorated_fits(), ids=lambda f: f.__qualname__)
+def test_an_unknown_keyword_is_an_input_error(fit):
+    """A misspelt keyword is refused before the fit runs (so no data are needed here), naming
+    it, the keyword it resembles and every valid one, instead of Python's ``TypeError``."""
+    params = inspect.signature(fit).parameters
+    valid = sorted(
+        name
+        for name, p in params.items()
+        if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY) and name not in ("self", "cls")
+    )
+    with pytest.raises(InputError) as err:
+        fit(None, None, iterationz=3)
+    message = str(err.value)
+    name = fit.__qualname__
+    assert message.startswith(f"{name}: unexpected keyword argument(s) ['iterationz']"), message
+    assert "did you mean iterations= for iterationz=?" in message
+    assert message.endswith(f"; valid: {valid}")
+    with pytest.raises(InputError, match=r"\['colour', 'shape'\]; valid"):
+        fit(None, None, colour=1, shape=2)  # nothing close: no hint
+
+
+def test_a_fit_with_var_keywords_is_not_checked():
+    """A decorated function that takes ``**`` passes every keyword through (its own business)."""
+    from torchfilt.optim import deprecated_fit_keywords
+
+    @deprecated_fit_keywords("likelihood")
+    def fit(y: Any, *, optimizer: Any = None, **rest: Any) -> dict[str, Any]:
+        return {"optimizer": optimizer, **rest}
+
+    assert fit(0, anything=1) == {"optimizer": None, "anything": 1}
+    with pytest.warns(DeprecationWarning, match="lr= is deprecated"):
+        assert fit(0, lr=0.5)["optimizer"] == OptimizerOptions(lr=0.5)
+
+
 def test_none_is_the_fits_default_and_strings_are_shortcuts():
     o = resolve_options("calibrate")
     assert o.iterations == DEFAULTS["calibrate"].iterations == 100

@@ -2,8 +2,9 @@
 
 The fits (:func:`~torchfilt.training.fit_likelihood`, :func:`~torchfilt.training.calibrate`,
 :func:`~torchfilt.training.fit_measurement_only`, :func:`~torchfilt.training.fit_em` and the GP
-hyperparameter training :meth:`~torchfilt.models.gp.GPModel.optimize`) take the same keywords
-for the same ideas: a flat ``iterations=`` (the fit's budget) and four groups of options, each a
+hyperparameter training :meth:`~torchfilt.models.gp.GPModel.optimize`, which the GP fits
+:meth:`~torchfilt.models.gp.GPTransition.fit` and :meth:`~torchfilt.models.gp.GPMeasurement.fit`
+run) take the same keywords for the same ideas: a flat ``iterations=`` (the fit's budget) and four groups of options, each a
 frozen dataclass here: ``optimizer=`` (:class:`OptimizerOptions`, or its name as a shortcut),
 ``windows=`` (:class:`WindowOptions`, the likelihood fits), ``stopping=``
 (:class:`StoppingOptions`) and ``checkpoint=`` (:class:`CheckpointOptions`, or its path as a
@@ -34,16 +35,17 @@ class's docstring (:func:`field_docs`).
 
 from __future__ import annotations
 
+import difflib
 import functools
 import inspect
 import math
 import re
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any, Literal, NamedTuple
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple, TypeVar
 
 from torchfilt.exceptions import InputError, InputTypeError
 
@@ -63,6 +65,9 @@ __all__ = [
     "field_docs",
     "resolve_options",
 ]
+
+#: A decorated fit (:func:`deprecated_fit_keywords` keeps its type).
+_F = TypeVar("_F", bound=Callable[..., Any])
 
 #: Largest accepted learning rate of the likelihood fits.
 MAX_LR = 100.0
@@ -485,31 +490,66 @@ def _fold_group(fit: str, group: str, current: Any, values: dict[str, Any], name
     return cls(**values)  # stopping, hooks: only what the caller gave counts as given
 
 
-def deprecated_fit_keywords(fit: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+def deprecated_fit_keywords(fit: str) -> Callable[[_F], _F]:
     """Decorate fit ``fit`` (a key of :data:`DEFAULTS`) so that its flat keywords of before the
     option groups (``lr=``, ``patience=``, ``window=``, ``checkpoint_every=``, ``params=``,
     ``project=``, ...) keep working for one release: each warns (``DeprecationWarning`` naming
     its new spelling) and is folded into its group before the call. Giving an old keyword with
-    its group (``lr=`` with ``optimizer=OptimizerOptions(...)``) is an ``InputError``. The
-    decorated function shows the fit's own signature (``help()``, the docs)."""
+    its group (``lr=`` with ``optimizer=OptimizerOptions(...)``) is an ``InputError``, and so is
+    a keyword the fit does not have (a misspelling: the message names it, the closest keyword
+    and every valid one, where Python would raise a ``TypeError``). The decorated function
+    shows the fit's own signature (``help()``, the docs) and keeps its type.
 
-    def decorate(func: Callable[..., Any]) -> Callable[..., Any]:
+    Raises:
+        InputError: (from the decorated fit) an unknown keyword, or an old keyword with its group.
+    """
+
+    def decorate(func: _F) -> _F:
         sig = inspect.signature(func)
         known = {k: v for k, v in _OLD_KEYWORDS.items() if v[0] in sig.parameters}
         known = {k: v for k, v in known.items() if k not in sig.parameters}
         name = func.__qualname__
+        keywords = _keyword_names(sig)
 
         @functools.wraps(func)
         def wrapper(*args: Any, **kwargs: Any) -> Any:
+            if keywords is not None:
+                _check_keywords(name, kwargs, keywords, known)
             old = [k for k in kwargs if k in known]
             if old:
                 _fold(fit, name, kwargs, old, known)
             return func(*args, **kwargs)
 
         wrapper.__signature__ = sig  # type: ignore[attr-defined]
-        return wrapper
+        return wrapper  # type: ignore[return-value]
 
     return decorate
+
+
+def _keyword_names(sig: inspect.Signature) -> frozenset[str] | None:
+    """The names a caller may pass by keyword (``None``: any, the function takes ``**``)."""
+    params = sig.parameters.values()
+    if any(p.kind is p.VAR_KEYWORD for p in params):
+        return None
+    kinds = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    return frozenset(p.name for p in params if p.kind in kinds and p.name not in ("self", "cls"))
+
+
+def _check_keywords(
+    func: str, kwargs: dict[str, Any], keywords: frozenset[str], old: Collection[str]
+) -> None:
+    """Refuse a keyword of ``kwargs`` that is neither one of ``keywords`` nor a deprecated one
+    (``old``), naming it, its closest keyword and every valid one."""
+    unknown = [k for k in kwargs if k not in keywords and k not in old]
+    if not unknown:
+        return
+    close = {k: difflib.get_close_matches(k, keywords, n=1) for k in unknown}
+    hints = "; ".join(f"did you mean {m[0]}= for {k}=?" for k, m in close.items() if m)
+    raise InputError(
+        f"{func}: unexpected keyword argument(s) {unknown}"
+        + (f" ({hints})" if hints else "")
+        + f"; valid: {sorted(keywords)}"
+    )
 
 
 def _fold(

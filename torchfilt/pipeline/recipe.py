@@ -69,8 +69,10 @@ HOLDOUT = 0.2
 STATES = ("logged", "none")
 
 
-def _gp_keys() -> tuple[Key, ...]:
-    return (
+def _gp_keys(role: str) -> tuple[Key, ...]:
+    """A GP side's keys: the keywords of ``GPTransition.fit`` or ``GPMeasurement.fit`` (by
+    ``role``) and their defaults (a test keeps them the signatures'); ``lr``: ``optimizer=``'s."""
+    keys = (
         Key(
             "model",
             "(a GP)",
@@ -96,7 +98,7 @@ def _gp_keys() -> tuple[Key, ...]:
         Key(
             "increment",
             "`false`",
-            "learn `x_{k+1} - x_k` instead of `x_{k+1}` (transition)",
+            "learn `x_{k+1} - x_k` instead of `x_{k+1}`",
             kind="bool",
         ),
         Key(
@@ -155,6 +157,7 @@ def _gp_keys() -> tuple[Key, ...]:
         Key("tol", "`0.05`", 'relative variance tolerance of `variance = "auto"`', kind="posfloat"),
         Key("chunk_size", "`128`", "points per kernel chunk in large batches", kind="posint"),
     )
+    return tuple(k for k in keys if role == "transition" or k.name != "increment")
 
 
 def _option_key(
@@ -228,9 +231,9 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
             "the dataset's `manifest.json` or its folder, relative to the recipe file",
         ),
     ),
-    "transition": _gp_keys(),
+    "transition": _gp_keys("transition"),
     "measurement": (
-        *_gp_keys(),
+        *_gp_keys("measurement"),
         Key(
             "R",
             "(required with an entry point)",
@@ -412,7 +415,7 @@ MEASUREMENT_ONLY_DEFAULTS: dict[str, Any] = {
 }
 
 
-#: Options passed through to ``GPTransition.fit`` / ``GPMeasurement.fit``.
+#: The GP options of a recipe: ``GPTransition.fit``'s keywords (``lr``: ``optimizer=``'s field).
 GP_OPTIONS = frozenset(k.name for k in RECIPE_SCHEMA["transition"] if k.name != "model")
 
 

@@ -26,7 +26,8 @@ from torchfilt.io.recording import Recording
 from torchfilt.models import CholeskyCovariance, InducingTransition, StateSpaceModel
 from torchfilt.optim import CheckpointOptions
 from torchfilt.pipeline.bundle import inducing_state, nominal_model
-from torchfilt.pipeline.recipe import Recipe, fit_options
+from torchfilt.pipeline.recipe import OPTION_KEYS, Recipe, fit_options
+from torchfilt.pipeline.recipe_options import option_default
 from torchfilt.pipeline.run_checks import STAGES, _feature_indices, _known_channels
 from torchfilt.training.calibrate import CalibrationResult, calibrate
 from torchfilt.training.measurement_only import MeasurementOnlyFit, fit_measurement_only
@@ -239,7 +240,7 @@ def _fit_stage(
         opts["prior_mean"] = nominal_model(pm)
     if "inputs" in opts:
         opts["inputs"] = _feature_indices(opts["inputs"], features, stage)
-    iterations = int(opts.get("iterations", 200))
+    iterations = int(opts.get("iterations", option_default("gp", "iterations")))
     bar = ProgressBar(f"train {stage}", iterations, stream, enabled=progress)
     try:
         metrics = open(out / "metrics.jsonl", "a", encoding="utf-8")
@@ -276,8 +277,9 @@ def _fit_stage(
     resume_from = ckpt["fit"] if ckpt is not None and ckpt.get("stage") == stage else None
     if resume_from is not None:
         log(f"{stage}: resuming from iteration {resume_from['iteration']}")
-    fit_opts = {
-        **opts,
+    fit_opts = {  # the keys of the recipe schema (RECIPE_SCHEMA): the fit's keywords, but lr
+        **{k: v for k, v in opts.items() if k not in OPTION_KEYS},
+        **fit_options(opts, "gp"),  # iterations, and optimizer= with the recipe's lr
         "seed": r.seed,
         "dtype": dtype,
         "progress": False,

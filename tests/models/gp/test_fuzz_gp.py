@@ -5,12 +5,15 @@ interpolate a noise-free constant target exactly. See tests/fuzz_support.py for 
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
 from fuzz_support import Refused, attempt, print_stats, property_tests
 from hypothesis import strategies as st
 
 from torchfilt.models.gp import GPMeasurement, GPTransition
+from torchfilt.optim import OptimizerOptions
 
 D = torch.float64
 #: a constant target is reproduced to round-off relative to its size
@@ -24,6 +27,16 @@ def check_gp(data: st.DataObject) -> None:
         _check_gp(data)
     finally:
         torch.set_num_threads(old)
+
+
+def at_rate(fit: Any) -> Any:
+    """``fit`` taking the Adam learning rate ``lr=`` (an invalid one is refused, by
+    ``OptimizerOptions`` or by the GP fit, inside the attempt)."""
+
+    def call(*args: Any, lr: float, **kwargs: Any) -> Any:
+        return fit(*args, optimizer=OptimizerOptions("adam", lr=lr), **kwargs)
+
+    return call
 
 
 _FAULTS = [None] * 8 + ["lr", "dtype", "huge x", "huge y", "inf", "few points", "missing"]
@@ -67,12 +80,12 @@ def _check_gp(data: st.DataObject) -> None:
     )
     xt, yt = torch.tensor(x, dtype=D), torch.tensor(y, dtype=D)
     if role == "measurement":
-        model, _ = attempt("GPMeasurement.fit", GPMeasurement.fit, xt, yt, **opts)
+        model, _ = attempt("GPMeasurement.fit", at_rate(GPMeasurement.fit), xt, yt, **opts)
     else:
         xn = xt + 0.1 * yt[:, :n] / yscale * xscale
         if fault in ("missing", "inf", "huge y"):
             xn = yt[:, :n]
-        model, _ = attempt("GPTransition.fit", GPTransition.fit, xt, None, xn, **opts)
+        model, _ = attempt("GPTransition.fit", at_rate(GPTransition.fit), xt, None, xn, **opts)
     if isinstance(model, Refused):
         # a clean problem is never refused (a missing measurement is allowed when each output
         # keeps enough observed rows)

@@ -11,6 +11,7 @@ from gp_support import DT, one_thread, query_points, smooth_data
 from torchfilt.exceptions import InputError, ModelError, ShapeError
 from torchfilt.models.gp import FitState, GPMeasurement, GPModel, GPTransition
 from torchfilt.models.gp.noise import GPYTORCH_FLOOR
+from torchfilt.optim import OptimizerOptions
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 __all__ = ["one_thread"]
@@ -34,7 +35,8 @@ def _range_sensor(S: int = 300, seed: int = 0) -> tuple[torch.Tensor, torch.Tens
 
 def test_noise_floor_from_data_recovers_small_sensor_noise():
     x, y = _range_sensor()
-    h = GPMeasurement.fit(x, y, inputs=[0], iterations=150, lr=0.1, progress=False)
+    adam = OptimizerOptions("adam", lr=0.1)
+    h = GPMeasurement.fit(x, y, inputs=[0], iterations=150, optimizer=adam, progress=False)
     sd = float(h.noise_variance.sqrt())
     assert abs(sd - 100.0) < NOISE_SD_RTOL * 100.0, sd
     floor_sd = float(torch.tensor(h.config.noise_floor).sqrt())

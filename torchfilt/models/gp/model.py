@@ -16,7 +16,6 @@ uses; before freezing, :meth:`GPModel.predict` calls GPyTorch (exact settings).
 
 from __future__ import annotations
 
-import inspect
 import numbers
 from collections.abc import Callable, Collection, Sequence
 from typing import Any, ClassVar, Literal
@@ -239,32 +238,6 @@ class GPModel(ConditionalModel):
         groups = make_groups(config, valid, z_all, y_all, floor, init, gen)
         return cls(config, groups, input_std, target_std, prior_mean)
 
-    @classmethod
-    def _fit(cls, pairs: PairData, options: dict[str, Any]) -> GPModel:
-        """Shared body of the ``fit`` class methods: build, train, freeze."""
-        train_keys: tuple[str, ...] = ("iterations", "lr", "natural_lr", "subset", "batch_size")
-        train_keys += ("optimizer", "callback", "progress", "resume")
-        freeze_keys = ("variance", "rank", "tol", "chunk_size")
-        train = {k: options.pop(k) for k in train_keys if k in options}
-        if "lr" in train:  # the flat ``lr`` of ``fit`` (and of a recipe's GP table)
-            train["optimizer"] = OptimizerOptions("adam", lr=_check_rate("lr", train.pop("lr")))
-        freeze = {k: options.pop(k) for k in freeze_keys if k in options}
-        seed = options.get("seed", 0)
-        device = options.pop("device", None)
-        known = set(inspect.signature(cls._from_pairs).parameters) - {"pairs"}
-        unknown = sorted(set(options) - known)
-        if unknown:
-            valid = sorted(known | set(train_keys) | set(freeze_keys) | {"device", "dtype"})
-            raise InputError(
-                f"{cls.__name__}.fit: unexpected keyword argument(s) {unknown}; valid: {valid}"
-            )
-        model = cls._from_pairs(pairs, **options)
-        if device is not None:
-            model.to(device)
-        model.optimize(seed=seed, **train)
-        model.freeze(**freeze)
-        return model
-
     # ------------------------------------------------------------------ training
     @deprecated_fit_keywords("gp")
     def optimize(
@@ -321,14 +294,13 @@ class GPModel(ConditionalModel):
             optimizer = OptimizerOptions(optimizer)  # type: ignore[arg-type]
         if not isinstance(optimizer, OptimizerOptions) or optimizer.optimizer != "adam":
             raise InputError(f"optimizer: a GP trains with Adam, got {optimizer!r}")
-        lr = _GP_LR if optimizer.lr is None else float(optimizer.lr)
+        lr = _GP_LR if optimizer.lr is None else _check_rate("lr", optimizer.lr)
         if (
             isinstance(iterations, bool)
             or not isinstance(iterations, numbers.Integral)
             or iterations < 0
         ):
             raise InputError(f"iterations must be a non-negative integer, got {iterations!r}")
-        _check_rate("lr", lr)
         _check_rate("natural_lr", natural_lr)
         if subset is not None and subset < MIN_POINTS:
             raise InputError(f"subset must be at least {MIN_POINTS}, got {subset}")
