@@ -43,7 +43,6 @@ from torchfilt.optim import OptimizerOptions, StoppingOptions, WindowOptions
 from torchfilt.pipeline import calibrate_ray, fit_measurement_only_ray
 from torchfilt.pipeline.distributed import ray_session
 from torchfilt.systems import pendulum
-from torchfilt.training.likelihood import Sequences
 
 DT = torch.float64
 A = torch.tensor([[0.8, 0.4], [-0.4, 0.6]], dtype=DT)
@@ -96,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
         pendulum.model(qc=30.0, R=0.001), T, x0p, batch_shape=(R,),
         generator=torch.Generator().manual_seed(0),
     )  # fmt: skip
-    cal_seqs = Sequences(sim.measurements)
+    cal_y = sim.measurements
     cal_kw: dict[str, Any] = dict(
         x0=x0p, P0=0.1 * torch.eye(2, dtype=DT), sides=("transition",),
         windows=WindowOptions(window=100, burn_in=20), iterations=its,
@@ -111,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def local(kind: str) -> tuple[Any, list[dict[str, Any]], float]:
         if kind == "calibrate":
-            res: Any = torchfilt.calibrate(pendulum.model(R=0.001), cal_seqs, **cal_kw)
+            res: Any = torchfilt.calibrate(pendulum.model(R=0.001), cal_y, **cal_kw)
             return res, res.fit.history, res.fit.log_likelihood
         if kind == "em linear":
             res = torchfilt.fit_measurement_only(linear_model(), y, iterations=its, **em_kw)
@@ -123,15 +122,15 @@ def main(argv: list[str] | None = None) -> int:
 
     def on_ray(kind: str, workers: int) -> tuple[Any, list[dict[str, Any]], float]:
         if kind == "calibrate":
-            res: Any = calibrate_ray(pendulum.model(R=0.001), cal_seqs, workers=workers, **cal_kw)
+            res: Any = calibrate_ray(pendulum.model(R=0.001), cal_y, workers=workers, **cal_kw)
             return res, res.fit.history, res.fit.log_likelihood
         if kind == "em linear":
             res = fit_measurement_only_ray(
-                linear_model(), Sequences(y), workers=workers, iterations=its, **em_kw
+                linear_model(), y, workers=workers, iterations=its, **em_kw
             )
         else:
             res = fit_measurement_only_ray(
-                gp_model(), Sequences(y_gp), workers=workers, iterations=args.gp_iterations,
+                gp_model(), y_gp, workers=workers, iterations=args.gp_iterations,
                 m_step_iterations=5, **em_kw,
             )  # fmt: skip
         return res, res.history, res.log_likelihood

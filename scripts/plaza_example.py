@@ -584,9 +584,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         optimizer=OptimizerOptions(lr=args.cal_lr),
         progress=args.progress,
     )
-    cal = torchfilt.calibrate(
-        model_gp, torchfilt.training.Sequences(train.measurements[1:], train.inputs[:-1]), **cal_kw
-    )
+    cal = torchfilt.calibrate(model_gp, train.measurements[1:], train.inputs[:-1], **cal_kw)
     models["learned CKF, calibrated"] = cal.model
     timings["calibrate learned filter"] = time.perf_counter() - t0
     if args.cal_gp != "none":
@@ -602,7 +600,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         )
         cal_gp = torchfilt.calibrate(
             model_gp,
-            torchfilt.training.Sequences(train.measurements[1 : k + 1], train.inputs[:k]),
+            train.measurements[1 : k + 1],
+            train.inputs[:k],
             validation=held_out,
             gp=args.cal_gp,
             **cal_kw,

@@ -199,7 +199,8 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     cal = torchfilt.calibrate(
         learned,
-        torchfilt.training.Sequences(train["y"], train["u"]),
+        train["y"],
+        train["u"],
         x0=train["x"][:, 0],
         P0=(P0_SD**2) * torch.eye(N, dtype=DT),
         iterations=CAL_ITERATIONS,
@@ -213,7 +214,8 @@ def main(argv: list[str] | None = None) -> int:
     dx0, dP0 = drifting.prior(train["x"][:, 0], (P0_SD**2) * torch.eye(N, dtype=DT))
     cal_d = torchfilt.calibrate(
         drifting,
-        torchfilt.training.Sequences(train["y"], train["u"]),
+        train["y"],
+        train["u"],
         x0=dx0,
         P0=dP0,
         iterations=CAL_ITERATIONS,

@@ -116,7 +116,7 @@ def calibrated_variant(
     t0 = time.perf_counter()
     cal = torchfilt.calibrate(
         model,
-        torchfilt.training.Sequences(cal_y),
+        cal_y,
         x0=torch.tensor(reentry.PRIOR_MEAN, dtype=torch.float64),
         P0=reentry.prior_cov(),
         iterations=args.cal_iterations,

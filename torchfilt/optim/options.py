@@ -462,6 +462,8 @@ _OLD_KEYWORDS: dict[str, tuple[str, str | None]] = {
     "project": ("hooks", "project"),
     "prepare": ("hooks", "prepare"),
     "all_reduce": ("hooks", "all_reduce"),
+    # the fits' data is ``y`` everywhere (calibrate took ``recordings``)
+    "recordings": ("y", None),
 }
 _GROUP_CLASS: dict[str, type] = {
     "optimizer": OptimizerOptions,

@@ -40,12 +40,8 @@ from torchfilt.optim import (
     deprecated_fit_keywords,
     resolve_options,
 )
-from torchfilt.training.likelihood import (
-    LikelihoodFit,
-    LikelihoodState,
-    Sequences,
-    _fit_likelihood,
-)
+from torchfilt.training.data import FitData, as_sequences
+from torchfilt.training.likelihood import LikelihoodFit, LikelihoodState, _fit_likelihood
 
 __all__ = [
     "CalibrationResult",
@@ -127,32 +123,16 @@ def _refit_copy(side: ConditionalModel, name: str) -> Any:
     return copy.deepcopy(side)
 
 
-def _sequences(data: Sequence[Recording] | Sequences, name: str) -> tuple[Any, Any, Any, Any]:
-    """``(y, u, x0, P0)`` from recordings (first row = prior time) or a :class:`Sequences`."""
-    if isinstance(data, Sequences):
-        return data.y, data.u, data.x0, data.P0
-    recs = list(data)
-    if not recs:
-        raise InputError(f"{name}: no recordings given")
-    for r in recs:
-        if not isinstance(r, Recording):
-            raise InputError(f"{name}: expected Recording objects, got {type(r).__name__}")
-        if len(r) < 2:
-            raise InputError(f"{name}: {r.path}: needs at least 2 rows (row 0 is the prior's time)")
-    ys = [r.measurements[1:] for r in recs]
-    us = None if recs[0].inputs is None else [r.inputs[:-1] for r in recs]  # type: ignore[index]
-    return ys, us, None, None
-
-
 @deprecated_fit_keywords("calibrate")
 def calibrate(
     model: StateSpaceModel,
-    recordings: Sequence[Recording] | Sequences,
+    y: FitData,
+    u: Tensor | Sequence[Tensor] | None = None,
     *,
     x0: Tensor,
     P0: Tensor,
     fixed: Collection[str] = (),
-    validation: Sequence[Recording] | Sequences | None = None,
+    validation: FitData | None = None,
     iterations: int | None = None,
     optimizer: OptimizerOptions | Literal["adam", "lbfgs"] | None = None,
     windows: WindowOptions | None = None,
@@ -179,20 +159,26 @@ def calibrate(
     are fitted; the other side is left as it is.
 
     The flat keywords of before (``window``, ``burn_in``, ``lr``, ``patience``, ``rtol``,
-    ``rtol_window``, ``checkpoint_every``, ``resume``, ``all_reduce``) still work for one
-    release, with a ``DeprecationWarning`` naming their new spelling.
+    ``rtol_window``, ``checkpoint_every``, ``resume``, ``all_reduce``) and ``recordings=`` (now
+    ``y``) still work for one release, with a ``DeprecationWarning`` naming their new spelling.
 
     Args:
         model: the model to calibrate (typically GP transition and measurement). It is not
             modified; the result shares its base models.
-        recordings: training recordings (row 0 is each one's prior time, as in
+        y: the training data, as every fit takes it (:mod:`torchfilt.training.data`):
+            measurements ``(..., T, m)``, a list of ``(T_i, m)``, a
+            :class:`~torchfilt.training.data.Sequences`, or a list of
+            :class:`~torchfilt.io.Recording` (row 0 is each one's prior time, as in
             :func:`~torchfilt.pipeline.filter_recordings`: ``y = measurements[1:]``,
-            ``u = inputs[:-1]``), or a :class:`~torchfilt.training.likelihood.Sequences` of tensors.
-        x0: prior mean ``(n,)`` (or one per recording).
-        P0: prior covariance ``(n, n)`` (or one per recording).
+            ``u = inputs[:-1]``).
+        u: inputs ``(..., T, nu)``, a list of ``(T_i, nu)``, or ``None`` (``None`` when ``y`` is
+            a ``Sequences`` or recordings, which carry their own).
+        x0: prior mean ``(n,)`` (or one per recording ``(..., n)``; a ``Sequences``' own
+            ``x0``, when given, is used instead).
+        P0: prior covariance ``(n, n)`` (or one per recording ``(..., n, n)``; likewise).
         fixed: names of parameters of the calibrated model (``result.model.named_parameters()``,
             e.g. ``"transition.log_scale"``) held fixed; an unknown name is an ``InputError``.
-        validation: held-out recordings for early stopping (optional).
+        validation: held-out data for early stopping (optional), of any kind ``y`` accepts.
         iterations: iteration budget (default 100).
         optimizer: :class:`~torchfilt.optim.OptimizerOptions` or its name (default Adam on the
             log parameters, ``lr`` 0.1).
@@ -235,13 +221,18 @@ def calibrate(
         A :class:`CalibrationResult`.
 
     Raises:
-        InputError: an invalid argument (an unknown side, ``gp`` value or fixed name).
+        InputError: an invalid argument (an unknown side, ``gp`` value or fixed name, or ``u``
+            given with a ``Sequences`` or recordings).
         ShapeError: ``x0`` or ``P0`` does not match the model's state dimension.
     """
     _check_options(model, sides, gp)
     check_compute_dtype(dtype)  # before the model is converted to it
-    y, u, x0, P0, val = _data(recordings, validation, x0, P0, dtype)
-    check_model_input(model, u)  # the calibrated wrapper no longer says what the model takes
+    data = as_sequences(y, u, x0=x0, P0=P0)
+    y, u = data.y, data.u
+    x0 = torch.as_tensor(data.x0, dtype=dtype)
+    P0 = torch.as_tensor(data.P0, dtype=dtype)
+    # the calibrated wrapper no longer says what the model takes
+    check_model_input(model, u if u is None or isinstance(u, Tensor) else next(iter(u), None))
     n = model.state_dim
     if x0.dim() < 1 or x0.shape[-1] != n:
         raise ShapeError(f"x0: expected shape (..., n) with n = {n}, got {tuple(x0.shape)}")
@@ -285,9 +276,9 @@ def calibrate(
         o = o._replace(windows=replace(o.windows, per_iteration=None))
     try:
         fit = _fit_likelihood(
-            cal.model, y, u, x0=x0, P0=P0, parameters=cal.params, fixed=fixed, validation=val,
-            options=o, progress=progress, callback=callback, dtype=dtype, sqrt=sqrt, rule=None,
-            compile=compile,
+            cal.model, y, u, x0=x0, P0=P0, parameters=cal.params, fixed=fixed,
+            validation=validation, options=o, progress=progress, callback=callback, dtype=dtype,
+            sqrt=sqrt, rule=None, compile=compile,
         )  # fmt: skip
     finally:
         for p in frozen:
@@ -311,27 +302,6 @@ def _check_options(model: StateSpaceModel, sides: Sequence[str], gp: str) -> Non
         raise InputError(f"sides: expected 'transition' and/or 'measurement', got {list(sides)}")
     if gp not in ("none", "noise", "all"):
         raise InputError(f"gp: expected 'none', 'noise' or 'all', got {gp!r}")
-
-
-def _data(
-    recordings: Sequence[Recording] | Sequences,
-    validation: Sequence[Recording] | Sequences | None,
-    x0: Tensor,
-    P0: Tensor,
-    dtype: torch.dtype,
-) -> tuple[Any, Any, Tensor, Tensor, Sequences | None]:
-    """The training sequences ``y, u``, the prior in ``dtype`` (a recording's own prior first) and
-    the held-out :class:`Sequences` (or None)."""
-    y, u, rx0, rP0 = _sequences(recordings, "recordings")
-    x0 = x0 if rx0 is None else rx0
-    P0 = P0 if rP0 is None else rP0
-    x0 = torch.as_tensor(x0, dtype=dtype)
-    P0 = torch.as_tensor(P0, dtype=dtype)
-    val = None
-    if validation is not None:
-        vy, vu, vx0, vP0 = _sequences(validation, "validation")
-        val = Sequences(vy, vu, x0 if vx0 is None else vx0, P0 if vP0 is None else vP0)
-    return y, u, x0, P0, val
 
 
 class _Calibrated(NamedTuple):
@@ -363,7 +333,7 @@ def _calibrated_model(
     m0 = x0.reshape(-1, model.state_dim)[:1, :n]  # the prior mean of the first recording, (1, n)
     u0 = None
     if u is not None:
-        first_u = u[0] if isinstance(u, list) else u.reshape(-1, u.shape[-2], u.shape[-1])[0]
+        first_u = u.reshape(-1, u.shape[-2], u.shape[-1])[0] if isinstance(u, Tensor) else u[0]
         u0 = first_u[:1].to(dtype)
 
     refit: dict[str, Any] = {}

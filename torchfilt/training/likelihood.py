@@ -76,6 +76,7 @@ from torchfilt.optim import (
     restore,
     snapshot,
 )
+from torchfilt.training.data import FitData, Sequences, as_sequences
 from torchfilt.training.windows import _Windows, window_data, window_subset
 
 __all__ = [
@@ -112,24 +113,6 @@ def step_log_likelihood(res: FilterResult) -> Tensor:
 
 
 # ----------------------------------------------------------------------------------- data
-class Sequences(NamedTuple):
-    """Recordings given as tensors: training data of :func:`~torchfilt.training.calibrate`, or
-    held-out data for early stopping (filtered whole, every step counted).
-
-    Attributes:
-        y: measurements ``(..., T, m)`` or a list of ``(T_i, m)``; NaN is missing.
-        u: inputs ``(..., T, nu)``, a list, or ``None``.
-        x0: prior means ``(..., n)`` or ``(n,)``; ``None``: the training ``x0`` when it is one
-            shared ``(n,)``.
-        P0: prior covariances ``(..., n, n)``; ``None``: the training ``P0`` likewise.
-    """
-
-    y: Tensor | Sequence[Tensor]
-    u: Tensor | Sequence[Tensor] | None = None
-    x0: Tensor | None = None
-    P0: Tensor | None = None
-
-
 class _Recs(NamedTuple):
     y: Tensor  # (R, T, m), NaN-padded
     u: Tensor | None  # (R, T, nu), zero-padded
@@ -199,8 +182,8 @@ def _recordings(
     model: StateSpaceModel,
     y: Tensor | Sequence[Tensor],
     u: Tensor | Sequence[Tensor] | None,
-    x0: Tensor,
-    P0: Tensor,
+    x0: Tensor | None,
+    P0: Tensor | None,
     dtype: torch.dtype,
     prefix: str = "",
 ) -> _Recs:
@@ -309,14 +292,14 @@ class LikelihoodFit:
 @deprecated_fit_keywords("likelihood")
 def fit_likelihood(
     model: StateSpaceModel,
-    y: Tensor | Sequence[Tensor],
+    y: FitData,
     u: Tensor | Sequence[Tensor] | None = None,
     *,
     x0: Tensor,
     P0: Tensor,
     parameters: Iterable[nn.Parameter] | None = None,
     fixed: Collection[str] = (),
-    validation: Sequences | None = None,
+    validation: FitData | None = None,
     iterations: int | None = None,
     optimizer: OptimizerOptions | Literal["adam", "lbfgs"] | None = None,
     windows: WindowOptions | None = None,
@@ -345,11 +328,15 @@ def fit_likelihood(
         model: the state-space model; converted to ``dtype`` in place. It ends holding the best
             parameters found (by held-out likelihood when ``validation`` is given, else by
             training likelihood).
-        y: measurements ``(..., T, m)`` (a batch of recordings) or a list of ``(T_i, m)`` of
-            different lengths. NaN marks a missing component.
-        u: inputs ``(..., T, nu)``, a list of ``(T_i, nu)``, or ``None``.
-        x0: prior mean ``(n,)`` shared, or one per recording ``(..., n)``.
-        P0: prior covariance ``(n, n)`` or one per recording ``(..., n, n)``.
+        y: measurements ``(..., T, m)`` (a batch of recordings), a list of ``(T_i, m)`` of
+            different lengths, a :class:`~torchfilt.training.data.Sequences`, or a list of
+            :class:`~torchfilt.io.Recording` (row 0 the prior's time; see
+            :mod:`torchfilt.training.data`). NaN marks a missing component.
+        u: inputs ``(..., T, nu)``, a list of ``(T_i, nu)``, or ``None`` (``None`` when ``y`` is
+            a ``Sequences`` or recordings, which carry their own).
+        x0: prior mean ``(n,)`` shared, or one per recording ``(..., n)`` (a ``Sequences``' own
+            ``x0``, when given, is used instead).
+        P0: prior covariance ``(n, n)`` or one per recording ``(..., n, n)`` (likewise).
         parameters: the parameters to fit (default: every parameter of ``model`` with
             ``requires_grad``). Positive-definite ``Q``/``R`` and bounded constants come from
             :mod:`torchfilt.models.params`: ``DiagonalCovariance`` (log-diagonal),
@@ -358,7 +345,8 @@ def fit_likelihood(
         fixed: names of parameters held fixed, as ``model.named_parameters()`` gives them
             (e.g. ``"transition.A"``): they are left out of the fit and end bit-identical; an
             unknown name is an :class:`~torchfilt.exceptions.InputError`.
-        validation: held-out recordings for early stopping.
+        validation: held-out data for early stopping, of any kind ``y`` accepts (a
+            ``Sequences`` to give inputs or its own prior; without one, the training prior).
         iterations: iteration budget (default 200; an L-BFGS iteration runs up to
             ``max_iter`` inner steps).
         optimizer: the optimiser, :class:`~torchfilt.optim.OptimizerOptions` or its name
@@ -417,14 +405,14 @@ def fit_likelihood(
 
 def _fit_likelihood(
     model: StateSpaceModel,
-    y: Tensor | Sequence[Tensor],
+    y: FitData,
     u: Tensor | Sequence[Tensor] | None,
     *,
     x0: Tensor,
     P0: Tensor,
     parameters: Iterable[nn.Parameter] | None,
     fixed: Collection[str],
-    validation: Sequences | None,
+    validation: FitData | None,
     options: FitOptions,
     progress: bool,
     callback: Callable[[LikelihoodState], bool | None] | None,
@@ -448,17 +436,17 @@ def _fit_likelihood(
     if dtype not in (torch.float32, torch.float64):
         raise InputError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
     model.to(dtype)
-    recs = _recordings(model, y, u, x0, P0, dtype)
+    data = as_sequences(y, u, x0=x0, P0=P0)
+    recs = _recordings(model, data.y, data.u, data.x0, data.P0, dtype)
     plist = free_parameters(model, parameters, fixed, what="parameters")
     val = None
     if validation is not None:
-        vx0 = recs.x0[0] if validation.x0 is None else validation.x0
-        vP0 = recs.P0[0] if validation.P0 is None else validation.P0
-        val = _recordings(model, validation.y, validation.u, vx0, vP0, dtype, "validation.")
+        v = as_sequences(validation, x0=recs.x0[0], P0=recs.P0[0], name="validation")
+        val = _recordings(model, v.y, v.u, v.x0, v.P0, dtype, "validation.")
         if int(torch.isfinite(val.y).sum()) == 0:
             raise InputError("validation.y: no measurement observed")
     obj = _Objective(
-        model, recs, val, x0, o.windows, CKF(model, rule=rule, sqrt=sqrt, compile=compile),
+        model, recs, val, data.x0, o.windows, CKF(model, rule=rule, sqrt=sqrt, compile=compile),
         o.hooks.prepare, o.hooks.all_reduce,
     )  # fmt: skip
     return _run(obj, plist, o, callback, progress)
@@ -473,7 +461,7 @@ class _Objective:
         model: StateSpaceModel,
         recs: _Recs,
         val: _Recs | None,
-        x0: Tensor,
+        x0: Tensor | None,
         options: WindowOptions,
         filt: CKF,
         prepare: Callable[[], None] | None,

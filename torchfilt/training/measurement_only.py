@@ -85,6 +85,7 @@ from torchfilt.optim import (
     free_parameters,
     resolve_options,
 )
+from torchfilt.training.data import FitData, as_sequences
 from torchfilt.training.em_steps import (
     SmoothedPairs,
     _EMProblem,
@@ -96,7 +97,6 @@ from torchfilt.training.em_steps import (
 from torchfilt.training.likelihood import (
     LikelihoodFit,
     LikelihoodState,
-    Sequences,
     _fit_likelihood,
     _recordings,
 )
@@ -305,7 +305,7 @@ class MeasurementOnlyFit:
 @deprecated_fit_keywords("em")
 def fit_em(
     model: StateSpaceModel,
-    y: Tensor | Sequence[Tensor],
+    y: FitData,
     u: Tensor | Sequence[Tensor] | None = None,
     *,
     x0: Tensor,
@@ -339,11 +339,16 @@ def fit_em(
             ``R``; any other model gets L-BFGS steps on the expected complete-data
             log-likelihood over its parameters with ``requires_grad`` (measurement-map
             parameters of known channels are refused by :func:`check_gauge`).
-        y: measurements ``(..., T, m)`` or a list of ``(T_i, m)``; NaN is missing. The
-            closed-form ``R`` and ``H`` updates use the steps with every component observed.
-        u: inputs ``(..., T, nu)``, a list, or ``None``.
-        x0: prior mean ``(n,)`` or one per recording ``(..., n)`` (fixed).
-        P0: prior covariance ``(n, n)`` or ``(..., n, n)`` (fixed).
+        y: measurements ``(..., T, m)``, a list of ``(T_i, m)``, a
+            :class:`~torchfilt.training.data.Sequences`, or a list of
+            :class:`~torchfilt.io.Recording` (row 0 the prior's time; see
+            :mod:`torchfilt.training.data`); NaN is missing. The closed-form ``R`` and ``H``
+            updates use the steps with every component observed.
+        u: inputs ``(..., T, nu)``, a list of ``(T_i, nu)``, or ``None`` (``None`` when ``y``
+            is a ``Sequences`` or recordings, which carry their own).
+        x0: prior mean ``(n,)`` or one per recording ``(..., n)`` (fixed; a ``Sequences``' own
+            ``x0``, when given, is used instead).
+        P0: prior covariance ``(n, n)`` or ``(..., n, n)`` (fixed; likewise).
         known_channels: the gauge: measurement channels whose map is known (at least one).
         fixed: blocks held fixed. For the closed-form M-step the matrices ``"A"``, ``"B"``,
             ``"Q"``, ``"H"``, ``"R"`` (a fixed block keeps its value exactly; the free ones take
@@ -423,7 +428,8 @@ def fit_em(
     model.to(dtype)
     known = check_gauge(model, known_channels)
     rule = SphericalRadialRule() if rule is None else rule
-    recs = _recordings(model, y, u, x0, P0, dtype)
+    data = as_sequences(y, u, x0=x0, P0=P0)
+    recs = _recordings(model, data.y, data.u, data.x0, data.P0, dtype)
     Y = recs.y
     reduce = None if all_reduce is None else _Reducer(all_reduce)
     # the steps of each recording (a shorter one is NaN-padded: those steps are no transitions)
@@ -506,14 +512,14 @@ def fit_em(
 @deprecated_fit_keywords("measurement_only")
 def fit_measurement_only(
     model: StateSpaceModel,
-    y: Tensor | Sequence[Tensor],
+    y: FitData,
     u: Tensor | Sequence[Tensor] | None = None,
     *,
     x0: Tensor,
     P0: Tensor,
     known_channels: Sequence[int] | None,
     fixed: Collection[str] = (),
-    validation: Sequences | None = None,
+    validation: FitData | None = None,
     iterations: int | None = None,
     optimizer: OptimizerOptions | Literal["adam", "lbfgs"] | None = None,
     windows: WindowOptions | None = None,
@@ -541,14 +547,20 @@ def fit_measurement_only(
             ``requires_grad`` (a GP transition such as
             :class:`~torchfilt.models.InducingTransition`, learnable ``Q``/``R`` from
             :mod:`torchfilt.models.params`).
-        y: measurements ``(..., T, m)`` or a list of ``(T_i, m)``; NaN is missing.
-        u: inputs ``(..., T, nu)``, a list, or ``None``.
-        x0: prior mean ``(n,)`` or ``(..., n)``.
-        P0: prior covariance ``(n, n)`` or ``(..., n, n)``.
+        y: measurements ``(..., T, m)``, a list of ``(T_i, m)``, a
+            :class:`~torchfilt.training.data.Sequences`, or a list of
+            :class:`~torchfilt.io.Recording` (row 0 the prior's time; see
+            :mod:`torchfilt.training.data`); NaN is missing.
+        u: inputs ``(..., T, nu)``, a list of ``(T_i, nu)``, or ``None`` (``None`` when ``y``
+            is a ``Sequences`` or recordings, which carry their own).
+        x0: prior mean ``(n,)`` or ``(..., n)`` (a ``Sequences``' own ``x0``, when given, is
+            used instead).
+        P0: prior covariance ``(n, n)`` or ``(..., n, n)`` (likewise).
         known_channels: the gauge (see :func:`check_gauge`).
         fixed: the parameters held fixed (see :func:`fit_em` and
             :func:`~torchfilt.training.fit_likelihood`).
-        validation: held-out recordings for early stopping (``"likelihood"`` only).
+        validation: held-out data for early stopping (``"likelihood"`` only), of any kind ``y``
+            accepts.
         iterations: EM iterations, or optimiser iterations (default 30).
         optimizer: of :func:`~torchfilt.training.fit_likelihood` (``"likelihood"`` only;
             default L-BFGS).

@@ -47,11 +47,11 @@ def _measurement_only_stage_ray(
     (``y`` and ``u`` lists of ``(T_i, m)`` / ``(T_i, nu)``), the callback on the driver:
     the ``measurement_only`` fitter of :func:`train_recipe_data_parallel`. ``progress`` is
     ignored (the stage draws its own from the callback)."""
-    from torchfilt.training.likelihood import Sequences
+    from torchfilt.training.data import as_sequences
 
     return fit_measurement_only_ray(
         model,
-        Sequences(y, u),
+        as_sequences(y, u),
         x0=x0,
         P0=P0,
         known_channels=known_channels,

@@ -62,8 +62,10 @@ def calibrate_ray(
 
     Args:
         model: the model to calibrate, as in :func:`~torchfilt.training.calibrate`.
-        recordings: a list of recordings or a
-            :class:`~torchfilt.training.likelihood.Sequences` whose ``x0``/``P0`` are shared.
+        recordings: the training data, any kind :func:`~torchfilt.training.calibrate`'s ``y``
+            takes (:mod:`torchfilt.training.data`: a list of recordings, a
+            :class:`~torchfilt.training.data.Sequences` whose ``x0``/``P0`` are shared, ...),
+            dealt to the actors by recording.
         x0: prior mean ``(n,)`` (or one per recording), as in :func:`~torchfilt.training.calibrate`.
         P0: prior covariance ``(n, n)`` (or one per recording), as in :func:`~torchfilt.training.calibrate`.
         workers: Ray actors, one CPU each; the cluster must have that many free at once.
@@ -163,8 +165,11 @@ def fit_measurement_only_ray(
 
     Args:
         model: the model, as in :func:`~torchfilt.training.fit_measurement_only`.
-        recordings: a :class:`~torchfilt.training.likelihood.Sequences` (``y``, ``u``; shared
-            ``x0``/``P0``).
+        recordings: the training data, any kind
+            :func:`~torchfilt.training.fit_measurement_only`'s ``y`` takes
+            (:mod:`torchfilt.training.data`: a :class:`~torchfilt.training.data.Sequences` of
+            ``y``, ``u`` and shared ``x0``/``P0``, a list of recordings, ...), dealt to the
+            actors by recording.
         x0: prior mean ``(n,)`` or ``(..., n)``, as in :func:`~torchfilt.training.fit_measurement_only`.
         P0: prior covariance ``(n, n)`` or ``(..., n, n)``, as in :func:`~torchfilt.training.fit_measurement_only`.
         known_channels: as in :func:`~torchfilt.training.fit_measurement_only`.

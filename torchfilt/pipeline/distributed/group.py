@@ -18,16 +18,16 @@ __all__ = ["GROUP_TIMEOUT"]
 
 
 def _shard_sequences(data: Any, rank: int, world: int) -> Any:
-    """Recordings ``rank::world`` of a list of recordings or a :class:`~torchfilt.training.likelihood.Sequences`."""
-    from torchfilt.training.likelihood import Sequences
+    """Recordings ``rank::world`` of a fit's data (any kind a fit's ``y`` accepts: a list of
+    recordings, a :class:`~torchfilt.training.data.Sequences`, ...), as a ``Sequences``."""
+    from torchfilt.training.data import Sequences
 
-    if isinstance(data, Sequences):
+    seqs = _data(data)
 
-        def part(v: Any) -> Any:
-            return None if v is None else v[rank::world]
+    def part(v: Any) -> Any:
+        return None if v is None else v[rank::world]
 
-        return Sequences(part(data.y), part(data.u), data.x0, data.P0)
-    return list(data)[rank::world]
+    return Sequences(part(seqs.y), part(seqs.u), seqs.x0, seqs.P0)
 
 
 #: Seconds a collective of a data-parallel fit waits for the other actors by default.
@@ -64,10 +64,17 @@ def _fit_rank(rank: int, world: int, init: str, job: dict[str, Any]) -> dict[str
         if job["kind"] == "calibrate":
             res: Any = calibrate(job["model"], data, hooks=hooks, **options)
         else:
-            res = fit_measurement_only(job["model"], data.y, data.u, hooks=hooks, **options)
+            res = fit_measurement_only(job["model"], data, hooks=hooks, **options)
     finally:
         dist.destroy_process_group()
     return {"result": res if rank == 0 else None}
+
+
+def _data(recordings: Any) -> Any:
+    """A group's data as a :class:`~torchfilt.training.data.Sequences`."""
+    from torchfilt.training.data import as_sequences
+
+    return as_sequences(recordings, name="recordings")
 
 
 def _check_timeout(timeout: float) -> float:
@@ -107,7 +114,7 @@ def _run_group(
         raise InputError(f"callback_on must be 'actors' or 'driver', got {callback_on!r}")
     timeout = _check_timeout(timeout)
     on_driver = options["callback"] if callback_on == "driver" else None
-    count = len(recordings.y) if hasattr(recordings, "y") else len(list(recordings))
+    count = len(_data(recordings).y)
     if workers > count:
         raise InputError(f"workers: {workers} workers for {count} recordings; use at most {count}")
     if checkpoint is not None:
