@@ -9,10 +9,10 @@ import io
 import json
 import math
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, Literal, Protocol, TextIO
 
 import torch
 from torch import Tensor
@@ -24,13 +24,15 @@ from torchfilt.io.atomic import output_error
 from torchfilt.io.progress import ProgressBar
 from torchfilt.io.recording import Recording
 from torchfilt.models import CholeskyCovariance, InducingTransition, StateSpaceModel
-from torchfilt.optim import CheckpointOptions
+from torchfilt.optim import CheckpointOptions, OptimizerOptions, StoppingOptions, WindowOptions
 from torchfilt.pipeline.bundle import inducing_state, nominal_model
 from torchfilt.pipeline.recipe import OPTION_KEYS, Recipe, fit_options
 from torchfilt.pipeline.recipe_options import option_default
 from torchfilt.pipeline.run_checks import STAGES, _feature_indices, _known_channels
 from torchfilt.training.calibrate import CalibrationResult, calibrate
-from torchfilt.training.measurement_only import MeasurementOnlyFit, fit_measurement_only
+from torchfilt.training.data import FitData
+from torchfilt.training.likelihood import LikelihoodState
+from torchfilt.training.measurement_only import EMState, MeasurementOnlyFit, fit_measurement_only
 
 __all__ = [
     "CALIBRATE_CHECKPOINT",
@@ -49,24 +51,78 @@ CALIBRATE_CHECKPOINT = "calibrate.ckpt"
 MEASUREMENT_ONLY_CHECKPOINT = "transition.ckpt"
 
 
+class CalibrateFitter(Protocol):
+    """What a calibration stage calls: :func:`~torchfilt.training.calibrate`'s contract.
+
+    The stage passes the model and the training recordings (a list of
+    :class:`~torchfilt.io.recording.Recording`) positionally and the rest by keyword; a fitter
+    must keep their meaning (``x0`` ``(n,)``, ``P0`` ``(n, n)``, ``validation`` the validation
+    recordings or ``None``) and may take more keywords with defaults. mypy holds every fitter
+    handed to :class:`StageFitters` to this signature.
+    """
+
+    def __call__(
+        self,
+        model: StateSpaceModel,
+        y: FitData,
+        /,
+        *,
+        x0: Tensor,
+        P0: Tensor,
+        validation: FitData | None,
+        sides: Sequence[Literal["transition", "measurement"]],
+        inflate_only: bool,
+        gp: Literal["none", "noise", "all"],
+        callback: Callable[[LikelihoodState], bool | None] | None,
+        checkpoint: CheckpointOptions,
+        dtype: torch.dtype,
+        iterations: int | None = ...,
+        optimizer: OptimizerOptions | Literal["adam", "lbfgs"] | None = ...,
+        windows: WindowOptions | None = ...,
+        stopping: StoppingOptions | None = ...,
+    ) -> CalibrationResult: ...
+
+
+class MeasurementOnlyFitter(Protocol):
+    """What a ``states = "none"`` transition stage calls:
+    :func:`~torchfilt.training.fit_measurement_only`'s contract.
+
+    The stage passes the model, the measurements (a list of ``(T_i, m)``) and the inputs (a list
+    of ``(T_i, nu)`` or ``None``) positionally and the rest by keyword; a fitter must keep their
+    meaning and may take more keywords with defaults.
+    """
+
+    def __call__(
+        self,
+        model: StateSpaceModel,
+        y: FitData,
+        u: Tensor | Sequence[Tensor] | None,
+        /,
+        *,
+        x0: Tensor,
+        P0: Tensor,
+        known_channels: Sequence[int] | None,
+        method: Literal["em", "likelihood"],
+        learn_measurement_noise: bool,
+        m_step_iterations: int,
+        callback: Callable[[EMState | LikelihoodState], bool | None] | None,
+        progress: bool,
+        dtype: torch.dtype,
+        checkpoint: CheckpointOptions,
+        iterations: int | None = ...,
+        optimizer: OptimizerOptions | Literal["adam", "lbfgs"] | None = ...,
+        windows: WindowOptions | None = ...,
+        stopping: StoppingOptions | None = ...,
+    ) -> MeasurementOnlyFit: ...
+
+
 @dataclass(frozen=True)
 class StageFitters:
     """The fits behind a run's two likelihood stages (see :mod:`torchfilt.pipeline.run`).
 
     Each stage calls its fitter exactly as it calls the local function, and a replacement must
-    accept those arguments and keep their meaning:
-
-    - ``calibrate(model, train, *, x0, P0, validation, sides, iterations, optimizer, windows,
-      stopping, inflate_only, gp, callback, checkpoint, dtype)`` ->
-      :class:`~torchfilt.training.calibrate.CalibrationResult`, as
-      :func:`~torchfilt.training.calibrate` (``train`` the training recordings, ``x0`` ``(n,)``,
-      ``P0`` ``(n, n)``, ``validation`` the validation recordings or ``None``);
-    - ``measurement_only(model, ys, us, *, x0, P0, known_channels, method, iterations,
-      optimizer, windows, learn_measurement_noise, m_step_iterations, callback, progress,
-      dtype, checkpoint)`` ->
-      :class:`~torchfilt.training.measurement_only.MeasurementOnlyFit`, as
-      :func:`~torchfilt.training.fit_measurement_only` (``ys`` a list of ``(T_i, m)``, ``us`` a
-      list of ``(T_i, nu)`` or ``None``).
+    accept those arguments and keep their meaning: :class:`CalibrateFitter` and
+    :class:`MeasurementOnlyFitter` state them as types.
 
     ``callback`` must be called in the calling process, once per iteration in order and before
     that iteration's checkpoint (the stage writes ``metrics.jsonl`` and the progress bar from
@@ -78,8 +134,10 @@ class StageFitters:
     when the stage is done.
 
     Attributes:
-        calibrate: the calibration fit; ``None``: :func:`~torchfilt.training.calibrate`.
-        measurement_only: the ``states = "none"`` transition fit; ``None``:
+        calibrate: the calibration fit (a :class:`CalibrateFitter`); ``None``:
+            :func:`~torchfilt.training.calibrate`.
+        measurement_only: the ``states = "none"`` transition fit (a
+            :class:`MeasurementOnlyFitter`); ``None``:
             :func:`~torchfilt.training.fit_measurement_only`.
         name: how ``config.json`` records these fitters (``"stage_fitters"``, omitted for
             ``"local"``); a run resumes only with fitters of the same name.
@@ -87,14 +145,16 @@ class StageFitters:
             training recordings is refused before anything is written.
     """
 
-    calibrate: Callable[..., CalibrationResult] | None = None
-    measurement_only: Callable[..., MeasurementOnlyFit] | None = None
+    calibrate: CalibrateFitter | None = None
+    measurement_only: MeasurementOnlyFitter | None = None
     name: str = "local"
     shards: int = 1
 
 
 #: The fitters of a plain run: the local functions, in this process.
 LOCAL_FITTERS = StageFitters()
+# the local functions keep the contracts (checked by mypy; the stages look them up when they run)
+_LOCAL_CONTRACTS: tuple[CalibrateFitter, MeasurementOnlyFitter] = (calibrate, fit_measurement_only)
 
 
 def _given(r: Recipe, section: str) -> frozenset[str] | None:

@@ -14,7 +14,7 @@ import torch
 from torch import Tensor, nn
 
 from torchfilt.cubature import CubatureRule, sigma_points
-from torchfilt.exceptions import GaugeError, ModelError, RunError
+from torchfilt.exceptions import GaugeError, InputError, ModelError, RunError
 from torchfilt.filters import CKF, FilterResult, SmootherResult, kalman_smoother, rts_smooth
 from torchfilt.models import (
     CovarianceParameter,
@@ -501,6 +501,19 @@ def _linear_start(model: StateSpaceModel, dtype: torch.dtype, known: list[int]) 
             "coordinate; give channels whose measurement map sees the state"
         )
     return lin
+
+
+def compile_mode(compile: object) -> Literal[False, "step", "loop"]:
+    """``fit_em``'s ``compile`` option normalised: ``True`` is ``"loop"``.
+
+    Raises:
+        InputError: not ``False``, ``True``, ``"step"`` or ``"loop"``.
+    """
+    if compile is True:
+        return "loop"
+    if compile is False or compile in ("step", "loop"):
+        return compile  # type: ignore[return-value]
+    raise InputError(f"compile: expected False, True, 'step' or 'loop', got {compile!r}")
 
 
 class _EMProblem:

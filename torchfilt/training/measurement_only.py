@@ -92,6 +92,7 @@ from torchfilt.training.em_steps import (
     _linear_start,
     _Reducer,
     _summed,
+    compile_mode,
     smoothed_pairs,
 )
 from torchfilt.training.likelihood import (
@@ -452,11 +453,9 @@ def fit_em(
                 f"fixed: {unknown[0]!r} is no block of the closed-form M-step of this linear "
                 f"model (its blocks: {sorted(blocks)})"
             )
-    if not (isinstance(compile, bool) or compile in ("step", "loop")):
-        raise InputError(f"compile: expected False, True, 'step' or 'loop', got {compile!r}")
     em = _EMProblem(
         model, lin, plist, recs, valid, known, rule, reduce, learn_measurement_noise,
-        m_step_iterations, backtracks, frozenset(fixed), "loop" if compile is True else compile,
+        m_step_iterations, backtracks, frozenset(fixed), compile_mode(compile),
     )  # fmt: skip
     ckpt = None
     if ckpt_o.path is not None:
