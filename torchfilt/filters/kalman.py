@@ -348,7 +348,10 @@ def kalman_filter(
             :mod:`torchfilt.filters.parallel`) instead of the sequential recursion.
         outputs: names of the :class:`~torchfilt.filters.FilterResult` fields to return, e.g.
             ``("mean", "log_likelihood")``; the others are empty tensors (shape ``(0,)``) and are
-            not stored, which bounds the memory by what is asked for. Default: all.
+            not stored, which bounds the memory by what is asked for. Default: all. With
+            ``("log_likelihood",)`` while autograd records, the gradient comes from one
+            closed-form backward pass (:mod:`torchfilt.filters.kalman_adjoint`) instead of
+            autograd through the per-step loop.
 
     Returns:
         A :class:`~torchfilt.filters.KalmanFilterResult` (``path == "kalman"``) or, with
