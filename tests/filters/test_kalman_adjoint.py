@@ -179,3 +179,23 @@ def test_square_root_form_keeps_autograd():
     assert res.numerics.execution == "kalman-sequential"
     res.log_likelihood.backward()
     assert A.grad is not None and bool(torch.isfinite(A.grad).all())
+
+
+def test_a_failed_backward_factorisation_replays_autograd(monkeypatch):
+    """Where the closed form cannot factor an innovation covariance, the backward pass replays
+    autograd through the recorded path: the same gradient."""
+    from torchfilt.filters import kalman_adjoint
+
+    p = make_problem(9, T=30, missing=0.2)
+    A = nn.Parameter(t64(p["A"]))
+    Qc = CholeskyCovariance(t64(p["Q"]))
+    y, x0, P0 = t64(p["y"]), t64(p["m0"]), t64(p["P0"])
+
+    def build():
+        return LinearGaussianModel(A, t64(p["H"]), Qc, t64(p["R"])), x0, P0
+
+    leaves = [A, *Qc.parameters()]
+    _, want = _both(build, leaves, y, x0=x0, P0=P0)
+    monkeypatch.setattr(kalman_adjoint, "adjoint_gradients", lambda *args: None)
+    got, _ = _both(build, leaves, y, x0=x0, P0=P0)
+    _assert_grads_equal(got, want, ["A", "Q diag", "Q lower"])
