@@ -204,6 +204,7 @@ EXECUTION_MODES = {
     "compiled-chunks",
     "graphed",
     "kalman-parallel",
+    "kalman-adjoint",
     "kalman-riccati",
     "kalman-fast",
     "kalman-sequential",

@@ -83,6 +83,32 @@ def test_plan_chooses_the_exact_runner():
         _plan(model, opts, path="fast")
 
 
+def test_plan_takes_the_adjoint_for_a_recorded_likelihood_only():
+    """The closed-form gradient serves a recorded run that keeps only the log-likelihood, in the
+    plain form, where the host may synchronise, and not once it has failed for the run."""
+    model = _linear(make_problem(0))
+    opts = PlanOptions(state_dim=3, obs_dim=2)
+    only = LinearFacts(1, 0, likelihood_only=True)
+    adj = _plan(model, opts, path="auto", linear=only, records_grad=True)
+    assert adj.execution == "kalman-adjoint" and adj.adjoint and adj.records_grad
+    assert _plan(model, opts, path="auto", linear=only).execution == "kalman-riccati"
+    more = LinearFacts(1, 0, likelihood_only=False)
+    assert _plan(model, opts, path="auto", linear=more, records_grad=True).execution == (
+        "kalman-fast"
+    )
+    sqrt = PlanOptions(sqrt=True, state_dim=3, obs_dim=2)
+    assert _plan(model, sqrt, path="auto", linear=only, records_grad=True).execution == (
+        "kalman-sequential"
+    )
+    traced = plan(model, opts, batch=torch.Size([3]), records_grad=True, device=CPU,
+                  settings=PlanSettings(sync_free=True), path="auto", linear=only)  # fmt: skip
+    assert traced.execution == "kalman-fast"
+    why = Fallback("kalman-adjoint", "a second derivative needs the recorded graph")
+    after = _plan(model, opts, path="auto", linear=only, records_grad=True, fallbacks=(why,))
+    assert after.execution == "kalman-fast" and not after.adjoint
+    assert after.numerics.fallback == "kalman-adjoint: a second derivative needs the recorded graph"
+
+
 def test_results_record_the_plan():
     p = make_problem(1)
     model = _linear(p)

@@ -34,6 +34,7 @@ from torch import Tensor
 from torchfilt.exceptions import InputError, InputTypeError, ModelError, ShapeError
 from torchfilt.filters import kalman_runners as _runners
 from torchfilt.filters.inputs import broadcast_batch, check_model_input, check_prior, observed
+from torchfilt.filters.kalman_adjoint import adjoint_log_likelihood
 from torchfilt.filters.kalman_checks import warn_precision
 from torchfilt.filters.kalman_runners import _STEADY_ULPS
 from torchfilt.filters.kalman_steps import (
@@ -347,7 +348,10 @@ def kalman_filter(
             :mod:`torchfilt.filters.parallel`) instead of the sequential recursion.
         outputs: names of the :class:`~torchfilt.filters.FilterResult` fields to return, e.g.
             ``("mean", "log_likelihood")``; the others are empty tensors (shape ``(0,)``) and are
-            not stored, which bounds the memory by what is asked for. Default: all.
+            not stored, which bounds the memory by what is asked for. Default: all. With
+            ``("log_likelihood",)`` while autograd records, the gradient comes from one
+            closed-form backward pass (:mod:`torchfilt.filters.kalman_adjoint`) instead of
+            autograd through the per-step loop.
 
     Returns:
         A :class:`~torchfilt.filters.KalmanFilterResult` (``path == "kalman"``) or, with
@@ -429,17 +433,18 @@ def filter_steps(
     sqrt: bool,
     parallel: bool,
     keep: frozenset[str] = frozenset(FIELDS),
+    fallbacks: tuple[Fallback, ...] = (),
 ) -> FilterResult:
     """:func:`kalman_filter` on already checked inputs, by the runner that
     :func:`~torchfilt.filters.plan.plan` names (a runner whose factorisation fails hands over to
-    the next one the plan names, and the result's ``numerics.fallback`` says so). Results that
-    the working precision made unreliable (:mod:`torchfilt.filters.kalman_checks`) come with a
+    the next one the plan names, and the result's ``numerics.fallback`` says so; ``fallbacks``:
+    those known to have failed already). Results that the working precision made unreliable
+    (:mod:`torchfilt.filters.kalman_checks`) come with a
     :class:`~torchfilt.exceptions.PrecisionWarning`."""
     params = [data.x0, data.P0, data.y, *(x for x in steps if x is not None)]
     grad = torch.is_grad_enabled() and any(x.requires_grad for x in params)
     facts = LinearFacts(*_runners.linear_facts(data, steps, keep)) if not parallel else None
     options = PlanOptions(sqrt=sqrt, state_dim=data.x0.shape[-1], obs_dim=data.y.shape[-1])
-    fallbacks: tuple[Fallback, ...] = ()
     while True:
         p = plan(
             None,
@@ -456,12 +461,33 @@ def filter_steps(
             res = _parallel_filter(data, steps, keep, p.numerics)
             warn_precision(res, sqrt=sqrt, stacklevel=3)
             return res
+        if p.adjoint:  # the no-graph filter warns; the result holds no covariance to check
+            ll = adjoint_log_likelihood(data, steps, _no_graph, _recorded)
+            return assemble(
+                data, steps, {"log_likelihood": ll}, keep, KalmanFilterResult, p.numerics
+            )
         out = _runners.run_exact(data, steps, keep, p)
         if out is not None:
             res = assemble(data, steps, out, keep, KalmanFilterResult, p.numerics)
             warn_precision(res, sqrt=sqrt, stacklevel=3)
             return res
         fallbacks += (Fallback(p.execution, "a covariance failed to factor"),)
+
+
+def _no_graph(data: Data, steps: LinearSteps, keep: frozenset[str]) -> FilterResult:
+    """The filter without a graph (the forward pass of the adjoint's log-likelihood)."""
+    with torch.no_grad():
+        return filter_steps(data, steps, sqrt=False, parallel=False, keep=keep)
+
+
+def _recorded(data: Data, steps: LinearSteps, why: str) -> Tensor:
+    """The log-likelihood through the recorded path, once the adjoint has failed for ``why``."""
+    only = frozenset({"log_likelihood"})
+    res = filter_steps(
+        data, steps, sqrt=False, parallel=False, keep=only,
+        fallbacks=(Fallback("kalman-adjoint", why),),
+    )  # fmt: skip
+    return res.log_likelihood
 
 
 def _parallel_filter(

@@ -675,10 +675,14 @@ def _run_riccati(
     return res
 
 
-def linear_facts(data: Data, steps: LinearSteps, keep: frozenset[str]) -> tuple[int | None, int]:
+def linear_facts(
+    data: Data, steps: LinearSteps, keep: frozenset[str]
+) -> tuple[int | None, int, bool]:
     """What the plan needs of a checked recording: the Riccati runner's covariance batch (or
-    None) and the bytes of the kept results."""
-    return _covariance_batch(data, steps), _result_bytes(data, keep)
+    None), the bytes of the kept results, and whether the log-likelihood is the only per-step
+    result kept."""
+    only = "log_likelihood" in keep and keep <= {"log_likelihood", "observed"}
+    return _covariance_batch(data, steps), _result_bytes(data, keep), only
 
 
 def _riccati(

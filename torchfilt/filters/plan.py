@@ -118,10 +118,14 @@ class LinearFacts(NamedTuple):
         covariance_batch: how many covariance sequences the Riccati runner would keep (1 when
             the covariances are shared by the batch), or None when they depend on the data.
         result_bytes: bytes of the per-step results kept.
+        likelihood_only: the run keeps the log-likelihood and no other per-step field (then,
+            while autograd records, its gradient can come from the closed-form backward pass
+            of :mod:`torchfilt.filters.kalman_adjoint`).
     """
 
     covariance_batch: int | None
     result_bytes: int
+    likelihood_only: bool = False
 
 
 @dataclass(frozen=True)
@@ -132,11 +136,13 @@ class ExecutionPlan:
         family: ``"kalman"`` (the closed-form filter) or ``"cubature"``.
         execution: for the cubature family ``"eager"``, ``"compiled-step"``,
             ``"compiled-loop"``, ``"compiled-chunks"`` or ``"graphed"``; for the exact one
-            ``"kalman-parallel"``, ``"kalman-riccati"``, ``"kalman-fast"`` or
-            ``"kalman-sequential"``.
+            ``"kalman-parallel"``, ``"kalman-adjoint"``, ``"kalman-riccati"``,
+            ``"kalman-fast"`` or ``"kalman-sequential"``.
         small_kernels: ``"unrolled"`` or ``"library"``.
         on_failure: ``"jitter"`` or ``"nan"`` (see :class:`~torchfilt.settings.NumericsPath`).
         parallel: the exact path's parallel-in-time scan.
+        adjoint: the exact path's log-likelihood by the no-graph filter, its gradient by the
+            closed-form backward pass (:mod:`torchfilt.filters.kalman_adjoint`).
         sqrt: the square-root form.
         compiled: the step runs under ``torch.compile``.
         skip_guards: a compiled step may skip Dynamo's guard checks after a run's first steps
@@ -152,6 +158,7 @@ class ExecutionPlan:
     small_kernels: str = "library"
     on_failure: str = "jitter"
     parallel: bool = False
+    adjoint: bool = False
     sqrt: bool = False
     compiled: bool = False
     skip_guards: bool = False
@@ -225,13 +232,24 @@ def _kernels(options: PlanOptions, batch: torch.Size, compiled: bool, mode: Smal
 
 
 def _exact_runner(
-    options: PlanOptions, parallel: bool, grad: bool, facts: LinearFacts | None, failed: set[str]
+    options: PlanOptions,
+    parallel: bool,
+    grad: bool,
+    facts: LinearFacts | None,
+    failed: set[str],
+    sync_free: bool,
 ) -> str:
-    """The exact runner: parallel scan, or the first of Riccati / fast / sequential that applies
-    and has not failed for this run."""
+    """The exact runner: parallel scan, or the first of adjoint / Riccati / fast / sequential
+    that applies and has not failed for this run.
+
+    The adjoint serves a recorded run that keeps only the log-likelihood (the gradient of no
+    other field is known in closed form), in the plain form, where the host may synchronise (its
+    runners check their factorisations on the host)."""
     if parallel:
         return "kalman-parallel"
     candidates = []
+    if grad and not options.sqrt and not sync_free and facts is not None and facts.likelihood_only:
+        candidates.append("kalman-adjoint")
     if not options.sqrt and not grad and facts is not None and facts.covariance_batch is not None:
         candidates.append("kalman-riccati")
     if not options.sqrt:
@@ -322,17 +340,18 @@ def plan(
             model, path=path, parallel=parallel, redraw=options.redraw, no_exact=options.no_exact
         )
     if exact:
-        runner = _exact_runner(options, parallel, records_grad, linear, failed)
+        runner = _exact_runner(options, parallel, records_grad, linear, failed, settings.sync_free)
         big = linear is not None and linear.result_bytes > _INPLACE_BYTES
         return ExecutionPlan(
             family="kalman",
             execution=runner,
             # the fast and Riccati runners call the library kernels directly
             small_kernels="library"
-            if runner in ("kalman-fast", "kalman-riccati")
+            if runner in ("kalman-adjoint", "kalman-fast", "kalman-riccati")
             else _kernels(options, batch, False, settings.small_kernels),
             on_failure="nan" if settings.sync_free else "jitter",
             parallel=parallel,
+            adjoint=runner == "kalman-adjoint",
             sqrt=options.sqrt,
             records_grad=records_grad,
             inplace=not records_grad and big,

@@ -540,12 +540,19 @@ class _Objective:
                 self.x0.to(wx0.dtype), int(self.recs.y.shape[0]), (self.model.state_dim,), "x0"
             )
             wx0 = torch.where(first.unsqueeze(-1), X0[win.rec], wx0)
+        # without a burn-in every step is counted (the others are padding, all missing): the
+        # summed log-likelihood alone, whose gradient the exact path has in closed form
+        whole = self.options.burn_in == 0
+        outputs = ("log_likelihood",) if whole else None
         with warnings.catch_warnings():
             # a trial step of the optimiser may diverge: the fit scores it -inf and steps back
             warnings.simplefilter("ignore", DivergenceWarning)
-            res = self.filt.filter(win.y, win.u, x0=wx0, P0=wP0)
-        ll = step_log_likelihood(res)
-        total = (ll * win.counted.to(ll.dtype)).sum()
+            res = self.filt.filter(win.y, win.u, x0=wx0, P0=wP0, outputs=outputs)
+        if whole:
+            total = res.log_likelihood.sum()
+        else:
+            ll = step_log_likelihood(res)
+            total = (ll * win.counted.to(ll.dtype)).sum()
         if subset is None:
             return total
         return total * (int(self.win.y.shape[0]) / int(subset.numel()))
