@@ -291,3 +291,16 @@ def test_as_sequences_keeps_tensors_as_given(data):
     y = torch.stack([t[:18] for t in data["ys"]])
     seqs = as_sequences(y, None, x0=X0, P0=P0)
     assert seqs.y is y and seqs.u is None and seqs.x0 is X0 and seqs.P0 is P0
+
+
+def test_recordings_keyword_is_calibrates_alone() -> None:
+    """``recordings=`` is the old name of ``calibrate``'s data only: the other fits never took it,
+    so there it is an unknown keyword (an ``InputError`` naming it), not a deprecated one."""
+    model = torchfilt.LinearGaussianModel(
+        torch.eye(1, dtype=torch.float64), torch.eye(1, dtype=torch.float64),
+        torch.eye(1, dtype=torch.float64), torch.eye(1, dtype=torch.float64),
+    )  # fmt: skip
+    y = torch.zeros(1, 5, 1, dtype=torch.float64)
+    x0, P0 = torch.zeros(1, dtype=torch.float64), torch.eye(1, dtype=torch.float64)
+    with pytest.raises(InputError, match="recordings"):
+        torchfilt.fit_likelihood(model, recordings=y, x0=x0, P0=P0)  # type: ignore[call-arg]

@@ -465,6 +465,9 @@ _OLD_KEYWORDS: dict[str, tuple[str, str | None]] = {
     # the fits' data is ``y`` everywhere (calibrate took ``recordings``)
     "recordings": ("y", None),
 }
+#: Old keywords that only some fits had (by their key in :data:`DEFAULTS`); the others never
+#: took them, so they are unknown keywords there, not deprecated ones.
+_OLD_KEYWORD_FITS: dict[str, tuple[str, ...]] = {"recordings": ("calibrate",)}
 _GROUP_CLASS: dict[str, type] = {
     "optimizer": OptimizerOptions,
     "windows": WindowOptions,
@@ -510,6 +513,7 @@ def deprecated_fit_keywords(fit: str) -> Callable[[_F], _F]:
         sig = inspect.signature(func)
         known = {k: v for k, v in _OLD_KEYWORDS.items() if v[0] in sig.parameters}
         known = {k: v for k, v in known.items() if k not in sig.parameters}
+        known = {k: v for k, v in known.items() if fit in _OLD_KEYWORD_FITS.get(k, (fit,))}
         name = func.__qualname__
         keywords = _keyword_names(sig)
 
