@@ -7,6 +7,7 @@ subspace_start, fit_em, CKF on the validation recordings)."""
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -22,6 +23,7 @@ from torchfilt.models import (
     subspace_start,
 )
 from torchfilt.pipeline import load_bundle, train_recipe
+from torchfilt.pipeline.linear_start import linear_em_start
 from torchfilt.pipeline.run_stages import PILOT_NOISE_SCALES
 from torchfilt.systems import get_system
 from torchfilt.training import fit_em
@@ -117,3 +119,29 @@ def test_pilot_starts_are_scored_on_held_out_data_and_the_best_kept(tmp_path) ->
     assert log.count("transition: candidate start") == len(PILOT_NOISE_SCALES)
     assert log.count("transition: linear-EM candidate") == 1
     assert f"transition: starting from candidate {best + 1}" in log
+
+
+def test_linear_candidate_starts_exactly_at_the_linear_fit(tmp_path) -> None:
+    """The linear-EM candidate's GP model has the linear fit's likelihood (CKF of the GP model,
+    recording by recording, against the EM's exact Kalman likelihood); with a missing
+    measurement it starts from the random walk instead of N4SID (which needs complete data)."""
+    simulate_dataset("reaction", tmp_path / "data", recordings=4, steps=40, seed=3)
+    train = torchfilt.load_dataset(tmp_path / "data").split("train")
+    spec = get_system("reaction")
+    h = spec.model().measurement
+    m0, P0 = spec.prior_mean(), spec.prior_cov()
+    kw = dict(n=2, nu=0, m0=m0, P0=P0, q0=1e-2 * P0.diagonal(), inducing=INDUCING, known=[0])
+    lin = linear_em_start(h, train, dtype=DT, **kw)  # type: ignore[arg-type]
+    assert lin is not None and lin.record["from"] == "N4SID"
+    with torch.no_grad():
+        ll = sum(
+            float(torchfilt.CKF(lin.model).filter(r.measurements[1:], x0=m0, P0=P0).log_likelihood)
+            for r in train
+        )
+    assert ll == pytest.approx(lin.record["linear_log_likelihood"], rel=1e-8)
+    ys = [r.measurements.clone() for r in train]
+    ys[0][5, 0] = math.nan
+    recs = [SimpleNamespace(measurements=y, inputs=None) for y in ys]
+    gappy = linear_em_start(h, recs, dtype=DT, **kw)  # type: ignore[arg-type]
+    assert gappy is not None and gappy.record["from"] == "random walk"
+    assert math.isfinite(gappy.record["linear_log_likelihood"])
