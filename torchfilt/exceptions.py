@@ -14,6 +14,7 @@ __all__ = [
     "DataError",
     "DivergenceWarning",
     "ExecutionError",
+    "FitError",
     "GaugeError",
     "InfeasibleError",
     "InputError",
@@ -118,6 +119,23 @@ class ExecutionError(TorchfiltError, RuntimeError):
     """A filter run could not be carried out as planned (a CUDA-graph capture whose step
     synchronised with the host, a record sink that did not receive every step); the message
     names the cause."""
+
+
+class FitError(TorchfiltError, RuntimeError):
+    """A fit could not go on: its objective is not finite at its start, or a step of it failed
+    numerically (a factorisation that failed even with jitter, a non-finite log-likelihood after
+    a step). The message names the fit (``fit_em``, ``fit_measurement_only(method="likelihood")``,
+    ...) and the step (the start, or the iteration and its E-step, M-step or likelihood
+    evaluation) and says what to change.
+
+    Attributes:
+        fit: the fit's name.
+        step: the step that failed, in words.
+    """
+
+    def __init__(self, message: str, *, fit: str = "", step: str = "") -> None:
+        super().__init__(message)
+        self.fit, self.step = fit, step
 
 
 class WorkerError(RunError):

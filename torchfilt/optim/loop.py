@@ -25,6 +25,9 @@ iteration does (an optimiser step, an E- and an M-step), returning an :class:`Ou
 :class:`GuardedStep` is the optimiser step of the gradient fits: Adam or L-BFGS
 (:func:`make_optimizer`), never leaving the finite region (a non-finite loss or parameter
 restores the last good parameters; L-BFGS then forgets its curvature once and tries again).
+:func:`failed_step` turns a factorisation that failed inside a fit's step (a user's model that
+calls ``torch.linalg.cholesky``) into a :class:`~torchfilt.exceptions.FitError` naming the fit
+and the step.
 """
 
 from __future__ import annotations
@@ -32,13 +35,14 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any, Literal, NamedTuple, Protocol
 
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import ConvergenceWarning, InputError, InputTypeError
+from torchfilt.exceptions import ConvergenceWarning, FitError, InputError, InputTypeError
 from torchfilt.optim.checkpoint import CheckpointFile
 from torchfilt.optim.options import OptimizerOptions, StoppingOptions
 
@@ -49,6 +53,7 @@ __all__ = [
     "Outcome",
     "Reporter",
     "StepResult",
+    "failed_step",
     "free_parameters",
     "make_optimizer",
     "restore",
@@ -126,6 +131,34 @@ def free_parameters(
             + (", less the fixed ones)" if held else ")")
         )
     return plist
+
+
+@contextmanager
+def failed_step(fit: str, step: str | Callable[[], str]) -> Iterator[None]:
+    """Run a step of a fit, turning a failed factorisation in it (``torch.linalg.LinAlgError``:
+    a Cholesky or solve of a matrix that is singular even with jitter, typically inside a
+    user's model) into a :class:`~torchfilt.exceptions.FitError` naming the fit and the step.
+
+    Args:
+        fit: the fit's name, e.g. ``"fit_em"``.
+        step: the step in words, e.g. ``"iteration 3, E-step"``, or a function that says it
+            when the failure happens (a step whose part under way changes as it runs).
+
+    Raises:
+        FitError: the step raised ``torch.linalg.LinAlgError``.
+    """
+    try:
+        yield
+    except torch.linalg.LinAlgError as e:
+        step = step if isinstance(step, str) else step()
+        raise FitError(
+            f"{fit}: {step}: a matrix factorisation failed ({str(e).splitlines()[0]}); the "
+            "parameters left the region where the model is defined. Start closer to the data "
+            "(smaller steps or learning rate, bounded hyperparameters) or use torchfilt's "
+            "safe_cholesky in the model",
+            fit=fit,
+            step=step,
+        ) from e
 
 
 def make_optimizer(params: Sequence[Tensor], options: OptimizerOptions) -> torch.optim.Optimizer:

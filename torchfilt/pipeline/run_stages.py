@@ -26,6 +26,7 @@ from torchfilt.io.recording import Recording
 from torchfilt.models import CholeskyCovariance, InducingTransition, StateSpaceModel
 from torchfilt.optim import CheckpointOptions, OptimizerOptions, StoppingOptions, WindowOptions
 from torchfilt.pipeline.bundle import inducing_state, nominal_model
+from torchfilt.pipeline.linear_start import linear_em_start
 from torchfilt.pipeline.recipe import OPTION_KEYS, Recipe, fit_options
 from torchfilt.pipeline.recipe_options import option_default
 from torchfilt.pipeline.run_checks import STAGES, _feature_indices, _known_channels
@@ -443,11 +444,15 @@ def _start(
     P0: Tensor,
     dtype: torch.dtype,
     log: _Log,
+    known: list[int] | None = None,
 ) -> tuple[StateSpaceModel, list[dict[str, Any]]]:
     """The start of a ``states = "none"`` fit. With ``process_noise`` given: that model. Without:
-    one pilot start per scale of :data:`PILOT_NOISE_SCALES` on the default process noise, each
+    one pilot start per scale of :data:`PILOT_NOISE_SCALES` on the default process noise and,
+    without a nominal model, the linear-EM start (``linear_em_start``: N4SID, a short linear
+    EM, a GP transition starting exactly at it), each
     scored by its filter log-likelihood on the validation recordings (the training ones where
-    there are none), the best kept; each candidate is logged and returned as a record."""
+    there are none), the best kept; each candidate is logged and returned as a record. Every
+    candidate is deterministic, so a resumed run picks the same one."""
     if r.measurement_only["process_noise"] is not None:
         return _measurement_only_model(r, h, train, n, nu, m0, P0, dtype), []
     recs, where = (val, "held-out") if val else (train, "training")
@@ -457,11 +462,33 @@ def _start(
         ll = _score(model, recs, nu, m0, P0, dtype)
         models.append(model)
         scores.append(ll)
-        records.append({"candidate": k, "process_noise_scale": sc, "score": ll, "on": where})
+        records.append(
+            {"candidate": k, "start": "pilot", "process_noise_scale": sc, "score": ll, "on": where}
+        )
         log(
             f"transition: candidate start {k}: process noise {sc:g} x 1e-2 x the prior "
             f"variances, {where} log-likelihood {ll:.6g}"
         )
+    k = len(models) + 1
+    if r.measurement_only["nominal"] is not None:
+        log(f"transition: no linear-EM candidate {k} (a nominal model is set: it is the start)")
+    else:
+        lin = linear_em_start(
+            h, train, n=n, nu=nu, m0=m0, P0=P0, q0=1e-2 * P0.diagonal().to(dtype),
+            inducing=int(r.measurement_only["inducing"]),
+            known=list(range(h.out_dim)) if known is None else known, dtype=dtype,
+        )  # fmt: skip
+        if lin is None:
+            log(f"transition: no linear-EM candidate {k} (the sensor or the fit did not allow it)")
+        else:
+            ll = _score(lin.model, recs, nu, m0, P0, dtype)
+            models.append(lin.model)
+            scores.append(ll)
+            records.append({"candidate": k, **lin.record, "score": ll, "on": where})
+            log(
+                f"transition: linear-EM candidate {k}: {lin.record['em_iterations']} EM "
+                f"iterations from {lin.record['from']}, {where} log-likelihood {ll:.6g}"
+            )
     best = max(range(len(scores)), key=lambda i: scores[i])
     for i, rec in enumerate(records):
         rec["chosen"] = i == best
@@ -491,7 +518,7 @@ def _fit_measurement_only_stage(
     o = r.measurement_only
     n, nu = ds.state_dim, ds.input_dim
     known = _known_channels(r, ds)
-    model, candidates = _start(r, h, train, val, n, nu, m0, P0, dtype, log)
+    model, candidates = _start(r, h, train, val, n, nu, m0, P0, dtype, log, known)
     ys = [rec.measurements[1:].to(dtype) for rec in train]
     us = [rec.inputs[:-1].to(dtype) for rec in train] if nu else None  # type: ignore[index]
     counted = max(1, sum(int(torch.isfinite(y).sum()) for y in ys))

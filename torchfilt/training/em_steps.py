@@ -550,6 +550,8 @@ class _EMProblem:
             m_step_iterations,
             backtracks,
         )
+        #: the part of the iteration under way, for an error's message
+        self.phase = "E-step"
 
     def current(self) -> StateSpaceModel:
         """The model at the current parameters."""
@@ -577,6 +579,7 @@ class _EMProblem:
     def filtered(self) -> tuple[float, FilterResult]:
         """A non-linear model's filter log-likelihood (summed over the processes) and the CKF's
         result (a linear model's E-step smooths in one go: :meth:`e_step`)."""
+        self.phase = "E-step (the filter)"
         with torch.no_grad():
             assert self.ckf is not None  # a linear model's E-step is exact: see e_step
             res = self.ckf.filter(self.Y, self.U, x0=self.X0, P0=self.C0)
@@ -585,12 +588,14 @@ class _EMProblem:
 
     def smoothed(self, res: FilterResult) -> SmoothedPairs:
         """The smoothed pairs of a filter result of :meth:`filtered`."""
+        self.phase = "E-step (the smoother)"
         with torch.no_grad():
             return smoothed_pairs(res, self.X0, self.C0)
 
     def e_step(self) -> tuple[float, SmoothedPairs]:
         """The filter log-likelihood (summed over the processes) and the smoothed pairs."""
         if self.lin is not None:
+            self.phase = "E-step (the Kalman smoother)"
             with torch.no_grad():
                 # the exact Kalman filter and RTS smoother (batched over the recordings: no
                 # cubature points, and one backward recursion of the shared covariances)
@@ -605,6 +610,7 @@ class _EMProblem:
         log-likelihood and smoothed pairs, and whether no M-step raised the likelihood (then the
         parameters are back where they were and ``(ll, sp)`` is returned)."""
         before = self.state()
+        self.phase = "M-step"
         if self.lin is not None:
             self.lin = _linear_m_step(
                 self.lin, sp, self.Y, self.U, self.valid, self.known, self.learn_R, self.reduce,
@@ -622,15 +628,27 @@ class _EMProblem:
                 self.m_step_iterations, self.reduce, blocks=blocks,
             )  # fmt: skip
             # smoothed only once a step is kept: a rejected trial needs its likelihood alone
-            ll_new, res_new = self.filtered()
+            ll_new, res_new = self._trial()
             after = self.state()
             for k in range(1, self.backtracks + 1):
                 if ll_new >= ll:
                     break
                 t = 0.5**k
                 self.load([b + t * (a - b) for a, b in zip(after, before, strict=True)])
-                ll_new, res_new = self.filtered()
-            if ll_new >= ll:
+                ll_new, res_new = self._trial()
+            if ll_new >= ll and res_new is not None:
                 return ll_new, self.smoothed(res_new), False
             self.load(before)
         return ll, sp, True
+
+    def _trial(self) -> tuple[float, FilterResult | None]:
+        """The filter log-likelihood of an M-step's trial parameters (``-inf``, no result, where
+        a factorisation in the model failed there: the trial is rejected like a worse one)."""
+        try:
+            return self.filtered()
+        except torch.linalg.LinAlgError:
+            if self.reduce is not None:  # join the others' collective: all reject the trial
+                _summed(self.reduce, torch.tensor(math.nan, dtype=torch.float64))
+            return -math.inf, None
+        finally:
+            self.phase = "M-step"

@@ -557,10 +557,19 @@ class _Objective:
             return total
         return total * (int(self.win.y.shape[0]) / int(subset.numel()))
 
+    def guarded_train(self, wx0: Tensor, wP0: Tensor, subset: Tensor | None = None) -> Tensor:
+        """:meth:`train`, NaN where a factorisation in the model failed (a model that calls
+        ``torch.linalg.cholesky`` itself): a failed evaluation is a non-finite one, which the
+        line search shortens and :class:`~torchfilt.optim.GuardedStep` steps back from."""
+        try:
+            return self.train(wx0, wP0, subset)
+        except torch.linalg.LinAlgError:
+            return torch.tensor(math.nan, dtype=self.recs.y.dtype)
+
     def total(self, wx0: Tensor, wP0: Tensor) -> float:
         """The training log-likelihood summed over the processes (no gradient)."""
         with torch.no_grad():
-            return float(self.summed(self.train(wx0, wP0).reshape(1))[0])
+            return float(self.summed(self.guarded_train(wx0, wP0).reshape(1))[0])
 
     def held_out(self) -> float:
         """The held-out log-likelihood per measurement."""
@@ -569,7 +578,10 @@ class _Objective:
         with torch.no_grad():
             if self.prepare is not None:
                 self.prepare()
-            res = self.filt.filter(val.y, val.u, x0=val.x0, P0=val.P0)
+            try:
+                res = self.filt.filter(val.y, val.u, x0=val.x0, P0=val.P0)
+            except torch.linalg.LinAlgError:  # a failed factorisation scores as non-finite
+                return math.nan
         return float(res.log_likelihood.sum()) / self.val_count
 
     def loss(
@@ -580,7 +592,7 @@ class _Objective:
         only, an unbiased estimate of it."""
         counted = self.counted
         if self.all_reduce is None:
-            loss = -self.train(wx0, wP0, subset) / counted
+            loss = -self.guarded_train(wx0, wP0, subset) / counted
             if bool(torch.isfinite(loss)):
                 loss.backward()
                 return loss.detach()
@@ -588,7 +600,7 @@ class _Objective:
             return torch.full_like(loss.detach(), math.inf)
         # data-parallel: local sums, then one collective for the loss and the gradient (called on
         # every process whatever its loss, so that none waits forever)
-        ll = self.train(wx0, wP0, subset)
+        ll = self.guarded_train(wx0, wP0, subset)
         if bool(torch.isfinite(ll)):
             (-ll).backward()
         grads = [

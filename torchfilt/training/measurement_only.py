@@ -63,7 +63,7 @@ import torch
 from torch import Tensor, nn
 
 from torchfilt.cubature import CubatureRule, SphericalRadialRule
-from torchfilt.exceptions import GaugeError, InputError, InputTypeError, ModelError
+from torchfilt.exceptions import FitError, GaugeError, InputError, InputTypeError, ModelError
 from torchfilt.io import atomic_write
 from torchfilt.io.progress import ProgressBar
 from torchfilt.models import (
@@ -81,6 +81,7 @@ from torchfilt.optim import (
     StoppingOptions,
     WindowOptions,
     deprecated_fit_keywords,
+    failed_step,
     fingerprint,
     free_parameters,
     resolve_options,
@@ -405,6 +406,11 @@ def fit_em(
         InputTypeError: an argument of the wrong type (such as a complex tensor).
         RunError: a checkpoint of another fit.
         ModelError: time-varying noise.
+        FitError: the log-likelihood at the start is not finite, or a step failed (a
+            factorisation in the model that failed, a non-finite log-likelihood after an
+            M-step); the message names ``fit_em`` and the step (the initial E-step, or the
+            iteration and its E-step or M-step). A trial step of a non-linear M-step whose
+            filter fails is rejected like one that lowers the likelihood.
     """
     if not isinstance(model, StateSpaceModel):
         raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
@@ -475,13 +481,13 @@ def fit_em(
         em.load(list(ck["state"]))
         initial = float(ck["initial"])
     t_start = time.perf_counter()
-    ll, sp = em.e_step()
+    ll, sp = _initial_e_step(em)
     if initial is None:
         initial = ll
 
     def step(it: int) -> Outcome:
         nonlocal ll, sp
-        ll_new, sp_new, stalled = em.m_step(ll, sp)
+        ll_new, sp_new, stalled = _em_iteration(em, it, ll, sp)
         change = (ll_new - ll) / counted
         ll, sp = ll_new, sp_new
         elapsed = time.perf_counter() - t_start
@@ -505,6 +511,48 @@ def fit_em(
         history=history,
         elapsed=time.perf_counter() - t_start,
     )
+
+
+def _initial_e_step(em: _EMProblem) -> tuple[float, SmoothedPairs]:
+    """The E-step at the start of :func:`fit_em`.
+
+    Raises:
+        FitError: a factorisation failed, or the log-likelihood is not finite.
+    """
+    with failed_step("fit_em", "the initial E-step (before iteration 1)"):
+        ll, sp = em.e_step()
+    if not math.isfinite(ll):
+        raise FitError(
+            f"fit_em: the initial E-step (before iteration 1): the log-likelihood at the start "
+            f"is {ll} (the filter failed on the starting parameters); start from a model whose "
+            "filter likelihood is finite on the data (e.g. a linear fit: "
+            "InducingTransition.model_from_linear, or smaller inducing outputs and noise closer "
+            "to the data)",
+            fit="fit_em",
+            step="initial E-step",
+        )
+    return ll, sp
+
+
+def _em_iteration(
+    em: _EMProblem, it: int, ll: float, sp: SmoothedPairs
+) -> tuple[float, SmoothedPairs, bool]:
+    """Iteration ``it`` of :func:`fit_em`: the M-step and the E-step after it.
+
+    Raises:
+        FitError: a factorisation failed, or the log-likelihood after it is not finite.
+    """
+    with failed_step("fit_em", lambda: f"iteration {it}, {em.phase}"):
+        ll_new, sp_new, stalled = em.m_step(ll, sp)
+    if not math.isfinite(ll_new):
+        raise FitError(
+            f"fit_em: iteration {it}, E-step after the M-step: the log-likelihood is "
+            f"{ll_new} (it was {ll:.6g} before the M-step); the M-step's parameters left "
+            "the region where the filter is defined",
+            fit="fit_em",
+            step=f"iteration {it}",
+        )
+    return ll_new, sp_new, stalled
 
 
 # ----------------------------------------------------------------------------------- front
@@ -588,6 +636,12 @@ def fit_measurement_only(
     Raises:
         GaugeError: no gauge (see :func:`check_gauge`).
         InputError: an invalid argument.
+        FitError: the fit cannot go on: the log-likelihood at the start is not finite, or a
+            step failed; the message names the fit (``fit_em``, or
+            ``fit_measurement_only(method="likelihood")``) and the step. The likelihood method
+            never leaves the finite region: an evaluation that fails (a non-finite value or a
+            failed factorisation) is scored ``+inf``, so the line search shortens the step, and
+            a step that ends non-finite is undone (:class:`~torchfilt.optim.GuardedStep`).
     """
     if method not in ("em", "likelihood"):
         raise InputError(f"method must be 'em' or 'likelihood', got {method!r}")
@@ -618,11 +672,14 @@ def fit_measurement_only(
             detail=em,
             initial_log_likelihood=em.initial_log_likelihood,
         )
-    lf = _fit_likelihood(
-        model, y, u, x0=x0, P0=P0, parameters=None, fixed=fixed, validation=validation,
-        options=o, progress=progress, callback=callback, dtype=dtype, sqrt=False, rule=rule,
-        compile=False,
-    )  # fmt: skip
+    name = 'fit_measurement_only(method="likelihood")'
+    with failed_step(name, "the likelihood fit"):
+        lf = _fit_likelihood(
+            model, y, u, x0=x0, P0=P0, parameters=None, fixed=fixed, validation=validation,
+            options=o, progress=progress, callback=callback, dtype=dtype, sqrt=False, rule=rule,
+            compile=False,
+        )  # fmt: skip
+    _check_likelihood_fit(lf, name)
     return MeasurementOnlyFit(
         model=model,
         method="likelihood",
@@ -636,3 +693,30 @@ def fit_measurement_only(
         detail=lf,
         initial_log_likelihood=lf.initial_log_likelihood,
     )
+
+
+def _check_likelihood_fit(lf: LikelihoodFit, name: str) -> None:
+    """Refuse a likelihood fit whose start or result is not finite, naming the step.
+
+    Raises:
+        FitError: the log-likelihood at the start, or at the returned parameters, is not finite.
+    """
+    if not math.isfinite(lf.initial_log_likelihood):
+        raise FitError(
+            f"{name}: the start (the log-likelihood before iteration 1) is "
+            f"{lf.initial_log_likelihood}: the filter fails on the starting parameters; start "
+            "from a model whose filter likelihood is finite on the data (e.g. a linear fit: "
+            "InducingTransition.model_from_linear, or smaller inducing outputs and noise closer "
+            "to the data)",
+            fit=name,
+            step="start",
+        )
+    if not math.isfinite(lf.log_likelihood):
+        it = lf.iterations + (1 if lf.stopped == "non-finite" else 0)
+        raise FitError(
+            f"{name}: iteration {it}, the likelihood evaluation of the optimiser's step: the "
+            f"log-likelihood is {lf.log_likelihood} (it was {lf.initial_log_likelihood:.6g} at "
+            "the start)",
+            fit=name,
+            step=f"iteration {it}",
+        )

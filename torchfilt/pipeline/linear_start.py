@@ -1,0 +1,158 @@
+"""The linear-EM candidate start of a ``states = "none"`` run (see
+:func:`torchfilt.pipeline.run_stages._start`): a linear-Gaussian model fitted to the training
+measurements by a short :func:`~torchfilt.training.fit_em` from an N4SID start
+(:func:`~torchfilt.models.subspace_start`; from a random walk where the data has missing values
+or the subspace fit fails), turned into a GP transition that starts exactly at it
+(:meth:`~torchfilt.models.InducingTransition.from_linear`) under the recipe's own measurement
+model.
+
+A non-linear sensor ``h`` is linearised at the prior mean, ``h(x) ~ c + J x``: the EM fits
+``y - c`` with ``H = J`` and the sensor's ``R`` held fixed, so only ``A``, ``B`` and ``Q`` are
+learned; the candidate then uses ``h`` itself, and its held-out score (computed by the caller
+with ``h``) is what decides whether it is kept. Everything here is deterministic, so a resumed
+run recomputes the same candidate.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchfilt.exceptions import TorchfiltError
+from torchfilt.filters import kalman_smoother
+from torchfilt.io.recording import Recording
+from torchfilt.models import (
+    CholeskyCovariance,
+    InducingTransition,
+    LinearGaussianModel,
+    StateSpaceModel,
+    subspace_start,
+)
+from torchfilt.training.measurement_only import fit_em
+
+__all__ = ["LINEAR_EM_ITERATIONS", "LinearStart", "linear_em_start"]
+
+#: EM iterations of the linear candidate (its cost stays a small part of the stage).
+LINEAR_EM_ITERATIONS = 20
+
+
+class LinearStart(NamedTuple):
+    """The linear-EM candidate.
+
+    Attributes:
+        model: the GP model that starts exactly at the fitted linear model's transition.
+        record: what the run records: ``start`` (``"linear EM"``), ``from`` (``"N4SID"`` or
+            ``"random walk"``), ``em_iterations`` and the training ``log_likelihood`` of the
+            linear model (in the linearised sensor).
+    """
+
+    model: StateSpaceModel
+    record: dict[str, Any]
+
+
+def _linearised(h: Any, m0: Tensor, n: int) -> tuple[Tensor, Tensor, Tensor] | None:
+    """``(J, c, R)``: ``h(x) ~ c + J x`` at ``m0`` and the sensor's constant ``R``; ``None`` for
+    a sensor that takes inputs or has no constant noise."""
+    if getattr(h, "input_dim", 0) or getattr(h, "time_varying_noise", False):
+        return None
+    R = h.noise_cov()
+    if R is None:
+        return None
+    x = m0.detach().reshape(1, 1, n)
+    J = torch.autograd.functional.jacobian(lambda z: h.predict(z, None).mean, x)
+    J = J.reshape(-1, n)
+    with torch.no_grad():
+        c = h.predict(x, None).mean.reshape(-1) - J @ m0
+    return J.detach(), c, R.detach().reshape(J.shape[0], J.shape[0])
+
+
+def linear_em_start(
+    h: Any,
+    train: list[Recording],
+    *,
+    n: int,
+    nu: int,
+    m0: Tensor,
+    P0: Tensor,
+    q0: Tensor,
+    inducing: int,
+    known: list[int],
+    dtype: torch.dtype,
+) -> LinearStart | None:
+    """The linear-EM candidate start (see the module docstring), or ``None`` where the sensor
+    cannot be linearised (inputs, no constant noise) or the fit fails.
+
+    Args:
+        h: the recipe's measurement model.
+        train: the training recordings (measurements from the second step, as the stage fits).
+        n: the state dimension.
+        nu: the input dimension (0: none).
+        m0: the prior mean ``(n,)``.
+        P0: the prior covariance ``(n, n)``.
+        q0: the random-walk start's process-noise variances ``(n,)``.
+        inducing: the number of inducing points of the GP transition.
+        known: the known measurement channels (the gauge).
+        dtype: the floating dtype.
+
+    Returns:
+        A :class:`LinearStart`, or ``None``.
+    """
+    m0, P0 = m0.to(dtype), P0.to(dtype)
+    lin = _linearised(h, m0, n)
+    if lin is None:
+        return None
+    J, c, R = (t.to(dtype) for t in lin)
+    ys = [rec.measurements[1:].to(dtype) - c for rec in train]
+    us = [rec.inputs[:-1].to(dtype) for rec in train] if nu else None  # type: ignore[index]
+    B0 = torch.zeros(n, nu, dtype=dtype) if nu else None
+    start = LinearGaussianModel(torch.eye(n, dtype=dtype), J, torch.diag(q0.to(dtype)), R, B0)
+    source = "random walk"
+    if all(bool(torch.isfinite(y).all()) for y in ys):
+        try:
+            sub = subspace_start(start, ys, us, known_channels=known).model
+            start = LinearGaussianModel(
+                sub.A.to(dtype), J, sub.transition.noise_cov().to(dtype), R,  # type: ignore[union-attr]
+                None if sub.B is None else sub.B.to(dtype),
+            )  # fmt: skip
+            source = "N4SID"
+        except (TorchfiltError, RuntimeError):  # too short, unstable, gauge not matched
+            pass
+    try:
+        fit = fit_em(
+            start, ys, us, x0=m0, P0=P0, known_channels=known, fixed=("H", "R"),
+            iterations=LINEAR_EM_ITERATIONS, dtype=dtype,
+        )  # fmt: skip
+    except TorchfiltError:
+        return None
+    model = fit.model
+    if not isinstance(model, LinearGaussianModel) or not math.isfinite(fit.log_likelihood):
+        return None
+    with torch.no_grad():
+        xs = [
+            kalman_smoother(model, y, u, x0=m0, P0=P0).mean
+            for y, u in zip(ys, us if us is not None else [None] * len(ys), strict=True)
+        ]
+    X = torch.cat(xs)
+    U = torch.cat(us) if us is not None else None
+    ok = torch.isfinite(X).all(-1)
+    X, U = X[ok], None if U is None else U[ok]
+    if X.shape[0] < max(inducing, 2):
+        return None
+    cloud = X if U is None else torch.cat([X, U], -1)
+    spread = cloud.std(0)
+    ls = torch.where(spread > 1e-6, spread, torch.ones_like(spread))
+    f = InducingTransition.from_linear(
+        model.A, model.B, inducing=inducing, states=X, inputs=U, lengthscale=ls
+    )
+    Q = model.transition.noise_cov()
+    assert Q is not None
+    record = {
+        "start": "linear EM",
+        "from": source,
+        "em_iterations": fit.iterations,
+        "linear_log_likelihood": fit.log_likelihood,
+    }
+    return LinearStart(StateSpaceModel(f, h, Q=CholeskyCovariance(Q.detach().clone())), record)
