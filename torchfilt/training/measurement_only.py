@@ -284,9 +284,10 @@ class MeasurementOnlyFit:
         elapsed: seconds of the whole fit.
         detail: the method's own result (:class:`EMFit` or :class:`LikelihoodFit`).
         initial_log_likelihood: the training log-likelihood at the parameters the fit started
-            from (those of the chosen candidate with ``starts``), before any step.
-        candidates: with ``starts``, one record per candidate start (see
-            :func:`fit_measurement_only`); empty otherwise.
+            from, before any step.
+        candidates: records of candidate starts; :func:`fit_measurement_only` fits the one
+            model it is given and leaves this empty (a ``states = "none"`` run scores its
+            candidate starts itself and records them in the bundle's training record).
     """
 
     model: StateSpaceModel
