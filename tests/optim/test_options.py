@@ -332,3 +332,22 @@ def test_the_table_of_the_options_module_is_true():
         gp[1] == DEFAULTS["gp"].optimizer.optimizer and float(gp[2]) == DEFAULTS["gp"].optimizer.lr
     )
     assert int(gp[3]) == DEFAULTS["gp"].iterations
+
+
+@pytest.mark.parametrize("name", ["calibrate_ray", "fit_measurement_only_ray"])
+def test_ray_fits_name_their_data_y_and_warn_for_recordings(name: str, monkeypatch) -> None:
+    """The Ray fits name their data ``y`` like every fit; ``recordings=``, their old name, is
+    folded into ``y`` with a ``DeprecationWarning`` (the group itself is stubbed: no Ray)."""
+    from torchfilt.pipeline.distributed import fits
+
+    seen: list[Any] = []
+    monkeypatch.setattr(fits, "_run_group", lambda *args: seen.append(args[3]) or "ran")
+    fn = getattr(fits, name)
+    assert list(inspect.signature(fn).parameters)[:2] == ["model", "y"]
+    data = [torch.zeros(3, 1, dtype=torch.float64)]
+    kw: dict[str, Any] = dict(x0=torch.zeros(1), P0=torch.eye(1))
+    if name == "fit_measurement_only_ray":
+        kw["known_channels"] = [0]
+    with pytest.warns(DeprecationWarning, match="recordings= is deprecated; pass y="):
+        assert fn(None, recordings=data, **kw) == "ran"
+    assert seen == [data]

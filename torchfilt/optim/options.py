@@ -465,9 +465,11 @@ _OLD_KEYWORDS: dict[str, tuple[str, str | None]] = {
     # the fits' data is ``y`` everywhere (calibrate took ``recordings``)
     "recordings": ("y", None),
 }
-#: Old keywords that only some fits had (by their key in :data:`DEFAULTS`); the others never
-#: took them, so they are unknown keywords there, not deprecated ones.
-_OLD_KEYWORD_FITS: dict[str, tuple[str, ...]] = {"recordings": ("calibrate",)}
+#: Old keywords that only some fits had (by function name); the others never took them, so
+#: they are unknown keywords there, not deprecated ones.
+_OLD_KEYWORD_FITS: dict[str, tuple[str, ...]] = {
+    "recordings": ("calibrate", "calibrate_ray", "fit_measurement_only_ray"),
+}
 _GROUP_CLASS: dict[str, type] = {
     "optimizer": OptimizerOptions,
     "windows": WindowOptions,
@@ -513,7 +515,8 @@ def deprecated_fit_keywords(fit: str) -> Callable[[_F], _F]:
         sig = inspect.signature(func)
         known = {k: v for k, v in _OLD_KEYWORDS.items() if v[0] in sig.parameters}
         known = {k: v for k, v in known.items() if k not in sig.parameters}
-        known = {k: v for k, v in known.items() if fit in _OLD_KEYWORD_FITS.get(k, (fit,))}
+        only = _OLD_KEYWORD_FITS
+        known = {k: v for k, v in known.items() if func.__name__ in only.get(k, (func.__name__,))}
         name = func.__qualname__
         keywords = _keyword_names(sig)
 

@@ -25,7 +25,7 @@ __all__ = ["calibrate_ray", "fit_measurement_only_ray"]
 @deprecated_fit_keywords("calibrate")
 def calibrate_ray(
     model: Any,
-    recordings: Any,
+    y: Any,
     *,
     x0: torch.Tensor,
     P0: torch.Tensor,
@@ -62,7 +62,7 @@ def calibrate_ray(
 
     Args:
         model: the model to calibrate, as in :func:`~torchfilt.training.calibrate`.
-        recordings: the training data, any kind :func:`~torchfilt.training.calibrate`'s ``y``
+        y: the training data, any kind :func:`~torchfilt.training.calibrate`'s ``y``
             takes (:mod:`torchfilt.training.data`: a list of recordings, a
             :class:`~torchfilt.training.data.Sequences` whose ``x0``/``P0`` are shared, ...),
             dealt to the actors by recording.
@@ -121,7 +121,7 @@ def calibrate_ray(
         "checkpoint": ckpt,
     }
     return _run_group(
-        "calibrate_ray", "calibrate", model, recordings, options, workers, address, ckpt.path,
+        "calibrate_ray", "calibrate", model, y, options, workers, address, ckpt.path,
         timeout, callback_on,
     )  # fmt: skip
 
@@ -134,7 +134,7 @@ def _checkpoint(fit: str, checkpoint: CheckpointOptions | str | Path | None) -> 
 @deprecated_fit_keywords("measurement_only")
 def fit_measurement_only_ray(
     model: Any,
-    recordings: Any,
+    y: Any,
     *,
     x0: torch.Tensor,
     P0: torch.Tensor,
@@ -165,7 +165,7 @@ def fit_measurement_only_ray(
 
     Args:
         model: the model, as in :func:`~torchfilt.training.fit_measurement_only`.
-        recordings: the training data, any kind
+        y: the training data, any kind
             :func:`~torchfilt.training.fit_measurement_only`'s ``y`` takes
             (:mod:`torchfilt.training.data`: a :class:`~torchfilt.training.data.Sequences` of
             ``y``, ``u`` and shared ``x0``/``P0``, a list of recordings, ...), dealt to the
@@ -217,6 +217,6 @@ def fit_measurement_only_ray(
         "checkpoint": ckpt,
     }
     return _run_group(
-        "fit_measurement_only_ray", "measurement_only", model, recordings, options, workers,
+        "fit_measurement_only_ray", "measurement_only", model, y, options, workers,
         address, ckpt.path, timeout, callback_on,
     )  # fmt: skip
