@@ -51,3 +51,24 @@ def test_rts_smooth_of_one_step_is_the_filter_result():
     assert sm.gain.shape == (2, 0, 2, 2)
     sm.mean.add_(1.0)  # a copy: the filter result is untouched
     assert not torch.equal(sm.mean, res.mean)
+
+
+def test_kalman_smoother_of_a_converged_time_invariant_model_matches_the_recursion():
+    """The exact smoother's shared-covariance pass (gains that repeat once the filter has
+    converged, their backward mean recursion a doubling scan) against the stepwise recursion."""
+    from torchfilt.filters import kalman_filter, kalman_smoother
+    from torchfilt.models import LinearGaussianModel
+
+    g = torch.Generator().manual_seed(3)
+    n, m, B, T = 4, 2, 5, 400
+    A = torch.randn(n, n, generator=g, dtype=D)
+    A = 0.9 * A / torch.linalg.eigvals(A).abs().max()
+    H = torch.randn(m, n, generator=g, dtype=D)
+    model = LinearGaussianModel(A, H, 0.1 * torch.eye(n, dtype=D), 0.2 * torch.eye(m, dtype=D))
+    y = torch.randn(B, T, m, generator=g, dtype=D)
+    x0, P0 = torch.zeros(n, dtype=D), torch.eye(n, dtype=D)
+    sm = kalman_smoother(model, y, x0=x0, P0=P0)
+    ms, Ps, G = _reference(kalman_filter(model, y, x0=x0, P0=P0))
+    np.testing.assert_allclose(sm.mean.numpy(), ms, rtol=0, atol=1e-10 * np.abs(ms).max())
+    np.testing.assert_allclose(sm.cov.numpy(), Ps, rtol=0, atol=1e-10 * np.abs(Ps).max())
+    np.testing.assert_allclose(sm.gain.numpy(), G, rtol=0, atol=1e-10 * np.abs(G).max())

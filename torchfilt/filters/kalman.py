@@ -26,6 +26,7 @@ decided by :func:`torchfilt.filters.plan.plan` and recorded in the result's ``nu
 
 from __future__ import annotations
 
+import math
 from collections.abc import Collection
 
 import torch
@@ -36,7 +37,7 @@ from torchfilt.filters import kalman_runners as _runners
 from torchfilt.filters.inputs import broadcast_batch, check_model_input, check_prior, observed
 from torchfilt.filters.kalman_adjoint import adjoint_log_likelihood
 from torchfilt.filters.kalman_checks import warn_precision
-from torchfilt.filters.kalman_runners import _STEADY_ULPS
+from torchfilt.filters.kalman_runners import _DOUBLING_WORK, _STEADY_ULPS, _affine_tail
 from torchfilt.filters.kalman_steps import (
     Belief,
     _mv,
@@ -589,7 +590,15 @@ def _smooth_shared(data: Data, steps: LinearSteps, res: FilterResult) -> Smoothe
     m = res.mean.reshape(B, T, n).transpose(0, 1)
     mp = res.predicted_mean.reshape(B, T, n).transpose(0, 1)
     ms = m - torch.cat([mp[1:] @ G.mT, torch.zeros_like(mp[:1])], 0)  # (T, B, n), g_t
-    for k in range(T - 2, -1, -1):
+    start = T - 2
+    if c < T - 2 and B * n * n * math.log2(T - c) <= _DOUBLING_WORK:
+        # from step c on the gain repeats: the backward recursion there is affine with one
+        # matrix, a doubling scan over the reversed tail
+        tail = ms[c:].flip(0)
+        _affine_tail(tail, G[c].mT.unsqueeze(0))
+        ms[c:] = tail.flip(0)
+        start = c - 1
+    for k in range(start, -1, -1):
         ms[k].addmm_(ms[k + 1], G[k].mT)
     mean = ms.transpose(0, 1).reshape(*batch, T, n)
     return SmootherResult(mean, covs.expand(*batch, T, n, n), G.expand(*batch, T - 1, n, n), res)

@@ -67,17 +67,34 @@ def smoothed_pairs(res: FilterResult, x0: Tensor, P0: Tensor) -> SmoothedPairs:
 
 
 def _pairs(sm: SmootherResult, x0: Tensor, P0: Tensor) -> SmoothedPairs:
-    """:func:`smoothed_pairs` from a smoother result ``sm`` (its forward pass included)."""
+    """:func:`smoothed_pairs` from a smoother result ``sm`` (its forward pass included). Where
+    the covariances are one sequence viewed by the whole batch (the exact smoother of a model
+    without batch dimensions on complete data), the covariance fields are computed once and
+    returned as views expanded over the batch."""
     res = sm.filtered
-    Pp0 = res.predicted_cov[..., 0, :, :]
-    G0 = psd_solve(Pp0, res.cross_cov[..., 0, :, :].mT, name="predicted covariance").mT
-    ms0, Ps0 = sm.mean[..., 0, :], sm.cov[..., 0, :, :]
+    covs = (sm.cov, sm.gain, res.predicted_cov, res.cross_cov)
+    lead: tuple[int, ...] = ()
+    if all(st == 0 for st in P0.stride()[: P0.dim() - 2]) and all(_expanded(x) for x in covs):
+        lead = (0,) * (sm.cov.dim() - 3)
+        P0 = P0[(0,) * (P0.dim() - 2)]
+    P_s, gain, Pp, cross = (x[lead] for x in covs)
+    Pp0 = Pp[..., 0, :, :]
+    G0 = psd_solve(Pp0, cross[..., 0, :, :].mT, name="predicted covariance").mT
+    ms0, Ps0 = sm.mean[..., 0, :], P_s[..., 0, :, :]
     m_prev0 = x0 + (G0 @ (ms0 - res.predicted_mean[..., 0, :]).unsqueeze(-1)).squeeze(-1)
     P_prev0 = symmetrize(P0 + G0 @ (Ps0 - Pp0) @ G0.mT)
-    gains = torch.cat([G0.unsqueeze(-3), sm.gain], -3)  # G_{t-1}, t = 0..T-1
+    gains = torch.cat([G0.unsqueeze(-3), gain], -3)  # G_{t-1}, t = 0..T-1
     prev_mean = torch.cat([m_prev0.unsqueeze(-2), sm.mean[..., :-1, :]], -2)
-    prev_cov = torch.cat([P_prev0.unsqueeze(-3), sm.cov[..., :-1, :, :]], -3)
-    return SmoothedPairs(prev_mean, prev_cov, sm.mean, sm.cov, gains @ sm.cov)
+    prev_cov = torch.cat([P_prev0.unsqueeze(-3), P_s[..., :-1, :, :]], -3)
+    shape = sm.cov.shape
+    return SmoothedPairs(
+        prev_mean, prev_cov.expand(shape), sm.mean, sm.cov, (gains @ P_s).expand(shape)
+    )
+
+
+def _expanded(x: Tensor) -> bool:
+    """Whether ``x (..., T, n, n)`` is one sequence viewed along all its leading dimensions."""
+    return x.dim() > 3 and all(st == 0 for st in x.stride()[: x.dim() - 3])
 
 
 # ----------------------------------------------------------------------------------- M-steps
@@ -105,6 +122,64 @@ def _summed(all_reduce: Callable[[Tensor], None] | None, *values: Tensor) -> lis
     return out
 
 
+def _cov_sum(P: Tensor, keep: Tensor) -> Tensor:
+    """The sum of the covariances ``P (..., T, n, n)`` over the steps where ``keep (..., T)``
+    (float64): a weighted sum over ``T`` of the one sequence where ``P`` is that sequence viewed
+    by the whole batch."""
+    n, T = P.shape[-1], P.shape[-3]
+    if _expanded(P):
+        w = keep.reshape(-1, T).sum(0).to(torch.float64)
+        return (w @ P[(0,) * (P.dim() - 3)].reshape(T, n * n).to(torch.float64)).reshape(n, n)
+    return P.reshape(-1, n, n)[keep.reshape(-1)].to(torch.float64).sum(0)
+
+
+def _linear_stats(
+    sp: SmoothedPairs, Y: Tensor, U: Tensor | None, valid: Tensor, with_B: bool, D: Tensor | None
+) -> list[Tensor]:
+    """The expected sufficient statistics of :func:`_linear_m_step` (float64): ``N, Sxx, Spp,
+    Sxp`` (then ``Spu, Suu, Sxu`` with ``B``), then the observed rows' ``n_ok, Sxx_o, Sxy,
+    Syy``. The second moments of the means come from one product of the stacked
+    ``[m_t, m_{t-1}, u_t, y_t - D u_t]`` where every kept step is observed."""
+    n, f64 = sp.mean.shape[-1], torch.float64
+    keep = valid.reshape(-1)
+    m_prev = sp.prev_mean.reshape(-1, n)[keep].to(f64)
+    m_cur = sp.mean.reshape(-1, n)[keep].to(f64)
+    u = U.reshape(-1, U.shape[-1])[keep].to(f64) if U is not None else None
+    y = Y.reshape(-1, Y.shape[-1])[keep].to(f64)
+    if D is not None:
+        assert u is not None
+        y = y - u @ D.to(f64).mT
+    ok_rt = valid & torch.isfinite(Y).all(-1)
+    ok = ok_rt.reshape(-1)[keep]
+    every = bool(ok.all())
+    cols = [m_cur, m_prev, *([u] if with_B and u is not None else []), *([y] if every else [])]
+    Z = torch.cat(cols, -1)
+    M = Z.mT @ Z
+    cur, prev = slice(0, n), slice(n, 2 * n)
+    stats = [
+        torch.tensor(float(m_cur.shape[0]), dtype=f64),  # N
+        _cov_sum(sp.cov, valid) + M[cur, cur],  # Sxx
+        _cov_sum(sp.prev_cov, valid) + M[prev, prev],  # Spp
+        _cov_sum(sp.cross_cov, valid).mT + M[cur, prev],  # Sxp = E[x_t x_{t-1}^T]
+    ]
+    if with_B:
+        nu = U.shape[-1]  # type: ignore[union-attr]
+        ub = slice(2 * n, 2 * n + nu)
+        stats += [M[prev, ub], M[ub, ub], M[cur, ub]]  # Spu, Suu, Sxu
+    if every:  # measurement: every kept row is observed
+        yb = slice(M.shape[-1] - y.shape[-1], None)
+        return [*stats, stats[0], stats[1], M[cur, yb], M[yb, yb]]
+    # measurement: rows with every component observed
+    yo, mo = y[ok], m_cur[ok]
+    return [
+        *stats,
+        torch.tensor(float(ok.sum()), dtype=f64),  # observed rows
+        _cov_sum(sp.cov, ok_rt) + mo.mT @ mo,  # Sxx_o
+        mo.mT @ yo,  # Sxy
+        yo.mT @ yo,  # Syy
+    ]
+
+
 def _linear_m_step(
     lin: _Lin,
     sp: SmoothedPairs,
@@ -127,38 +202,10 @@ def _linear_m_step(
     take their closed form given them (the conditional maximisation: ``B`` given a fixed ``A``,
     ``Q`` from the residuals of the ``A, B`` used, ``R`` from the ``H`` used)."""
     n, dtype = lin.A.shape[-1], lin.A.dtype
-    f64 = torch.float64
-    keep = valid.reshape(-1)
-    m_prev = sp.prev_mean.reshape(-1, n)[keep].to(f64)
-    m_cur = sp.mean.reshape(-1, n)[keep].to(f64)
-    P_prev = sp.prev_cov.reshape(-1, n, n)[keep].to(f64)
-    P_cur = sp.cov.reshape(-1, n, n)[keep].to(f64)
-    C = sp.cross_cov.reshape(-1, n, n)[keep].to(f64)  # Cov(x_{t-1}, x_t)
     with_B = lin.B is not None and U is not None
-    u = U.reshape(-1, U.shape[-1])[keep].to(f64) if U is not None else None
-    stats = [
-        torch.tensor(float(m_cur.shape[0]), dtype=f64),  # N
-        P_cur.sum(0) + m_cur.mT @ m_cur,  # Sxx
-        P_prev.sum(0) + m_prev.mT @ m_prev,  # Spp
-        C.sum(0).mT + m_cur.mT @ m_prev,  # Sxp = E[x_t x_{t-1}^T]
-    ]
-    if with_B:
-        assert u is not None
-        stats += [m_prev.mT @ u, u.mT @ u, m_cur.mT @ u]  # Spu, Suu, Sxu
-    # measurement: rows with every component observed
-    y = Y.reshape(-1, Y.shape[-1])[keep].to(f64)
-    ok = torch.isfinite(y).all(-1)
-    yo, mo, Po = y[ok], m_cur[ok], P_cur[ok]
-    if lin.D is not None and U is not None:
-        assert u is not None
-        yo = yo - u[ok] @ lin.D.to(f64).mT
-    stats += [
-        torch.tensor(float(ok.sum()), dtype=f64),  # observed rows
-        Po.sum(0) + mo.mT @ mo,  # Sxx_o
-        mo.mT @ yo,  # Sxy
-        yo.mT @ yo,  # Syy
-    ]
-    stats = _summed(all_reduce, *stats)
+    D = lin.D if U is not None else None
+    Uu = U if with_B or D is not None else None
+    stats = _summed(all_reduce, *_linear_stats(sp, Y, Uu, valid, with_B, D))
     N, Sxx, Spp, Sxp = stats[:4]
     if with_B:
         Spu, Suu, Sxu = stats[4:7]
@@ -179,7 +226,7 @@ def _linear_m_step(
     B = AB[:, n:].to(dtype) if with_B else lin.B
     H, R = lin.H, lin.R
     if float(n_ok) > 0:
-        Hd = H.to(f64)
+        Hd = H.to(torch.float64)
         unknown = [j for j in range(H.shape[0]) if j not in known]
         if unknown and "H" not in fixed:
             Hu = psd_solve(Sxx_o, Sxy[:, unknown], name="state second moment").mT
