@@ -81,7 +81,10 @@ def _linear_candidate_score(train: list, val: list) -> float:
     crude = LinearGaussianModel(torch.eye(2, dtype=DT), J, torch.diag(1e-2 * P0.diagonal()), R)
     sub = subspace_start(crude, ys, known_channels=[0]).model
     start = LinearGaussianModel(sub.A, J, sub.transition.noise_cov(), R)
-    lin = fit_em(start, ys, x0=m0, P0=P0, known_channels=[0], fixed=("H", "R"), iterations=20)
+    lin = fit_em(
+        start, ys, x0=m0, P0=P0, known_channels=[0], fixed=("H", "R"), iterations=20,
+        accelerate=False,
+    )  # fmt: skip
     X = torch.cat([kalman_smoother(lin.model, y, x0=m0, P0=P0).mean for y in ys])
     f = InducingTransition.from_linear(
         lin.model.A, inducing=INDUCING, states=X, lengthscale=X.std(0)

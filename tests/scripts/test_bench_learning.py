@@ -21,6 +21,9 @@ def test_time_to_optimum_is_the_first_time_within_tolerance():
     # 1000 sequences: within 100 nats, so from the start
     assert mod.time_to_optimum(lls, elapsed, 1000) == 0.0
     assert mod.time_to_optimum(np.array([np.nan]), np.array([0.0]), 1) is None
+    # to a level given from outside (the best of all methods): first reached at t = 3, or never
+    assert mod._time_to(lls, elapsed, -1.0) == 3.0
+    assert mod._time_to(lls, elapsed, 0.0) is None
 
 
 @pytest.mark.slow
@@ -37,9 +40,11 @@ def test_bench_learning_quick(tmp_path):
     res = json.loads((tmp_path / "bench_learning.json").read_text())
     rows = {(r["row"], r.get("method")) for r in res["rows"]}
     assert ("linear grad", None) in rows
-    assert ("reentry grad", None) in rows
-    assert ("2A->B EM iteration", None) in rows
-    assert ("linear time to optimum", "torchfilt fit_em") in rows
+    assert ("reentry grad", "CKF(compile=False)") in rows
+    assert ("reentry grad", "CKF(compile=True)") in rows
+    assert ("2A->B EM iteration", "fit_em(compile=False)") in rows
+    assert ("linear time to optimum", "torchfilt fit_em (default: SQUAREM)") in rows
+    assert ("linear time to optimum", "torchfilt fit_em (plain EM)") in rows
     for r in res["rows"]:
         assert r["torchfilt_s"] is None or r["torchfilt_s"] >= 0
         assert r.get("peer_s") is None  # no --jax-python: no peer ran

@@ -184,6 +184,7 @@ def test_linear_em_equals_numpy_closed_form_em(iterations, fixed):
         iterations=iterations,
         stopping=StoppingOptions(tol=0.0, rtol=0.0),
         fixed=fixed,
+        accelerate=False,  # plain EM steps, as the reference (SQUAREM: test_em_accel.py)
     )
     assert fit.iterations == iterations
     want = _np_em(A1, H1, B1, Q1, R1, x0, P0, u, y, [0], iterations, fixed)

@@ -123,7 +123,7 @@ def linear_em_start(
     try:
         fit = fit_em(
             start, ys, us, x0=m0, P0=P0, known_channels=known, fixed=("H", "R"),
-            iterations=LINEAR_EM_ITERATIONS, dtype=dtype,
+            iterations=LINEAR_EM_ITERATIONS, dtype=dtype, accelerate=False,
         )  # fmt: skip
     except TorchfiltError:
         return None

@@ -652,18 +652,25 @@ class _EMProblem:
         ll, res = self.filtered()
         return ll, self.smoothed(res)
 
+    def closed_form(self, sp: SmoothedPairs) -> None:
+        """A linear-Gaussian model's closed-form M-step from the smoothed pairs ``sp`` (no
+        E-step after it)."""
+        assert self.lin is not None  # only a linear-Gaussian model has the closed form
+        self.phase = "M-step"
+        self.lin = _linear_m_step(
+            self.lin, sp, self.Y, self.U, self.valid, self.known, self.learn_R, self.reduce,
+            self.fixed,
+        )  # fmt: skip
+
     def m_step(self, ll: float, sp: SmoothedPairs) -> tuple[float, SmoothedPairs, bool]:
         """One M-step from the E-step ``(ll, sp)`` and the E-step after it: the new
         log-likelihood and smoothed pairs, and whether no M-step raised the likelihood (then the
         parameters are back where they were and ``(ll, sp)`` is returned)."""
+        if self.lin is not None:
+            self.closed_form(sp)
+            return (*self.e_step(), False)
         before = self.state()
         self.phase = "M-step"
-        if self.lin is not None:
-            self.lin = _linear_m_step(
-                self.lin, sp, self.Y, self.U, self.valid, self.known, self.learn_R, self.reduce,
-                self.fixed,
-            )  # fmt: skip
-            return (*self.e_step(), False)
         # The E-step of a non-linear model is the CKF's Gaussian approximation, so a better Q need
         # not mean a better likelihood: halve the step until it is (safeguarded GEM). If the joint
         # step still lowers it, try the maps alone, then the noises alone (expectation-conditional

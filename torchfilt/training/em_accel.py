@@ -1,0 +1,145 @@
+"""SQUAREM acceleration of the linear-Gaussian EM of :func:`~torchfilt.training.fit_em`.
+
+EM converges linearly, and slowly where the likelihood is flat: on a 4-state, 2-output model
+fitted to 20 x 500 steps, plain EM needs about 60 iterations to come within 0.1 nats per
+sequence of its optimum, most of them in the slow tail. SQUAREM (Varadhan & Roland 2008, the
+steplength "S3") reads the direction of that tail from two EM steps and extrapolates along it:
+
+* ``theta_1 = M(theta_0)``, ``theta_2 = M(theta_1)`` (EM steps), ``r = theta_1 - theta_0``,
+  ``v = theta_2 - 2 theta_1 + theta_0``;
+* ``alpha = -|r| / |v|``, kept in ``[-max_step, -1]``;
+* ``theta' = theta_0 - 2 alpha r + alpha^2 v`` (``alpha = -1`` gives ``theta_2`` exactly);
+* one more EM step from ``theta'`` stabilises it.
+
+The extrapolated point is kept only when its ``Q`` and ``R`` are positive semi-definite and its
+filter log-likelihood is at least that of ``theta_1``; otherwise ``alpha`` moves halfway to
+``-1`` and, at ``-1``, the cycle is three plain EM steps. Since EM never lowers the likelihood of
+a linear-Gaussian model, a cycle never does either. ``max_step`` starts at 1 and grows 4-fold
+each time the step reaches it (the scheme's default, so the first cycle is plain EM).
+
+The parameters are the matrices ``A, H, Q, R`` (and ``B, D``) of the closed-form M-step; a block
+held fixed, or a known row of ``H``, has ``r = v = 0`` and stays where it is. In a data-parallel
+fit every process holds the same parameters and the summed log-likelihood, so all take the same
+decisions.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import torch
+from torch import Tensor
+
+from torchfilt.training.em_steps import SmoothedPairs, _EMProblem
+
+__all__ = ["Squarem"]
+
+#: halvings of the extrapolation towards ``alpha = -1`` before the plain EM step is taken
+_BACKTRACKS = 3
+
+
+class Squarem:
+    """One accelerated EM cycle at a time over an :class:`_EMProblem` of a linear-Gaussian model,
+    keeping the largest extrapolation allowed between cycles.
+
+    Attributes:
+        max_step: the bound on ``|alpha|`` (starts at 1; grows 4-fold when reached).
+        e_steps: E-steps run so far (each is one Kalman filter and smoother pass).
+    """
+
+    def __init__(self) -> None:
+        self.max_step = 1.0
+        self.e_steps = 0
+
+    def state(self) -> list[float]:
+        """What a checkpoint keeps: ``[max_step, e_steps]``."""
+        return [self.max_step, float(self.e_steps)]
+
+    def load(self, values: list[float]) -> None:
+        """Continue from :meth:`state` (a resumed fit then takes the same cycles)."""
+        self.max_step, self.e_steps = float(values[0]), int(values[1])
+
+    def cycle(self, em: _EMProblem, ll: float, sp: SmoothedPairs) -> tuple[float, SmoothedPairs]:
+        """One cycle from the parameters of ``em`` and their E-step ``(ll, sp)``: the parameters
+        end at the stabilised extrapolation, and its log-likelihood and smoothed pairs are
+        returned."""
+        theta0 = em.state()
+        em.closed_form(sp)
+        _, sp1 = self._e_step(em)
+        theta1 = em.state()
+        em.closed_form(sp1)
+        theta2 = em.state()
+        r = [a - b for a, b in zip(theta1, theta0, strict=True)]
+        v = [c - 2 * a + b for c, a, b in zip(theta2, theta1, theta0, strict=True)]
+        nr, nv = _norm(r), _norm(v)
+        alpha = -1.0
+        if nv > 0 and math.isfinite(nr / nv):
+            alpha = -min(max(nr / nv, 1.0), self.max_step)
+        if alpha <= -self.max_step:
+            self.max_step *= 4.0
+        _, sp_x = self._extrapolated(em, theta0, r, v, alpha, ll)
+        em.closed_form(sp_x)  # the stabilising EM step
+        return self._e_step(em)
+
+    def _extrapolated(
+        self,
+        em: _EMProblem,
+        theta0: list[Tensor],
+        r: list[Tensor],
+        v: list[Tensor],
+        alpha: float,
+        ll0: float,
+    ) -> tuple[float, SmoothedPairs]:
+        """Set ``em`` to the extrapolation at ``alpha`` (halved towards ``-1`` until it is
+        admissible and no worse than ``ll0``, the cycle's start) and return its E-step. ``em`` holds ``theta_2``
+        on entry: the point at ``alpha = -1``."""
+        theta2 = em.state()
+        for _ in range(_BACKTRACKS):
+            if alpha > -1.0 - 1e-3:
+                break
+            em.load(
+                [
+                    t + (-2.0 * alpha) * a + alpha * alpha * b
+                    for t, a, b in zip(theta0, r, v, strict=True)
+                ]
+            )
+            if _admissible(em):
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always")
+                    try:
+                        ll_x, sp_x = self._e_step(em)
+                    except torch.linalg.LinAlgError:
+                        ll_x, sp_x = -math.inf, None
+                if sp_x is not None and math.isfinite(ll_x) and ll_x >= ll0:
+                    for w in caught:  # the kept point's own warnings
+                        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+                    return ll_x, sp_x
+            alpha = (alpha - 1.0) / 2.0
+            self.max_step = max(1.0, -alpha)
+        em.load(theta2)
+        return self._e_step(em)
+
+    def _e_step(self, em: _EMProblem) -> tuple[float, SmoothedPairs]:
+        self.e_steps += 1
+        return em.e_step()
+
+
+def _norm(xs: list[Tensor]) -> float:
+    """The Euclidean norm of the parameters ``xs`` stacked into one vector (float64)."""
+    return math.sqrt(sum(float(x.detach().to(torch.float64).square().sum()) for x in xs))
+
+
+def _admissible(em: _EMProblem) -> bool:
+    """Whether the linear model's ``Q`` and ``R`` are positive semi-definite (an extrapolation
+    may leave that cone; the closed-form step never does)."""
+    lin = em.lin
+    assert lin is not None  # acceleration serves the closed-form M-step only
+    for S in (lin.Q, lin.R):
+        S64 = S.detach().to(torch.float64)
+        if not bool(torch.isfinite(S64).all()):
+            return False
+        eig = torch.linalg.eigvalsh(0.5 * (S64 + S64.mT))
+        if float(eig.min()) < 0.0:
+            return False
+    return True
