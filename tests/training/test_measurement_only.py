@@ -368,9 +368,7 @@ def test_em_with_inputs_recovers_B_under_the_full_gauge():
     # plain EM's 80 iterations. The maximum likelihood of these 800 steps itself has R[1, 1]
     # near 0.007 (accelerated EM reaches it: -1345.05 against -1345.86 where plain EM stops),
     # so the truth's R is recovered on the way there, not at the optimum
-    fit = fit_em(
-        start, y, u, x0=X0, P0=P0, known_channels=[0, 1], iterations=80, accelerate=False
-    )
+    fit = fit_em(start, y, u, x0=X0, P0=P0, known_channels=[0, 1], iterations=80, accelerate=False)
     m = fit.model
     assert isinstance(m, LinearGaussianModel) and m.B is not None
     assert torch.allclose(m.A, A_TRUE, atol=0.1)
