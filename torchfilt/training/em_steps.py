@@ -24,6 +24,7 @@ from torchfilt.models import (
 )
 from torchfilt.numerics import gaussian_log_prob, psd_solve, safe_cholesky, symmetrize
 from torchfilt.optim import DEFAULTS, make_optimizer
+from torchfilt.training.em_noise import closed_form_noise
 
 __all__ = ["SmoothedPairs", "smoothed_pairs"]
 
@@ -509,9 +510,13 @@ def _gradient_m_step(
         opt.step(closure)  # type: ignore[arg-type]
 
     try:
-        for group in ({"noise": noise, "maps": rest}[b] for b in blocks):
-            if group:
-                run(group)
+        for b in blocks:
+            if b == "noise" and noise:
+                done = _closed_form_noises(model, plist, pts, measurement_term, reduce)
+                if [p for p in noise if id(p) not in done]:
+                    run([p for p in noise if id(p) not in done])
+            elif b == "maps" and rest:
+                run(rest)
         q1 = q_value()
         ok = math.isfinite(q1) and q1 >= q0
     except (RuntimeError, ValueError, IndexError):  # a failed factorisation, or torch's
@@ -523,6 +528,30 @@ def _gradient_m_step(
         with torch.no_grad():
             for p, v in zip(plist, before, strict=True):
                 p.copy_(v)
+
+
+def _closed_form_noises(
+    model: StateSpaceModel,
+    plist: list[nn.Parameter],
+    pts: _PairPoints,
+    measurement_term: bool,
+    reduce: _Reducer | None,
+) -> set[int]:
+    """Set the noises that have a closed form given the maps (:mod:`em_noise`); the ``id`` of
+    every parameter set (the others keep their L-BFGS block)."""
+    free = {id(p) for p in plist}
+    t_noise = getattr(model.transition, "noise_param", None)
+    if t_noise is not None and t_noise is getattr(model.measurement, "noise_param", None):
+        return set()  # one covariance shared by both sides: no single residual
+
+    def summed(*v: Tensor) -> list[Tensor]:
+        return _summed(reduce, *v)
+
+    done = closed_form_noise(model.transition, pts.xa, pts.uu, pts.xb, pts.wm, free, summed)
+    if measurement_term and pts.all_seen and pts.p1 is not None:
+        assert pts.y is not None and pts.wm1 is not None
+        done += closed_form_noise(model.measurement, pts.p1, pts.u1, pts.y, pts.wm1, free, summed)
+    return {id(p) for p in done}
 
 
 def _linear_start(model: StateSpaceModel, dtype: torch.dtype, known: list[int]) -> _Lin | None:

@@ -345,7 +345,9 @@ def fit_em(
             closed-form M-step on ``A, B, Q``, the rows of ``H`` outside ``known_channels`` and
             ``R``; any other model gets L-BFGS steps on the expected complete-data
             log-likelihood over its parameters with ``requires_grad`` (measurement-map
-            parameters of known channels are refused by :func:`check_gauge`).
+            parameters of known channels are refused by :func:`check_gauge`), its noise
+            covariances in closed form where their map reports no per-point variance
+            (:mod:`torchfilt.training.em_noise`).
         y: measurements ``(..., T, m)``, a list of ``(T_i, m)``, a
             :class:`~torchfilt.training.data.Sequences`, or a list of
             :class:`~torchfilt.io.Recording` (row 0 the prior's time; see
