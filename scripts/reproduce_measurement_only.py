@@ -27,9 +27,15 @@ range a hyperbola in the altitude, so the gauge holds): the drag law with its ai
 diagonal ``Q`` and ``R``. Beside the same grey-box trained with the logged states, the true model
 and the miscalibrated start, on 100 held-out runs from the paper's prior.
 
+**Van der Pol** (``_oscillator_case.py``), a user's own non-linear oscillator from ONE recording
+with its non-linear sensor known: ``fit_measurement_only`` with its default options for both
+methods, beside the same GP model trained with the recording's logged states.
+
 Not done yet (see the README): Plaza2, and re-entry with a GP residual.
 
     python scripts/reproduce_measurement_only.py --out scripts/results/cpu-2026-12-02-measonly
+    python scripts/reproduce_measurement_only.py --cases oscillator \
+        --out scripts/results/cpu-2026-12-03-measonly-osc
 """
 
 from __future__ import annotations
@@ -51,6 +57,7 @@ from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import environment, table, write_json
+from _oscillator_case import oscillator_case, oscillator_table
 
 import torchfilt
 from torchfilt.models import (
@@ -420,25 +427,70 @@ def reentry_case(train_runs: int, test_runs: int, seed: int, iterations: int) ->
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--out", type=Path, default=Path("out/measurement_only"))
-    ap.add_argument("--train-runs", type=int, default=8)
-    ap.add_argument("--test-runs", type=int, default=50)
-    ap.add_argument("--em-iterations", type=int, default=40)
-    ap.add_argument("--likelihood-iterations", type=int, default=15)
-    ap.add_argument("--m-step-iterations", type=int, default=20)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument(
-        "--reentry-train-runs", type=int, default=8, help="0 leaves the re-entry case out"
-    )
-    ap.add_argument("--reentry-test-runs", type=int, default=100)
-    ap.add_argument("--reentry-iterations", type=int, default=30)
-    args = ap.parse_args(argv)
-    torch.set_num_threads(1)
-    torch.manual_seed(args.seed)
-    args.out.mkdir(parents=True, exist_ok=True)
+def reaction_measurement_only(
+    args: argparse.Namespace,
+    train: Any,
+    test: Any,
+    rows: dict[str, dict[str, Any]],
+    fits: dict[str, Any],
+    prefix: str,
+    fit_key: str,
+    build: Any,
+) -> dict[str, StateSpaceModel]:
+    """Train ``build()`` by both methods from the measurements; rows ``prefix, measurements only
+    (method)``, fit records ``fit_key + method``."""
+    x0, P0 = reaction.prior_mean("paper", DT), reaction.prior_cov(DT)
+    models: dict[str, StateSpaceModel] = {}
+    for method, iters in (("em", args.em_iterations), ("likelihood", args.likelihood_iterations)):
+        torch.manual_seed(args.seed)
+        model = build()
+        t0 = time.perf_counter()
+        fit = torchfilt.fit_measurement_only(
+            model,
+            train.measurements,
+            x0=x0,
+            P0=P0,
+            known_channels=[0],
+            method=method,  # type: ignore[arg-type]
+            iterations=iters,
+            m_step_iterations=args.m_step_iterations,
+        )
+        fits[fit_key + method] = {
+            "log_likelihood": fit.log_likelihood,
+            "iterations": fit.iterations,
+            "stopped": fit.stopped,
+        }
+        rows[f"{prefix}, measurements only ({method})"] = {
+            **evaluate(model, test),
+            "train_s": time.perf_counter() - t0,
+        }
+        models[method] = model
+    return models
 
+
+def reaction_verdict(rows: dict[str, dict[str, Any]], prefix: str, n: int) -> dict[str, Any]:
+    state_rmse = rows[f"{prefix}, trained with states"]["rmse"]
+    cands = {m: rows[f"{prefix}, measurements only ({m})"] for m in ("em", "likelihood")}
+    # the better method by what a user without states can see: the held-out measurements
+    best = max(cands, key=lambda m: cands[m]["log_predictive_density"])
+    return {
+        "better_method (held-out LPD)": best,
+        "rmse_ratio": cands[best]["rmse"] / state_rmse,
+        "rmse_within_1.5x_of_state_trained": cands[best]["rmse"] <= 1.5 * state_rmse,
+        "nees": cands[best]["nees"],
+        f"nees_in_[{0.5 * n:g},{2 * n:g}]": 0.5 * n <= cands[best]["nees"] <= 2 * n,
+    }
+
+
+def reaction_table(rows: dict[str, dict[str, Any]]) -> str:
+    headers = ["model", "RMSE", "RMSE steps 20+", "mean NEES", "95% cov.", "held-out LPD"]
+    keys = ["rmse", "rmse_last80", "nees", "coverage95", "log_predictive_density", "train_s"]
+    return table([*headers, "train s"], [[k, *(v[c] for c in keys)] for k, v in rows.items()])
+
+
+def reaction_report(args: argparse.Namespace) -> dict[str, Any]:
+    """The 2A -> B rows (GP residual and grey-box k1, each three ways), printed; the JSON keys
+    and ``reaction_rmse.png``."""
     train = reaction.simulate_truth(args.train_runs, start="paper", seed=args.seed + 1)
     test = reaction.simulate_truth(args.test_runs, start="paper", seed=args.seed + 2)
     x0, P0 = reaction.prior_mean("paper", DT), reaction.prior_cov(DT)
@@ -463,41 +515,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     cloud = sm.mean.reshape(-1, 2)
     fits: dict[str, Any] = {}
-
-    def measurement_only(prefix: str, fit_key: str, build: Any) -> dict[str, StateSpaceModel]:
-        """Train ``build()`` by both methods from the measurements; rows ``prefix,
-        measurements only (method)``, fit records ``fit_key + method``."""
-        models: dict[str, StateSpaceModel] = {}
-        for method, iters in (
-            ("em", args.em_iterations),
-            ("likelihood", args.likelihood_iterations),
-        ):
-            torch.manual_seed(args.seed)
-            model = build()
-            t0 = time.perf_counter()
-            fit = torchfilt.fit_measurement_only(
-                model,
-                train.measurements,
-                x0=x0,
-                P0=P0,
-                known_channels=[0],
-                method=method,  # type: ignore[arg-type]
-                iterations=iters,
-                m_step_iterations=args.m_step_iterations,
-            )
-            fits[fit_key + method] = {
-                "log_likelihood": fit.log_likelihood,
-                "iterations": fit.iterations,
-                "stopped": fit.stopped,
-            }
-            rows[f"{prefix}, measurements only ({method})"] = {
-                **evaluate(model, test),
-                "train_s": time.perf_counter() - t0,
-            }
-            models[method] = model
-        return models
-
-    measurement_only("GP", "", lambda: learnable(cloud))
+    reaction_measurement_only(args, train, test, rows, fits, "GP", "", lambda: learnable(cloud))
 
     # grey-box: the physics with k1 learned, no residual
     t0 = time.perf_counter()
@@ -508,51 +526,43 @@ def main(argv: list[str] | None = None) -> int:
         "train_s": time.perf_counter() - t0,
     }
     k1s = {"trained with states": learned_k1(gb_states)}
-    for method, model in measurement_only("grey-box k1", "grey-box ", grey_box).items():
+    for method, model in reaction_measurement_only(
+        args, train, test, rows, fits, "grey-box k1", "grey-box ", grey_box
+    ).items():
         k1s[method] = learned_k1(model)
 
-    headers = [
-        "model",
-        "RMSE",
-        "RMSE steps 20+",
-        "mean NEES",
-        "95% cov.",
-        "held-out LPD",
-        "train s",
-    ]
-    body = [
-        [
-            k,
-            v["rmse"],
-            v["rmse_last80"],
-            v["nees"],
-            v["coverage95"],
-            v["log_predictive_density"],
-            v["train_s"],
-        ]
-        for k, v in rows.items()
-    ]
-    text = table(headers, body)
+    text = reaction_table(rows)
     print("2A -> B, from total pressure only (held-out runs, CKF from N([5, 5], 36 I))")
     print(text)
     print(f"learned k1 (true {reaction.K1}, start {K1_NOMINAL}):", k1s)
-
-    def verdict(prefix: str, n: int) -> dict[str, Any]:
-        state_rmse = rows[f"{prefix}, trained with states"]["rmse"]
-        cands = {m: rows[f"{prefix}, measurements only ({m})"] for m in ("em", "likelihood")}
-        # the better method by what a user without states can see: the held-out measurements
-        best = max(cands, key=lambda m: cands[m]["log_predictive_density"])
-        return {
-            "better_method (held-out LPD)": best,
-            "rmse_ratio": cands[best]["rmse"] / state_rmse,
-            "rmse_within_1.5x_of_state_trained": cands[best]["rmse"] <= 1.5 * state_rmse,
-            "nees": cands[best]["nees"],
-            f"nees_in_[{0.5 * n:g},{2 * n:g}]": 0.5 * n <= cands[best]["nees"] <= 2 * n,
-        }
-
-    targets = {"GP residual": verdict("GP", 2), "grey-box k1": verdict("grey-box k1", 2)}
+    targets = {
+        "GP residual": reaction_verdict(rows, "GP", 2),
+        "grey-box k1": reaction_verdict(rows, "grey-box k1", 2),
+    }
     print("targets:", targets)
+    fig = Figure(figsize=(6, 3.5))
+    ax = fig.add_subplot()
+    names = list(rows)
+    ax.barh(names, [rows[k]["rmse"] for k in names])
+    ax.set_xlabel("filtering RMSE (held-out)")
+    ax.set_title("2A -> B from total pressure only")
+    fig.tight_layout()
+    fig.savefig(args.out / "reaction_rmse.png", dpi=120)
+    return {
+        "system": "reaction 2A -> B, start 'paper'",
+        "k1_nominal": K1_NOMINAL,
+        "inducing": INDUCING,
+        "train_runs": args.train_runs,
+        "test_runs": args.test_runs,
+        "rows": rows,
+        "fits": fits,
+        "targets": targets,
+        "table": text,
+        "grey_box_k1": k1s,
+    }
 
+
+def linear_report(args: argparse.Namespace) -> dict[str, Any]:
     lin = linear_case(args.train_runs, args.test_runs, args.seed, 200)
     lin_text = table(
         ["model", "RMSE", "mean NEES", "95% cov.", "held-out LPD", "train s"],
@@ -563,94 +573,134 @@ def main(argv: list[str] | None = None) -> int:
     )
     print("\nlinear-Gaussian n = 2, H = I known (full gauge), measurements only vs with states")
     print(lin_text)
+    return {"rows": lin, "table": lin_text}
 
-    re_out: dict[str, Any] | None = None
-    if args.reentry_train_runs > 0:
-        re_out = reentry_case(
-            args.reentry_train_runs, args.reentry_test_runs, args.seed, args.reentry_iterations
-        )
-        rr = re_out["rows"]
-        re_text = table(
-            [
-                "model",
-                "RMSE alt. ft",
-                "RMSE vel. ft/s",
-                "mean NEES",
-                "median NEES",
-                "95% cov.",
-                "held-out LPD",
-                "train s",
-            ],
-            [
-                [
-                    k,
-                    v["rmse_altitude"],
-                    v["rmse_velocity"],
-                    v["nees"],
-                    v["nees_median"],
-                    v["coverage95"],
-                    v["log_predictive_density"],
-                    v["train_s"],
-                ]
-                for k, v in rr.items()
-            ],
-        )
-        print("\nre-entry from radar range alone, radar gain and offset learned (n = 3)")
-        print(re_text)
-        print("learned parameters:", re_out["parameters"], "truth:", re_out["truth"])
-        ref = rr["grey-box, trained with states"]
-        re_out["table"] = re_text
 
-        def radar_verdict(keys: list[str]) -> dict[str, Any]:
-            cands = {k: rr[k] for k in keys}
-            best = max(cands, key=lambda k: cands[k]["log_predictive_density"])
-            ratio = max(cands[best][k] / ref[k] for k in ("rmse_altitude", "rmse_velocity"))
-            return {
-                "better (held-out LPD)": best,
-                "rmse_ratio_worst_state": ratio,
-                "rmse_within_1.5x_of_state_trained": ratio <= 1.5,
-                "nees": cands[best]["nees"],
-                "nees_in_[1.5,6]": 1.5 <= cands[best]["nees"] <= 6.0,
-            }
-
-        # the better method by the held-out measurements; then the same fit with its parameter
-        # uncertainty carried (the likelihood fit only: EM stops short of the maximum)
-        point = radar_verdict([f"grey-box, ranges only ({m})" for m in ("em", "likelihood")])
-        re_out["targets"] = {"point estimates": point}
-        for cov in ("hessian", "sandwich"):
-            key = f"grey-box, ranges only (likelihood) + parameter uncertainty ({cov})"
-            if key in rr:
-                re_out["targets"][f"likelihood + parameter uncertainty ({cov})"] = radar_verdict(
-                    [key]
-                )
-        print("targets:", re_out["targets"])
-    write_json(
-        args.out / "results.json",
-        {
-            "system": "reaction 2A -> B, start 'paper'",
-            "k1_nominal": K1_NOMINAL,
-            "inducing": INDUCING,
-            "train_runs": args.train_runs,
-            "test_runs": args.test_runs,
-            "seed": args.seed,
-            "rows": rows,
-            "fits": fits,
-            "targets": targets,
-            "table": text,
-            "grey_box_k1": k1s,
-            "linear_full_gauge": {"rows": lin, "table": lin_text},
-            "reentry": re_out,
-            "environment": environment(),
-        },
+def reentry_report(args: argparse.Namespace) -> dict[str, Any]:
+    re_out = reentry_case(
+        args.reentry_train_runs, args.reentry_test_runs, args.seed, args.reentry_iterations
     )
-    fig = Figure(figsize=(6, 3.5))
-    ax = fig.add_subplot()
-    names = list(rows)
-    ax.barh(names, [rows[k]["rmse"] for k in names])
-    ax.set_xlabel("filtering RMSE (held-out)")
-    ax.set_title("2A -> B from total pressure only")
-    fig.tight_layout()
-    fig.savefig(args.out / "reaction_rmse.png", dpi=120)
+    rr = re_out["rows"]
+    re_text = table(
+        [
+            "model",
+            "RMSE alt. ft",
+            "RMSE vel. ft/s",
+            "mean NEES",
+            "median NEES",
+            "95% cov.",
+            "held-out LPD",
+            "train s",
+        ],
+        [
+            [
+                k,
+                v["rmse_altitude"],
+                v["rmse_velocity"],
+                v["nees"],
+                v["nees_median"],
+                v["coverage95"],
+                v["log_predictive_density"],
+                v["train_s"],
+            ]
+            for k, v in rr.items()
+        ],
+    )
+    print("\nre-entry from radar range alone, radar gain and offset learned (n = 3)")
+    print(re_text)
+    print("learned parameters:", re_out["parameters"], "truth:", re_out["truth"])
+    ref = rr["grey-box, trained with states"]
+    re_out["table"] = re_text
+
+    def radar_verdict(keys: list[str]) -> dict[str, Any]:
+        cands = {k: rr[k] for k in keys}
+        best = max(cands, key=lambda k: cands[k]["log_predictive_density"])
+        ratio = max(cands[best][k] / ref[k] for k in ("rmse_altitude", "rmse_velocity"))
+        return {
+            "better (held-out LPD)": best,
+            "rmse_ratio_worst_state": ratio,
+            "rmse_within_1.5x_of_state_trained": ratio <= 1.5,
+            "nees": cands[best]["nees"],
+            "nees_in_[1.5,6]": 1.5 <= cands[best]["nees"] <= 6.0,
+        }
+
+    # the better method by the held-out measurements; then the same fit with its parameter
+    # uncertainty carried (the likelihood fit only: EM stops short of the maximum)
+    point = radar_verdict([f"grey-box, ranges only ({m})" for m in ("em", "likelihood")])
+    re_out["targets"] = {"point estimates": point}
+    for cov in ("hessian", "sandwich"):
+        key = f"grey-box, ranges only (likelihood) + parameter uncertainty ({cov})"
+        if key in rr:
+            re_out["targets"][f"likelihood + parameter uncertainty ({cov})"] = radar_verdict([key])
+    print("targets:", re_out["targets"])
+    return re_out
+
+
+def oscillator_report(args: argparse.Namespace) -> dict[str, Any]:
+    out = oscillator_case(
+        args.oscillator_steps,
+        args.oscillator_test_runs,
+        args.seed,
+        iterations=args.oscillator_iterations,
+    )
+    out["table"] = oscillator_table(out)
+    print(
+        f"\nVan der Pol from one recording ({args.oscillator_steps} steps), sensor known; "
+        f"{args.oscillator_test_runs} held-out recordings from N([1, 0], I)"
+    )
+    print(out["table"])
+    print("targets:", out["targets"])
+    return out
+
+
+CASES = ("reaction", "linear", "reentry", "oscillator")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", type=Path, default=Path("out/measurement_only"))
+    ap.add_argument(
+        "--cases",
+        default=",".join(CASES),
+        help=f"comma-separated, of {', '.join(CASES)} (default all)",
+    )
+    ap.add_argument("--train-runs", type=int, default=8)
+    ap.add_argument("--test-runs", type=int, default=50)
+    ap.add_argument("--em-iterations", type=int, default=40)
+    ap.add_argument("--likelihood-iterations", type=int, default=15)
+    ap.add_argument("--m-step-iterations", type=int, default=20)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--reentry-train-runs", type=int, default=8, help="0 leaves the re-entry case out"
+    )
+    ap.add_argument("--reentry-test-runs", type=int, default=100)
+    ap.add_argument("--reentry-iterations", type=int, default=30)
+    ap.add_argument("--oscillator-steps", type=int, default=300)
+    ap.add_argument("--oscillator-test-runs", type=int, default=20)
+    ap.add_argument(
+        "--oscillator-iterations",
+        type=int,
+        default=None,
+        help="fit_measurement_only's iterations (default: its own default)",
+    )
+    args = ap.parse_args(argv)
+    cases = [c.strip() for c in args.cases.split(",") if c.strip()]
+    if unknown := sorted(set(cases) - set(CASES)):
+        ap.error(f"--cases: unknown {unknown}; choose from {', '.join(CASES)}")
+    torch.set_num_threads(1)
+    torch.manual_seed(args.seed)
+    args.out.mkdir(parents=True, exist_ok=True)
+    payload: dict[str, Any] = {"cases": cases, "seed": args.seed}
+    if "reaction" in cases:
+        payload.update(reaction_report(args))
+    if "linear" in cases:
+        payload["linear_full_gauge"] = linear_report(args)
+    if "reentry" in cases:
+        payload["reentry"] = reentry_report(args) if args.reentry_train_runs > 0 else None
+    if "oscillator" in cases:
+        payload["oscillator"] = oscillator_report(args)
+    payload["environment"] = environment()
+    write_json(args.out / "results.json", payload)
     return 0
 
 
