@@ -104,9 +104,13 @@ def linear_problem(B: int, T: int, seed: int = 0) -> dict[str, np.ndarray]:
 
 
 def learnable(model: torchfilt.LinearGaussianModel) -> list[Tensor]:
-    """``A`` (a buffer of the model, so not among ``model.parameters()``) and the noises'
-    parameters."""
-    return [model.A, *model.parameters()]
+    """``A`` and the noises' parameters, each once (``A`` is among ``model.parameters()`` when
+    the model registers the ``nn.Parameter`` it was given, and not when it keeps a buffer)."""
+    out: list[Tensor] = []
+    for t in [model.A, *model.parameters()]:
+        if all(t is not o for o in out):
+            out.append(t)
+    return out
 
 
 def linear_model(p: dict[str, np.ndarray]) -> torchfilt.LinearGaussianModel:
