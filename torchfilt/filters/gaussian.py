@@ -123,7 +123,11 @@ class GaussianFilter(nn.Module):
             steps unrolled into one graph each instead (long first compile), and the result's
             ``numerics.execution`` says ``"compiled-chunks"``. ``"step"`` compiles the per-step
             function only (one compiled call per step); ``True`` (``"auto"``) takes ``"step"``,
-            whose compile is the shortest and which serves gradients. Under compilation a
+            whose compile is the shortest and which serves gradients: on the re-entry model
+            (RK4, 10 sub-steps), 64 x 100, one likelihood + gradient takes 0.09 s after a cold
+            compile of about 75 s on the 2-core machine (0.9 s eager), where the chunks
+            ``"loop"`` falls back to under autograd had not compiled after 15 minutes; use
+            ``True`` for gradients of a large step. Under compilation a
             covariance that fails its Cholesky factorisation turns the sequence to NaN instead of
             being jittered. The eager path (the default) is the one to debug with: every op runs
             as written, and a failed factorisation is retried with jitter and reported.
