@@ -38,6 +38,7 @@ CORRUPTIONS = {
     "lr negative": "lr",
     "dtype int": "dtype",
     "fixed unknown": "fixed",
+    "accelerate not a bool": "accelerate",
 }
 FITS = ["fit_likelihood", "calibrate", "fit_em"]
 
@@ -81,6 +82,8 @@ def check_fits(data: st.DataObject) -> None:
     options: dict = {"iterations": data.draw(st.integers(1, 2), label="iterations")}
     if fit != "fit_em":
         options.update(lr=0.05, burn_in=0)
+    else:  # plain or SQUAREM-accelerated EM (None: the default, on for this linear model)
+        options["accelerate"] = data.draw(st.sampled_from([None, True, False]), "accelerate")
     if corruption == "y float16":
         y = y.half()
     elif corruption == "y int64":
@@ -106,6 +109,11 @@ def check_fits(data: st.DataObject) -> None:
         options["dtype"] = torch.int64
     elif corruption == "fixed unknown":
         options["fixed"] = ("no_such_parameter",)
+    elif corruption == "accelerate not a bool":
+        if fit == "fit_em":
+            options["accelerate"] = "yes"
+        else:
+            corruption, what = "none", None  # only EM accelerates
     res, _ = attempt(fit, _call, fit, model, y, u, x0, P0, options)
     if what is not None:
         assert isinstance(res, Refused), f"{fit}, {corruption}: not refused"
