@@ -12,9 +12,9 @@ steplength "S3") reads the direction of that tail from two EM steps and extrapol
 * one more EM step from ``theta'`` stabilises it.
 
 The extrapolated point is kept only when its ``Q`` and ``R`` are positive semi-definite and its
-filter log-likelihood is at least that of ``theta_1``; otherwise ``alpha`` moves halfway to
-``-1`` and, at ``-1``, the cycle is three plain EM steps. Since EM never lowers the likelihood of
-a linear-Gaussian model, a cycle never does either. ``max_step`` starts at 1 and grows 4-fold
+filter log-likelihood is at least that of ``theta_0``, the cycle's start; otherwise ``alpha``
+moves halfway to ``-1`` and, at ``-1``, the cycle is three plain EM steps. Since EM never lowers
+the likelihood of a linear-Gaussian model, a cycle never does either. ``max_step`` starts at 1 and grows 4-fold
 each time the step reaches it (the scheme's default, so the first cycle is plain EM).
 
 The parameters are the matrices ``A, H, Q, R`` (and ``B, D``) of the closed-form M-step; a block
@@ -31,6 +31,7 @@ import warnings
 import torch
 from torch import Tensor
 
+from torchfilt.numerics import symmetrize
 from torchfilt.training.em_steps import SmoothedPairs, _EMProblem
 
 __all__ = ["Squarem"]
@@ -92,8 +93,8 @@ class Squarem:
         ll0: float,
     ) -> tuple[float, SmoothedPairs]:
         """Set ``em`` to the extrapolation at ``alpha`` (halved towards ``-1`` until it is
-        admissible and no worse than ``ll0``, the cycle's start) and return its E-step. ``em`` holds ``theta_2``
-        on entry: the point at ``alpha = -1``."""
+        admissible and no worse than ``ll0``, the cycle's start) and return its E-step. ``em``
+        holds ``theta_2`` on entry: the point at ``alpha = -1``."""
         theta2 = em.state()
         for _ in range(_BACKTRACKS):
             if alpha > -1.0 - 1e-3:
@@ -139,7 +140,7 @@ def _admissible(em: _EMProblem) -> bool:
         S64 = S.detach().to(torch.float64)
         if not bool(torch.isfinite(S64).all()):
             return False
-        eig = torch.linalg.eigvalsh(0.5 * (S64 + S64.mT))
+        eig = torch.linalg.eigvalsh(symmetrize(S64))
         if float(eig.min()) < 0.0:
             return False
     return True

@@ -513,8 +513,9 @@ def _gradient_m_step(
         for b in blocks:
             if b == "noise" and noise:
                 done = _closed_form_noises(model, plist, pts, measurement_term, reduce)
-                if [p for p in noise if id(p) not in done]:
-                    run([p for p in noise if id(p) not in done])
+                others = [p for p in noise if id(p) not in done]
+                if others:
+                    run(others)
             elif b == "maps" and rest:
                 run(rest)
         q1 = q_value()

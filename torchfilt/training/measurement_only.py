@@ -556,6 +556,7 @@ def _accelerator(accelerate: bool | None, em: _EMProblem) -> Squarem | None:
 
     Raises:
         InputError: ``accelerate=True`` for a model with the gradient M-step.
+        InputTypeError: ``accelerate`` is not ``True``, ``False`` or ``None``.
     """
     if accelerate is not None and not isinstance(accelerate, bool):
         raise InputTypeError(f"accelerate: expected True, False or None, got {accelerate!r}")
