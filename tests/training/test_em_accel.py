@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 from scipy.stats import multivariate_normal
-from test_em_exact import _joint_prior, _np_em, _simulate, _system
+from test_em_exact import _em_problem, _fit_em, _joint_prior, _np_em, _simulate
 
 import torchfilt.training.em_accel as em_accel
 from torchfilt.exceptions import InputError, InputTypeError
@@ -20,18 +20,6 @@ from torchfilt.optim import StoppingOptions
 from torchfilt.training import fit_em
 
 f64 = torch.float64
-N_STATE, T, REPS = 3, 60, 3
-
-
-def _problem(seed: int = 11):
-    rng = np.random.default_rng(seed)
-    A, H, B, Q, R = _system(rng)
-    x0, P0 = np.zeros(N_STATE), np.eye(N_STATE)
-    u = rng.standard_normal((REPS, T, 1))
-    y = np.stack([_simulate(rng, A, H, B, Q, R, x0, P0, u[i]) for i in range(REPS)])
-    A1, H1, B1 = 0.8 * A, H + 0.2, B * 0.5
-    H1[0] = H[0]  # the known channel
-    return (A1, H1, B1, 2 * Q, 0.5 * R), x0, P0, u, y
 
 
 def _np_loglik(theta, x0, P0, u, y) -> float:
@@ -81,21 +69,6 @@ def _np_squarem(theta0, x0, P0, u, y, cycles, fixed=()):
     return theta
 
 
-def _fit(theta, x0, P0, u, y, cycles, **kw):
-    A1, H1, B1, Q1, R1 = theta
-    return fit_em(
-        LinearGaussianModel(*map(torch.tensor, (A1, H1, Q1, R1, B1))),
-        torch.tensor(y),
-        torch.tensor(u),
-        x0=torch.tensor(x0),
-        P0=torch.tensor(P0),
-        known_channels=[0],
-        iterations=cycles,
-        stopping=StoppingOptions(tol=0.0, rtol=0.0),
-        **kw,
-    )
-
-
 def _matrices(model):
     return (
         model.A,
@@ -108,8 +81,8 @@ def _matrices(model):
 
 @pytest.mark.parametrize(("cycles", "fixed"), [(1, ()), (4, ()), (3, ("A",)), (3, ("Q", "H"))])
 def test_accelerated_em_equals_a_numpy_squarem(cycles, fixed):
-    theta, x0, P0, u, y = _problem()
-    fit = _fit(theta, x0, P0, u, y, cycles, fixed=fixed)
+    theta, x0, P0, u, y = _em_problem()
+    fit = _fit_em(theta, x0, P0, u, y, cycles, fixed=fixed)
     assert fit.iterations == cycles and fit.history[-1]["e_steps"] >= 3 * cycles
     want = _np_squarem(theta, x0, P0, u, y, cycles, fixed)
     for name, g, w in zip("AHBQR", _matrices(fit.model), want, strict=True):
@@ -120,9 +93,9 @@ def test_accelerated_em_equals_a_numpy_squarem(cycles, fixed):
 
 
 def test_first_cycle_is_three_plain_em_steps():
-    theta, x0, P0, u, y = _problem(3)
-    fast = _fit(theta, x0, P0, u, y, 1)
-    plain = _fit(theta, x0, P0, u, y, 3, accelerate=False)
+    theta, x0, P0, u, y = _em_problem(3)
+    fast = _fit_em(theta, x0, P0, u, y, 1)
+    plain = _fit_em(theta, x0, P0, u, y, 3, accelerate=False)
     for g, w in zip(_matrices(fast.model), _matrices(plain.model), strict=True):
         torch.testing.assert_close(g, w, atol=1e-12, rtol=0)
 
@@ -130,9 +103,9 @@ def test_first_cycle_is_three_plain_em_steps():
 def test_a_refused_extrapolation_falls_back_to_plain_em(monkeypatch):
     """With every extrapolation refused, a cycle is three plain EM steps."""
     monkeypatch.setattr(em_accel, "_admissible", lambda em: False)
-    theta, x0, P0, u, y = _problem(5)
-    fast = _fit(theta, x0, P0, u, y, 3)
-    plain = _fit(theta, x0, P0, u, y, 9, accelerate=False)
+    theta, x0, P0, u, y = _em_problem(5)
+    fast = _fit_em(theta, x0, P0, u, y, 3)
+    plain = _fit_em(theta, x0, P0, u, y, 9, accelerate=False)
     for g, w in zip(_matrices(fast.model), _matrices(plain.model), strict=True):
         torch.testing.assert_close(g, w, atol=1e-11, rtol=0)
 
@@ -189,9 +162,9 @@ def test_accelerated_em_climbs_and_ends_at_a_stationary_point():
 
 
 def test_accelerate_is_checked():
-    theta, x0, P0, u, y = _problem()
+    theta, x0, P0, u, y = _em_problem()
     with pytest.raises(InputTypeError, match="accelerate"):
-        _fit(theta, x0, P0, u, y, 1, accelerate="yes")
+        _fit_em(theta, x0, P0, u, y, 1, accelerate="yes")
     nonlinear = StateSpaceModel(
         lambda x: torch.tanh(x), lambda x: x[..., :1], Q=CholeskyCovariance(torch.eye(2, dtype=f64)),
         R=torch.eye(1, dtype=f64),

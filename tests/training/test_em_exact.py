@@ -159,12 +159,11 @@ def _np_em(A, H, B, Q, R, x0, P0, u, y, known, iterations, fixed=()):
     return A, H, B, Q, R
 
 
-@pytest.mark.parametrize(
-    ("iterations", "fixed"),
-    [(1, ()), (6, ()), (3, ("A",)), (3, ("B", "R")), (3, ("Q", "H")), (2, ("A", "B"))],
-)
-def test_linear_em_equals_numpy_closed_form_em(iterations, fixed):
-    rng = np.random.default_rng(11)
+def _em_problem(seed: int = 11):
+    """A 3-state, 2-output model with an input, 3 recordings x 60 steps simulated from it, and a
+    start away from the truth (the known channel 0 of ``H`` kept): ``(A, H, B, Q, R)`` of the
+    start, ``x0``, ``P0``, ``u``, ``y`` (numpy)."""
+    rng = np.random.default_rng(seed)
     A, H, B, Q, R = _system(rng)
     n, T, reps = 3, 60, 3
     x0, P0 = np.zeros(n), np.eye(n)
@@ -173,8 +172,14 @@ def test_linear_em_equals_numpy_closed_form_em(iterations, fixed):
     # start away from the truth
     A1, H1, B1 = 0.8 * A, H + 0.2, B * 0.5
     H1[0] = H[0]  # the known channel
-    Q1, R1 = 2 * Q, 0.5 * R
-    fit = fit_em(
+    return (A1, H1, B1, 2 * Q, 0.5 * R), x0, P0, u, y
+
+
+def _fit_em(theta, x0, P0, u, y, iterations, **kw):
+    """``fit_em`` from the start ``theta = (A, H, B, Q, R)`` of :func:`_em_problem`, channel 0
+    known, for exactly ``iterations`` iterations."""
+    A1, H1, B1, Q1, R1 = theta
+    return fit_em(
         LinearGaussianModel(*map(torch.tensor, (A1, H1, Q1, R1, B1))),
         torch.tensor(y),
         torch.tensor(u),
@@ -183,9 +188,19 @@ def test_linear_em_equals_numpy_closed_form_em(iterations, fixed):
         known_channels=[0],
         iterations=iterations,
         stopping=StoppingOptions(tol=0.0, rtol=0.0),
-        fixed=fixed,
-        accelerate=False,  # plain EM steps, as the reference (SQUAREM: test_em_accel.py)
+        **kw,
     )
+
+
+@pytest.mark.parametrize(
+    ("iterations", "fixed"),
+    [(1, ()), (6, ()), (3, ("A",)), (3, ("B", "R")), (3, ("Q", "H")), (2, ("A", "B"))],
+)
+def test_linear_em_equals_numpy_closed_form_em(iterations, fixed):
+    theta, x0, P0, u, y = _em_problem()
+    A1, H1, B1, Q1, R1 = theta
+    # plain EM steps, as the reference (SQUAREM: test_em_accel.py)
+    fit = _fit_em(theta, x0, P0, u, y, iterations, fixed=fixed, accelerate=False)
     assert fit.iterations == iterations
     want = _np_em(A1, H1, B1, Q1, R1, x0, P0, u, y, [0], iterations, fixed)
     got = fit.model
