@@ -95,10 +95,12 @@ def gp_model(cloud: torch.Tensor) -> StateSpaceModel:
     return StateSpaceModel(f, sensor, Q=CholeskyCovariance(Q0.clone()), R=R)
 
 
-def fit_transitions(model: StateSpaceModel, states: torch.Tensor, iterations: int) -> None:
-    """Maximum likelihood of the logged transitions ``x_{t-1} -> x_t`` (``states (T, 2)``)
-    under the model's transition density (GP mean and variance plus ``Q``), by L-BFGS."""
-    xa, xb = states[:-1].reshape(-1, 1, 2), states[1:].reshape(-1, 1, 2)
+def transition_mle(
+    model: StateSpaceModel, xa: torch.Tensor, xb: torch.Tensor, iterations: int
+) -> None:
+    """Maximum likelihood of logged transitions ``xa -> xb`` (``(N, 1, n)`` each) under the
+    model's transition density (the map's mean and variance plus ``Q``), by L-BFGS over every
+    parameter outside the measurement model."""
     params = [p for n, p in model.named_parameters() if not n.startswith("measurement")]
     opt = torch.optim.LBFGS(params, max_iter=iterations, line_search_fn="strong_wolfe")
 
@@ -114,6 +116,12 @@ def fit_transitions(model: StateSpaceModel, states: torch.Tensor, iterations: in
         return loss
 
     opt.step(closure)  # type: ignore[arg-type]
+
+
+def fit_transitions(model: StateSpaceModel, states: torch.Tensor, iterations: int) -> None:
+    """:func:`transition_mle` of the transitions ``x_{t-1} -> x_t`` of one recording's states
+    ``(T, 2)``."""
+    transition_mle(model, states[:-1].reshape(-1, 1, 2), states[1:].reshape(-1, 1, 2), iterations)
 
 
 def rmse(mean: torch.Tensor, states: torch.Tensor) -> float:

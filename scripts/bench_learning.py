@@ -69,12 +69,13 @@ from torch import Tensor, nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import environment, table, timeit, write_json
+from bench_reaction_em import problem as reaction_problem
 
 import torchfilt
 from torchfilt.filters import CKF, kalman_filter
 from torchfilt.models import CholeskyCovariance, DiagonalCovariance
 from torchfilt.optim import StoppingOptions
-from torchfilt.systems import reaction, reentry
+from torchfilt.systems import reentry
 from torchfilt.training import fit_em, fit_likelihood
 
 PEER = Path(__file__).resolve().parent / "_dynamax_learning_peer.py"
@@ -147,28 +148,6 @@ def reentry_problem(B: int, T: int) -> tuple[torchfilt.StateSpaceModel, dict[str
     P0 = torch.diag(torch.tensor([1e6, 4e6, 1e-5], dtype=D))
     data = dict(y=sim.measurements, m0=torch.tensor(reentry.PRIOR_MEAN, dtype=D), P0=P0)
     return model, data
-
-
-class ReactionTransition(nn.Module):
-    """The 2A -> B Euler step with a learnable rate constant."""
-
-    def __init__(self, k1: float) -> None:
-        super().__init__()
-        self.k1 = nn.Parameter(torch.tensor(k1, dtype=D))
-
-    def forward(self, x: Tensor, u: Tensor | None = None) -> Tensor:
-        return reaction.transition(x, k1=self.k1)
-
-
-def reaction_problem(B: int, T: int) -> tuple[torchfilt.StateSpaceModel, dict[str, Tensor]]:
-    sim = reaction.simulate_truth(B, steps=T, seed=0)
-    model = torchfilt.StateSpaceModel(
-        ReactionTransition(0.8 * reaction.K1),
-        reaction.measurement,
-        Q=CholeskyCovariance(4 * torch.diag(torch.tensor(reaction.Q_DIAG, dtype=D))),
-        R=CholeskyCovariance(torch.tensor([[2 * reaction.R_VAR]], dtype=D)),
-    )
-    return model, dict(y=sim.measurements, m0=reaction.prior_mean(), P0=reaction.prior_cov())
 
 
 # ----------------------------------------------------------------------------------- peers

@@ -4,9 +4,9 @@ Issue 27's row "EM on a nonlinear model, T = 400: at least 5x faster than today"
 checkouts, and ``bench_learning.py`` needs the current API. This script uses only what both
 have: ``fit_em(model, y, x0=, P0=, known_channels=, iterations=)``, with the flat ``tol=`` of
 an old checkout or ``stopping=`` of a new one, and ``compile="loop"`` where the checkout has
-it. The model is the one of ``bench_learning.py``'s 2A -> B row (learnable rate constant,
-``Q`` and ``R`` as ``CholeskyCovariance``, 8 recordings x 400 steps, 3 iterations: the third
-halves its step). Run it with each checkout first on ``PYTHONPATH``, alternating:
+it. Its model (:func:`problem`: learnable rate constant, ``Q`` and ``R`` as
+``CholeskyCovariance``) is also ``bench_learning.py``'s 2A -> B row; 8 recordings x 400 steps,
+3 iterations (the third halves its step). Run it with each checkout first on ``PYTHONPATH``, alternating:
 
     cd OLD && PYTHONPATH=$PWD python /path/to/scripts/bench_reaction_em.py --out OUT/old1.json
     cd NEW && PYTHONPATH=$PWD python scripts/bench_reaction_em.py --out OUT/new1.json
@@ -50,6 +50,8 @@ class Transition(nn.Module):
 
 
 def problem(B: int, T: int) -> tuple[torchfilt.StateSpaceModel, dict[str, Tensor]]:
+    """The 2A -> B model from ``0.8 K1`` and inflated noises, and ``B`` simulated recordings of
+    ``T`` steps with the prior (``y``, ``m0``, ``P0``)."""
     sim = reaction.simulate_truth(B, steps=T, seed=0)
     model = torchfilt.StateSpaceModel(
         Transition(0.8 * reaction.K1),

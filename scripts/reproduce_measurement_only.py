@@ -57,7 +57,7 @@ from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import environment, table, write_json
-from _oscillator_case import oscillator_case, oscillator_table
+from _oscillator_case import oscillator_case, oscillator_table, transition_mle
 
 import torchfilt
 from torchfilt.models import (
@@ -134,22 +134,7 @@ def fit_with_states(
         r2 = (y - reaction.measurement(states)).pow(2).mean()
         raw = model.measurement.noise_param.raw  # type: ignore[union-attr]
         raw.copy_(r2.log().reshape(raw.shape))  # type: ignore[operator]
-    params = [p for n, p in model.named_parameters() if not n.startswith("measurement")]
-    opt = torch.optim.LBFGS(params, max_iter=iterations, line_search_fn="strong_wolfe")
-
-    def closure() -> torch.Tensor:
-        opt.zero_grad()
-        pred = model.transition.predict(xa)
-        cov = model.transition.noise_cov()
-        assert cov is not None
-        if pred.var is not None:
-            cov = cov + torch.diag_embed(pred.var)
-        d = torch.distributions.MultivariateNormal(pred.mean, cov)
-        loss = -d.log_prob(xb).mean()
-        loss.backward()
-        return loss
-
-    opt.step(closure)  # type: ignore[arg-type]
+    transition_mle(model, xa, xb, iterations)
 
 
 def evaluate(model: StateSpaceModel, test: Any) -> dict[str, float]:
