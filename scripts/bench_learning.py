@@ -16,18 +16,17 @@ Rows (seconds; ``ratio`` = torchfilt / peer, < 1: torchfilt is faster):
   linear-Gaussian model, 20 recordings x 500 steps (torchfilt's exact path, ``kalman_filter``
   then ``backward``; dynamax's ``jit(value_and_grad)`` of ``vmap(lgssm_filter)``);
 * ``linear EM iteration``: one EM iteration on the same data (torchfilt ``fit_em`` with
-  ``accelerate=False``: median of its per-iteration times; dynamax: one jitted ``e_step`` + ``m_step``; pykalman: ``em(n_iter=1)``
-  on the first recording, pykalman fits one sequence);
+  ``accelerate=False``: median of its per-iteration times; dynamax: one jitted ``e_step`` +
+  ``m_step``; pykalman: ``em(n_iter=1)`` on the first recording, pykalman fits one sequence);
 * ``linear time to optimum``: seconds until the log-likelihood is within 0.1 nats per sequence
   of the best that method reaches in its run (column ``torchfilt s`` / ``dynamax s``), and
   (``to common s``) of the best any method reaches on the 20 recordings (a method that stops
   short of it never gets there: ``None``), and (``to dynamax's s``) of the level dynamax's EM
-  ends at (its best less the same tolerance: who gets there first). torchfilt ``fit_em`` runs plain
-  (``accelerate=False``) and with its default SQUAREM (one row per iteration: a cycle of three
-  E-steps or more), ``fit_likelihood`` with
-  L-BFGS learn ``A, Q, R`` with ``H`` known; dynamax's EM learns ``H`` too (its M-step is all or
-  nothing; the initial state is held, see the peer), so its optimum differs; pykalman learns
-  ``A, Q, R`` on one recording);
+  ends at (its best less the same tolerance: who gets there first). torchfilt ``fit_em`` runs
+  plain (``accelerate=False``) and with its default SQUAREM (one row per iteration: a cycle of
+  three E-steps or more), ``fit_likelihood`` with L-BFGS; both learn ``A, Q, R`` with ``H``
+  known; dynamax's EM learns ``H`` too (its M-step is all or nothing; the initial state is
+  held, see the peer), so its optimum differs; pykalman learns ``A, Q, R`` on one recording);
 * ``reentry grad``: one log-likelihood + gradient w.r.t. the air-density decay and the diagonal
   ``Q`` of the re-entry model (RK4, 10 sub-steps), 64 windows x 100 steps (torchfilt's CKF;
   dynamax's UKF with ``alpha=1, beta=0, kappa=0``, which is the cubature rule, RK4 sub-steps in
@@ -183,9 +182,13 @@ def time_to_optimum(lls: np.ndarray, elapsed: np.ndarray, sequences: int) -> flo
     ok = np.isfinite(lls)
     if not ok.any():
         return None
-    best = lls[ok].max()
-    first = int(np.argmax(lls >= best - NATS_PER_SEQUENCE * sequences))
-    return float(elapsed[first])
+    return _time_to(lls, elapsed, lls[ok].max() - NATS_PER_SEQUENCE * sequences)
+
+
+def _time_to(lls: np.ndarray, elapsed: np.ndarray, level: float) -> float | None:
+    """Seconds until ``lls`` first reaches ``level`` (``None``: never in the run)."""
+    ok = np.asarray(lls, dtype=float) >= level
+    return float(elapsed[int(np.argmax(ok))]) if ok.any() else None
 
 
 # ----------------------------------------------------------------------------------- rows
@@ -239,10 +242,8 @@ def linear_em_rows(p: dict[str, np.ndarray], args: argparse.Namespace) -> list[d
             linear_model(p), y, x0=x0, P0=P0, known_channels=known, iterations=args.em_iterations,
             stopping=StoppingOptions(tol=0.0, rtol=0.0), accelerate=accelerate,
         )  # fmt: skip
-        em_ll, em_el = _em_history(em)
-        if accelerate is False:
-            plain_el = em_el
-        curves.append(("torchfilt_s", method, em_ll, em_el, B))
+        curves.append(("torchfilt_s", method, *_em_history(em), B))
+    plain_el = curves[0][3]  # the plain fit's times: its per-iteration cost
     counted = int(torch.isfinite(y).sum())
     lmodel = linear_model(p)
     lik = fit_likelihood(
@@ -294,12 +295,6 @@ def linear_em_rows(p: dict[str, np.ndarray], args: argparse.Namespace) -> list[d
                 row["to_dynamax_level_s"] = _time_to(ll, el, level)
         opt_rows.append(row)
     return [iter_row, *opt_rows]
-
-
-def _time_to(lls: np.ndarray, elapsed: np.ndarray, level: float) -> float | None:
-    """Seconds until ``lls`` first reaches ``level`` (``None``: never in the run)."""
-    ok = np.asarray(lls, dtype=float) >= level
-    return float(elapsed[int(np.argmax(ok))]) if ok.any() else None
 
 
 def reentry_row(B: int, T: int, args: argparse.Namespace, compile: bool = False) -> dict[str, Any]:

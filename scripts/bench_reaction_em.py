@@ -6,7 +6,8 @@ have: ``fit_em(model, y, x0=, P0=, known_channels=, iterations=)``, with the fla
 an old checkout or ``stopping=`` of a new one, and ``compile="loop"`` where the checkout has
 it. Its model (:func:`problem`: learnable rate constant, ``Q`` and ``R`` as
 ``CholeskyCovariance``) is also ``bench_learning.py``'s 2A -> B row; 8 recordings x 400 steps,
-3 iterations (the third halves its step). Run it with each checkout first on ``PYTHONPATH``, alternating:
+3 iterations (the third halves its step). Run it with each checkout first on ``PYTHONPATH``,
+alternating:
 
     cd OLD && PYTHONPATH=$PWD python /path/to/scripts/bench_reaction_em.py --out OUT/old1.json
     cd NEW && PYTHONPATH=$PWD python scripts/bench_reaction_em.py --out OUT/new1.json

@@ -14,8 +14,9 @@ steplength "S3") reads the direction of that tail from two EM steps and extrapol
 The extrapolated point is kept only when its ``Q`` and ``R`` are positive semi-definite and its
 filter log-likelihood is at least that of ``theta_0``, the cycle's start; otherwise ``alpha``
 moves halfway to ``-1`` and, at ``-1``, the cycle is three plain EM steps. Since EM never lowers
-the likelihood of a linear-Gaussian model, a cycle never does either. ``max_step`` starts at 1 and grows 4-fold
-each time the step reaches it (the scheme's default, so the first cycle is plain EM).
+the likelihood of a linear-Gaussian model, a cycle never does either. ``max_step`` starts at 1
+and grows 4-fold each time the step reaches it (the scheme's default, so the first cycle is
+plain EM).
 
 The parameters are the matrices ``A, H, Q, R`` (and ``B, D``) of the closed-form M-step; a block
 held fixed, or a known row of ``H``, has ``r = v = 0`` and stays where it is. In a data-parallel
