@@ -124,11 +124,6 @@ def fit_transitions(model: StateSpaceModel, states: torch.Tensor, iterations: in
     transition_mle(model, states[:-1].reshape(-1, 1, 2), states[1:].reshape(-1, 1, 2), iterations)
 
 
-def rmse(mean: torch.Tensor, states: torch.Tensor) -> float:
-    """Root mean square of the error over every run, step and state."""
-    return float((mean - states).pow(2).mean().sqrt())
-
-
 def nees_band(n: int, count: int, level: float = 0.95) -> tuple[float, float]:
     """Central ``level`` interval of the mean of ``count`` independent chi-square(``n``) NEES."""
     a = (1 - level) / 2
@@ -152,10 +147,10 @@ def metrics(
     nees = torchfilt.nees(x, m, P)
     lo, hi = nees_band(x.shape[-1], nees.numel())
     return {
-        "rmse": rmse(m, x),
-        "rmse_per_state": (m - x).pow(2).mean((0, 1)).sqrt().tolist(),
+        "rmse": float(torchfilt.rmse(x, m, dim=(0, 1, 2))),
+        "rmse_per_state": torchfilt.rmse(x, m, dim=(0, 1)).tolist(),
         "nees": float(nees.mean()),
-        "rmse_after_burn": rmse(m[:, burn:], x[:, burn:]),
+        "rmse_after_burn": float(torchfilt.rmse(x[:, burn:], m[:, burn:], dim=(0, 1, 2))),
         "nees_after_burn": float(nees[:, burn:].mean()),
         "burn": burn,
         "nees_median": float(nees.median()),
