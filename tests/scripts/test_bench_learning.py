@@ -26,6 +26,20 @@ def test_time_to_optimum_is_the_first_time_within_tolerance():
     assert mod._time_to(lls, elapsed, 0.0) is None
 
 
+def test_budgets_keep_given_iterations_and_fill_the_rest():
+    import argparse
+
+    mod = load_script("bench_learning")
+    full = argparse.Namespace(quick=False, repeats=5, em_iterations=None, pykalman_iterations=None)
+    sizes = mod.budgets(full)
+    assert sizes["lin"] == (20, 500)
+    # long enough for dynamax's EM to reach the optimum (about 1400 iterations)
+    assert (full.em_iterations, full.pykalman_iterations, full.lik_iterations) == (1500, 300, 6)
+    given = argparse.Namespace(quick=True, repeats=5, em_iterations=7, pykalman_iterations=None)
+    assert mod.budgets(given)["lin"] == (3, 30)
+    assert (given.em_iterations, given.pykalman_iterations, given.repeats) == (7, 3, 1)
+
+
 @pytest.mark.slow
 def test_bench_learning_quick(tmp_path):
     mod = load_script("bench_learning")
