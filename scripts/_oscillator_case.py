@@ -235,9 +235,13 @@ def oscillator_case(
     *,
     state_iterations: int = 200,
     iterations: int | None = None,
+    methods: tuple[str, ...] = ("em", "likelihood"),
 ) -> dict[str, Any]:
     """All rows on one ``steps``-step training recording and ``test_runs`` held-out ones of the
-    same length; ``iterations=None`` is ``fit_measurement_only``'s default."""
+    same length; ``iterations=None`` is ``fit_measurement_only``'s default; ``methods``: the
+    measurement-only fits to run (a subset of ``("em", "likelihood")``)."""
+    if not methods or set(methods) - {"em", "likelihood"}:
+        raise ValueError(f"methods: expected some of 'em', 'likelihood', got {methods!r}")
     train = simulate(1, steps, seed + 21)
     test = simulate(test_runs, steps, seed + 22)
     rows: dict[str, dict[str, Any]] = {
@@ -253,7 +257,7 @@ def oscillator_case(
     fit_transitions(st, train.states[0], state_iterations)
     rows[STATE_ROW] = {**evaluate(st, test), "train_s": time.perf_counter() - t0}
     fits: dict[str, Any] = {}
-    for method in ("em", "likelihood"):
+    for method in methods:
         row, fits[method] = measurement_only_row(
             method, train.measurements[0], test, seed, iterations
         )
@@ -271,7 +275,7 @@ def oscillator_case(
         "fit_iterations": iterations if iterations is not None else "default",
         "rows": rows,
         "fits": fits,
-        "targets": {m: verdict(rows, m) for m in ("em", "likelihood")},
+        "targets": {m: verdict(rows, m) for m in methods},
     }
 
 

@@ -627,6 +627,7 @@ def oscillator_report(args: argparse.Namespace) -> dict[str, Any]:
         args.oscillator_test_runs,
         args.seed,
         iterations=args.oscillator_iterations,
+        methods=tuple(m.strip() for m in args.oscillator_methods.split(",") if m.strip()),
     )
     out["table"] = oscillator_table(out)
     print(
@@ -668,10 +669,18 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="fit_measurement_only's iterations (default: its own default)",
     )
+    ap.add_argument(
+        "--oscillator-methods",
+        default="em,likelihood",
+        help="the oscillator's measurement-only fits, comma-separated: em, likelihood",
+    )
     args = ap.parse_args(argv)
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     if unknown := sorted(set(cases) - set(CASES)):
         ap.error(f"--cases: unknown {unknown}; choose from {', '.join(CASES)}")
+    methods = {m.strip() for m in args.oscillator_methods.split(",") if m.strip()}
+    if not methods or methods - {"em", "likelihood"}:
+        ap.error(f"--oscillator-methods: expected some of em, likelihood, got {methods}")
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
     args.out.mkdir(parents=True, exist_ok=True)

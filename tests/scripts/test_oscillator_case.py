@@ -82,3 +82,12 @@ def test_tiny_case_runs_and_reports_a_fit_error(oc, monkeypatch):
     assert record["step"] == "iteration 1" and "broken" in row["raised"]
     rows["GP, measurement only (em)"] = row
     assert oc.verdict(rows, "em") == {"raised": row["raised"], "met": False}
+
+
+def test_methods_choose_the_fits(oc):
+    out = oc.oscillator_case(30, 2, 0, state_iterations=3, iterations=1, methods=("em",))
+    assert set(out["targets"]) == {"em"}
+    assert "GP, measurement only (em)" in out["rows"]
+    assert "GP, measurement only (likelihood)" not in out["rows"]
+    with pytest.raises(ValueError, match="methods"):
+        oc.oscillator_case(30, 2, 0, state_iterations=3, iterations=1, methods=("newton",))
