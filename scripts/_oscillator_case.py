@@ -172,10 +172,15 @@ def evaluate(model: StateSpaceModel, test: Any) -> dict[str, Any]:
 
 
 def measurement_only_row(
-    method: str, y: torch.Tensor, test: Any, seed: int, iterations: int | None
+    method: str,
+    y: torch.Tensor,
+    test: Any,
+    seed: int,
+    iterations: int | None,
+    compile: bool = False,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Fit the test's start from ``y (T, 2)`` alone with the defaults (``iterations=None``);
-    the row, and the fit's record (or the error it raised)."""
+    """Fit the test's start from ``y (T, 2)`` alone with the defaults (``iterations=None``,
+    ``compile=False``); the row, and the fit's record (or the error it raised)."""
     x0, P0 = prior()
     torch.manual_seed(seed)
     t0 = time.perf_counter()
@@ -187,7 +192,7 @@ def measurement_only_row(
         try:
             fit = torchfilt.fit_measurement_only(
                 model, y, x0=x0, P0=P0, known_channels=[0, 1], method=method,  # type: ignore[arg-type]
-                iterations=iterations,
+                iterations=iterations, compile=compile,
             )  # fmt: skip
         except FitError as e:
             seconds = time.perf_counter() - t0
@@ -236,10 +241,12 @@ def oscillator_case(
     state_iterations: int = 200,
     iterations: int | None = None,
     methods: tuple[str, ...] = ("em", "likelihood"),
+    compile: bool = False,
 ) -> dict[str, Any]:
     """All rows on one ``steps``-step training recording and ``test_runs`` held-out ones of the
     same length; ``iterations=None`` is ``fit_measurement_only``'s default; ``methods``: the
-    measurement-only fits to run (a subset of ``("em", "likelihood")``)."""
+    measurement-only fits to run (a subset of ``("em", "likelihood")``); ``compile``: of
+    ``fit_measurement_only``."""
     if not methods or set(methods) - {"em", "likelihood"}:
         raise ValueError(f"methods: expected some of 'em', 'likelihood', got {methods!r}")
     train = simulate(1, steps, seed + 21)
@@ -259,7 +266,7 @@ def oscillator_case(
     fits: dict[str, Any] = {}
     for method in methods:
         row, fits[method] = measurement_only_row(
-            method, train.measurements[0], test, seed, iterations
+            method, train.measurements[0], test, seed, iterations, compile
         )
         rows[f"GP, measurement only ({method})"] = row
         print(f"oscillator, {method}: {fits[method]}", flush=True)
@@ -273,6 +280,7 @@ def oscillator_case(
         "test_steps": steps,
         "inducing": INDUCING,
         "fit_iterations": iterations if iterations is not None else "default",
+        "compile": compile,
         "rows": rows,
         "fits": fits,
         "targets": {m: verdict(rows, m) for m in methods},

@@ -628,6 +628,7 @@ def oscillator_report(args: argparse.Namespace) -> dict[str, Any]:
         args.seed,
         iterations=args.oscillator_iterations,
         methods=tuple(m.strip() for m in args.oscillator_methods.split(",") if m.strip()),
+        compile=args.oscillator_compile,
     )
     out["table"] = oscillator_table(out)
     print(
@@ -673,6 +674,11 @@ def main(argv: list[str] | None = None) -> int:
         "--oscillator-methods",
         default="em,likelihood",
         help="the oscillator's measurement-only fits, comma-separated: em, likelihood",
+    )
+    ap.add_argument(
+        "--oscillator-compile",
+        action="store_true",
+        help="fit_measurement_only(compile=True) for the oscillator's fits",
     )
     args = ap.parse_args(argv)
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]

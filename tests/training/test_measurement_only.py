@@ -439,3 +439,50 @@ def test_em_resume_of_a_converged_fit_stays_converged(data, tmp_path):
     )
     assert again.stopped == "converged" and again.iterations == full.iterations
     assert again.log_likelihood == full.log_likelihood
+
+
+def test_compile_reaches_both_methods_and_bad_values_are_refused(data, monkeypatch):
+    import torchfilt.training.measurement_only as mo
+
+    seen = {}
+
+    def fake_em(*args, **kwargs):
+        seen["em"] = kwargs["compile"]
+        raise RuntimeError("stop")
+
+    def fake_likelihood(*args, **kwargs):
+        seen["likelihood"] = kwargs["compile"]
+        raise RuntimeError("stop")
+
+    monkeypatch.setattr(mo, "fit_em", fake_em)
+    monkeypatch.setattr(mo, "_fit_likelihood", fake_likelihood)
+    cases = [("em", True, "loop"), ("em", "step", "step"), ("em", False, False)]
+    cases += [("likelihood", "loop", True), ("likelihood", True, True)]
+    cases += [("likelihood", False, False)]
+    for method, given, expected in cases:
+        with pytest.raises(RuntimeError, match="stop"):
+            fit_measurement_only(
+                learnable_linear(), data, x0=X0, P0=P0, known_channels=[0], method=method,
+                compile=given,
+            )  # fmt: skip
+        assert seen[method] == expected, (method, given)
+    for bad in ("fast", 1, None):
+        with pytest.raises(InputError, match="compile"):
+            fit_measurement_only(
+                learnable_linear(), data, x0=X0, P0=P0, known_channels=[0], compile=bad
+            )
+
+
+@pytest.mark.slow
+def test_compiled_likelihood_fit_equals_the_eager_one(data):
+    fits = []
+    for compile in (False, True):
+        fit = fit_measurement_only(
+            learnable_linear(), data[:80], x0=X0, P0=P0, known_channels=[0],
+            method="likelihood", iterations=2, compile=compile,
+        )  # fmt: skip
+        fits.append(fit)
+    assert fits[1].detail.iterations == fits[0].detail.iterations == 2
+    assert fits[1].log_likelihood == pytest.approx(fits[0].log_likelihood, rel=1e-8)
+    for a, b in zip(fits[0].model.parameters(), fits[1].model.parameters(), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-9)
