@@ -455,3 +455,35 @@ def test_a_recipe_built_in_code_with_a_partial_calibrate_table(tmp_path, data):
     with pytest.raises(RecipeError, match=r"unknown key\(s\) \['iters'\] in \[calibrate\]"):
         train_recipe(in_code({"iters": 2}), tmp_path / "bad", progress=False)
     assert not (tmp_path / "bad").exists()
+
+
+def test_recipe_compile_reaches_the_transition_fit(tmp_path, data):
+    """``[measurement_only] compile = true`` is passed to the fitter as ``compile=True``
+    (default ``False``); a value that is not a boolean is a RecipeError naming the key."""
+    from torchfilt.pipeline.run_stages import StageFitters
+
+    seen: list[object] = []
+
+    def fitter(*args, **kwargs):
+        seen.append(kwargs["compile"])
+        return fit_measurement_only(*args, **{**kwargs, "compile": False, "iterations": 1})
+
+    text = RECIPE.replace("[calibrate]\niterations = 4", "[calibrate]\nenabled = false")
+    for flag, expected in (("", False), ("compile = true\n", True)):
+        recipe = write(
+            tmp_path / f"r{expected}.toml", data, text.replace("[train]", f"{flag}[train]", 1)
+        )
+        assert load_recipe(recipe).measurement_only["compile"] is expected
+        train_recipe(
+            recipe, tmp_path / f"run{expected}", progress=False,
+            fitters=StageFitters(measurement_only=fitter, name="recording"),
+        )  # fmt: skip
+    assert seen == [False, True]
+    # a key added later: the digest of a recipe that leaves it at its default stays the same
+    off = write(tmp_path / "off.toml", data, text.replace("[train]", "compile = false\n[train]"))
+    digests = {load_recipe(p).digest() for p in (tmp_path / "rFalse.toml", off)}
+    assert len(digests) == 1 and load_recipe(tmp_path / "rTrue.toml").digest() not in digests
+    assert "compile" not in load_recipe(off).resolved()["measurement_only"]
+    bad = write(tmp_path / "bad.toml", data, text.replace("[train]", 'compile = "yes"\n[train]'))
+    with pytest.raises(RecipeError, match="compile"):
+        load_recipe(bad)

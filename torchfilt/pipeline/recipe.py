@@ -40,7 +40,7 @@ from typing import Any
 from torchfilt.exceptions import RecipeError
 from torchfilt.optim import field_docs
 from torchfilt.pipeline.entry_point import is_entry_point
-from torchfilt.pipeline.recipe_keys import Key, _file
+from torchfilt.pipeline.recipe_keys import Key, _file, digested
 from torchfilt.pipeline.recipe_options import OPTION_KEYS, fit_options, option_default
 
 __all__ = [
@@ -306,6 +306,7 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
             'L-BFGS iterations per M-step (`"em"` only)',
             kind="posint",
         ),
+        Key("compile", "`false`", "`torchfilt.fit_measurement_only(compile=...)`", kind="bool"),
     ),
     "train": (
         Key(
@@ -393,9 +394,9 @@ CALIBRATE_DEFAULTS: dict[str, Any] = {
     "gp": "none",
 }
 
-#: ``[calibrate]`` keys added after recipes were first digested: a run's digest holds them only
-#: when a recipe sets them to something else than the default.
-_LATER_CALIBRATE_KEYS = ("atol", "per_iteration")
+#: Keys added after recipes were first digested, by table: a run's digest holds them only when a
+#: recipe sets them to something else than the default (:func:`~.recipe_keys.digested`).
+_LATER_KEYS = {"calibrate": ("atol", "per_iteration"), "measurement_only": ("compile",)}
 
 #: Defaults of the ``[measurement_only]`` section (``states = "none"``; those of its option keys
 #: from ``DEFAULTS["measurement_only"]``); ``None``: see :data:`RECIPE_SCHEMA`
@@ -412,6 +413,7 @@ MEASUREMENT_ONLY_DEFAULTS: dict[str, Any] = {
     "nominal": None,
     "process_noise": None,
     "m_step_iterations": 20,
+    "compile": False,
 }
 
 
@@ -504,7 +506,11 @@ class Recipe:
         if self.states != "logged":
             extra = {
                 "states": self.states,
-                "measurement_only": copy.deepcopy(self.measurement_only),
+                "measurement_only": digested(
+                    self.measurement_only,
+                    _LATER_KEYS["measurement_only"],
+                    MEASUREMENT_ONLY_DEFAULTS,
+                ),
             }
         return {
             **extra,
@@ -523,11 +529,7 @@ class Recipe:
             },
             "filter": copy.deepcopy(self.filter),
             # keys added later appear only when set otherwise (earlier digests stay the same)
-            "calibrate": {
-                k: copy.deepcopy(v)
-                for k, v in self.calibrate.items()
-                if not (k in _LATER_CALIBRATE_KEYS and v == CALIBRATE_DEFAULTS[k])
-            },
+            "calibrate": digested(self.calibrate, _LATER_KEYS["calibrate"], CALIBRATE_DEFAULTS),
         }
 
     def digest(self) -> str:
@@ -722,11 +724,8 @@ def _measurement_only_options(table: dict[str, Any]) -> dict[str, Any]:
     _check_values({k: v for k, v in mo.items() if v is not None}, "measurement_only", None)
     out = {**MEASUREMENT_ONLY_DEFAULTS, **mo}
     if out["method"] == "em":
-        wrong = [
-            k
-            for k in ("window", "burn_in", "optimizer", "lr")
-            if out[k] != MEASUREMENT_ONLY_DEFAULTS[k]
-        ]
+        keys = ("window", "burn_in", "optimizer", "lr")
+        wrong = [k for k in keys if out[k] != MEASUREMENT_ONLY_DEFAULTS[k]]
         other = "likelihood"
     else:
         wrong = [k for k in ("m_step_iterations",) if out[k] != MEASUREMENT_ONLY_DEFAULTS[k]]

@@ -1,16 +1,19 @@
 """One recipe key of :data:`~torchfilt.pipeline.recipe.RECIPE_SCHEMA`: its default, meaning and
-allowed values, and the check that names the file, the table and the key."""
+allowed values, and the check that names the file, the table and the key; and what a recipe's
+digest keeps of a table whose keys were added after recipes were first digested."""
 
 from __future__ import annotations
 
+import copy
 import math
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from torchfilt.exceptions import RecipeError
 
-__all__ = ["Key"]
+__all__ = ["Key", "digested"]
 
 
 @dataclass(frozen=True)
@@ -71,3 +74,11 @@ class Key:
 def _file(path: Path | None) -> str:
     """The ``"FILE: "`` prefix of a message (none for a recipe built in code)."""
     return "" if path is None else f"{path}: "
+
+
+def digested(
+    table: Mapping[str, Any], later: Collection[str], defaults: Mapping[str, Any]
+) -> dict[str, Any]:
+    """A copy of a recipe ``table`` without its ``later`` keys (added after recipes were first
+    digested) where they hold their ``defaults``: the digests of earlier recipes stay the same."""
+    return {k: copy.deepcopy(v) for k, v in table.items() if k not in later or v != defaults[k]}

@@ -152,6 +152,7 @@ def fit_measurement_only_ray(
     method: str = "likelihood",
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
+    compile: bool | Literal["step", "loop"] = False,
     timeout: float = GROUP_TIMEOUT,
     callback_on: Literal["actors", "driver"] = "actors",
 ) -> Any:
@@ -186,6 +187,8 @@ def fit_measurement_only_ray(
         method: as in :func:`~torchfilt.training.fit_measurement_only`.
         learn_measurement_noise: as in :func:`~torchfilt.training.fit_measurement_only`.
         m_step_iterations: as in :func:`~torchfilt.training.fit_measurement_only`.
+        compile: as in :func:`~torchfilt.training.fit_measurement_only` (each actor compiles
+            its own filter).
         timeout: as in :func:`calibrate_ray`.
         callback_on: as in :func:`calibrate_ray`.
 
@@ -212,6 +215,7 @@ def fit_measurement_only_ray(
         "validation": validation,
         "learn_measurement_noise": learn_measurement_noise,
         "m_step_iterations": m_step_iterations,
+        "compile": compile,
         "dtype": dtype,
         "callback": callback,
         "checkpoint": ckpt,
