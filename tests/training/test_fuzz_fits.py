@@ -1,7 +1,8 @@
 """Hypothesis suite over the fits' argument checks (issue 24, item 10): ``fit_likelihood``,
-``calibrate`` and ``fit_em`` with tiny budgets, valid or with one argument corrupted (half
+``calibrate``, ``fit_em`` and ``fit_measurement_only`` (either method) with tiny budgets, valid or with one argument corrupted (half
 precision or integer data, a recording without steps, inputs for a model without any, a prior of
-the wrong shape or indefinite, a bad budget, learning rate, dtype or ``fixed`` name).
+the wrong shape or indefinite, a bad budget, learning rate, dtype, ``fixed`` name or
+``compile`` mode).
 
 A corrupted case must be refused with a TorchfiltError that names the corrupted argument; a
 valid one must return a finite fit whose log-likelihood is at least the initial one (the fits
@@ -17,7 +18,7 @@ import torch
 from fuzz_support import Refused, attempt, print_stats, property_tests
 from hypothesis import strategies as st
 
-from torchfilt import LinearGaussianModel, calibrate, fit_em, fit_likelihood
+from torchfilt import LinearGaussianModel, calibrate, fit_em, fit_likelihood, fit_measurement_only
 from torchfilt.models.params import ScalarCovariance
 from torchfilt.optim import OptimizerOptions, WindowOptions
 from torchfilt.training.likelihood import Sequences
@@ -39,8 +40,9 @@ CORRUPTIONS = {
     "dtype int": "dtype",
     "fixed unknown": "fixed",
     "accelerate not a bool": "accelerate",
+    "compile not a mode": "compile",
 }
-FITS = ["fit_likelihood", "calibrate", "fit_em"]
+FITS = ["fit_likelihood", "calibrate", "fit_em", "fit_measurement_only"]
 
 
 def _model(n: int, rng: np.random.Generator) -> LinearGaussianModel:
@@ -63,6 +65,8 @@ def _call(fit: str, model, y, u, x0, P0, options: dict):
         return fit_likelihood(model, y, u, x0=x0, P0=P0, **options)
     if fit == "fit_em":
         return fit_em(model, y, u, x0=x0, P0=P0, known_channels=[0], **options)
+    if fit == "fit_measurement_only":
+        return fit_measurement_only(model, y, u, x0=x0, P0=P0, known_channels=[0], **options)
     return calibrate(model, Sequences(y, u), x0=x0, P0=P0, **options)
 
 
@@ -80,9 +84,13 @@ def check_fits(data: st.DataObject) -> None:
     u = None
     x0, P0 = torch.zeros(n, dtype=D), torch.eye(n, dtype=D)
     options: dict = {"iterations": data.draw(st.integers(1, 2), label="iterations")}
-    if fit != "fit_em":
+    em = fit == "fit_em"
+    if fit == "fit_measurement_only":
+        options["method"] = data.draw(st.sampled_from(["em", "likelihood"]), label="method")
+        em = options["method"] == "em"
+    if not em:
         options.update(lr=0.05, burn_in=0)
-    else:  # plain or SQUAREM-accelerated EM (None: the default, on for this linear model)
+    elif fit == "fit_em":  # plain or SQUAREM-accelerated EM (None: the default, on here)
         options["accelerate"] = data.draw(st.sampled_from([None, True, False]), "accelerate")
     if corruption == "y float16":
         y = y.half()
@@ -101,7 +109,7 @@ def check_fits(data: st.DataObject) -> None:
     elif corruption == "iterations bool":
         options["iterations"] = True
     elif corruption == "lr negative":
-        if fit == "fit_em":
+        if em:
             corruption, what = "none", None  # EM has no learning rate
         else:
             options["lr"] = -0.1
@@ -113,7 +121,12 @@ def check_fits(data: st.DataObject) -> None:
         if fit == "fit_em":
             options["accelerate"] = "yes"
         else:
-            corruption, what = "none", None  # only EM accelerates
+            corruption, what = "none", None  # only fit_em accelerates
+    elif corruption == "compile not a mode":
+        if fit in ("fit_em", "fit_measurement_only"):  # False, True, "step" or "loop"
+            options["compile"] = data.draw(st.sampled_from(["fast", 1, None]), label="compile")
+        else:
+            corruption, what = "none", None
     res, _ = attempt(fit, _call, fit, model, y, u, x0, P0, options)
     if what is not None:
         assert isinstance(res, Refused), f"{fit}, {corruption}: not refused"
