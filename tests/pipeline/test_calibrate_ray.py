@@ -119,6 +119,34 @@ def test_measurement_only_on_two_actors_equals_one_process(ray_local):
     assert not torch.allclose(want, torch.ones(2, dtype=DT), rtol=1e-2)  # the fit moved
 
 
+@pytest.mark.slow
+def test_compiled_likelihood_on_two_actors_equals_one_eager_process(ray_local, tmp_path):
+    """``compile=True`` reaches each actor's filter (one compiled step, forward and backward):
+    the data-parallel fit equals one eager process on all recordings."""
+    g = torch.Generator().manual_seed(2)
+    x, ys = torch.zeros(4, 1, dtype=DT), []
+    for _ in range(40):
+        x = 0.9 * x + 0.5 * torch.randn(4, 1, generator=g, dtype=DT)
+        ys.append(x + 0.3 * torch.randn(4, 1, generator=g, dtype=DT))
+    y = torch.stack(ys, 1)
+
+    def model():
+        Q, R = ScalarCovariance(1.0, 1, dtype=DT), ScalarCovariance(1.0, 1, dtype=DT)
+        return torchfilt.StateSpaceModel(lambda x, u: 0.9 * x, lambda x, u: x, Q=Q, R=R)
+
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    kw = dict(
+        x0=torch.zeros(1, dtype=DT), P0=torch.eye(1, dtype=DT), known_channels=[0], iterations=2
+    )
+    local = torchfilt.fit_measurement_only(model(), y, method="likelihood", **kw)
+    res = fit_measurement_only_ray(
+        model(), Sequences(y), workers=2, compile=True, checkpoint=tmp_path / "ckpt", **kw
+    )
+    assert res.log_likelihood == pytest.approx(local.log_likelihood, rel=1e-9)
+    for a, b in zip(res.model.parameters(), local.model.parameters(), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-7, atol=0)
+
+
 #: the iteration at whose end rank 1's process exits in the interrupted EM below
 KILL_AT = 3
 #: the collectives' timeout there: the whole test took 81 s on two cores shared with other jobs
