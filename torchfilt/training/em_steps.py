@@ -218,9 +218,9 @@ def _linear_m_step(
     AB = psd_solve(Szz, Sxz.mT, name="expected state second moment").mT
     if fixed & {"A", "B"}:
         AB = _fixed_transition(lin, AB, Sxz, Szz, n, with_B, fixed)
-        Q = symmetrize((Sxx - AB @ Sxz.mT - Sxz @ AB.mT + AB @ Szz @ AB.mT) / N).to(dtype)
+        Q = _psd_part((Sxx - AB @ Sxz.mT - Sxz @ AB.mT + AB @ Szz @ AB.mT) / N).to(dtype)
     else:
-        Q = symmetrize((Sxx - AB @ Sxz.mT) / N).to(dtype)
+        Q = _psd_part((Sxx - AB @ Sxz.mT) / N).to(dtype)
     if "Q" in fixed:
         Q = lin.Q
     A = AB[:, :n].to(dtype)
@@ -236,8 +236,23 @@ def _linear_m_step(
             H = Hd.to(dtype)
         if learn_R and "R" not in fixed:
             # sum_t E[(y_t - H x_t)(y_t - H x_t)^T] from the sums
-            R = symmetrize((Syy - Hd @ Sxy - Sxy.mT @ Hd.mT + Hd @ Sxx_o @ Hd.mT) / n_ok).to(dtype)
+            R = _psd_part((Syy - Hd @ Sxy - Sxy.mT @ Hd.mT + Hd @ Sxx_o @ Hd.mT) / n_ok).to(dtype)
     return _Lin(A, H, Q, R, B, lin.D)
+
+
+def _psd_part(S: Tensor) -> Tensor:
+    """The symmetric part of a closed-form noise covariance ``S (n, n)`` (float64), with its
+    negative eigenvalues set to zero. ``S`` is a difference of second moments: semi-definite in
+    exact arithmetic, but indefinite by cancellation where a direction has (almost) no noise
+    (on a real log, -2e-11 against a largest eigenvalue under 2e-3), which the model's noise
+    check would refuse. Unchanged where no eigenvalue is negative or an entry is not finite."""
+    S = symmetrize(S)
+    if not bool(torch.isfinite(S).all()):
+        return S  # refused by the model's noise check, which names it
+    evals, vecs = torch.linalg.eigh(S)
+    if float(evals.min()) >= 0.0:
+        return S
+    return symmetrize((vecs * evals.clamp_min(0.0).unsqueeze(-2)) @ vecs.mT)
 
 
 def _fixed_transition(

@@ -1,0 +1,86 @@
+"""``scripts/bench_real_logs.py``: its two log layouts, the standardisation, and the N4SID
+baseline's free run, checked on a simulated stable system (the real logs are not shipped)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from script_support import load_script
+
+
+@pytest.fixture(scope="module")
+def brl():
+    return load_script("bench_real_logs")
+
+
+def _simulate(T: int, seed: int, noise: float) -> tuple[np.ndarray, np.ndarray]:
+    """A stable second-order system driven by a random input: ``(u, y)``."""
+    rng = np.random.default_rng(seed)
+    A = np.array([[1.6, -0.72], [1.0, 0.0]])  # poles 0.8 +- 0.28i
+    B, C = np.array([1.0, 0.0]), np.array([0.5, 0.3])
+    u = rng.standard_normal(T)
+    x, y = np.zeros(2), np.empty(T)
+    for k in range(T):
+        y[k] = C @ x + noise * rng.standard_normal()
+        x = A @ x + B * u[k]
+    return u, y
+
+
+def test_both_layouts_and_the_training_standardisation(brl, tmp_path):
+    u, y = _simulate(300, 0, 0.01)
+    single = tmp_path / "one.csv"
+    single.write_text("u,y\n" + "".join(f"{a},{b}\n" for a, b in zip(u, y, strict=True)))
+    parts = brl.read_log(single, ("u", "y"))
+    k = int(300 * brl.TRAIN_SHARE)
+    assert [len(p) for p in parts] == [k, k, 300 - k, 300 - k]
+    np.testing.assert_array_equal(parts[3], y[k:])
+    split = tmp_path / "two.csv"
+    rows = ["uEst,uVal,yEst,yVal,Ts"] + [
+        f"{u[i]},{u[150 + i]},{y[i]},{y[150 + i]},{4 if i == 0 else ''}" for i in range(150)
+    ]
+    split.write_text("\n".join(rows) + "\n")
+    u_tr, y_tr, u_te, y_te = brl.read_log(split, ("uEst", "yEst", "uVal", "yVal"))
+    np.testing.assert_array_equal(y_te, y[150:])
+    tu, ty, _vu, vy = brl.standardised(u_tr, y_tr, u_te, y_te)
+    assert tu.shape == (1, 150, 1)
+    assert float(ty.mean()) == pytest.approx(0.0, abs=1e-12)
+    assert float(ty.std(unbiased=False)) == pytest.approx(1.0, rel=1e-12)
+    # the held-out part uses the training part's scale, not its own
+    np.testing.assert_allclose(vy.reshape(-1).numpy(), (y_te - y_tr.mean()) / y_tr.std())
+
+
+def test_n4sid_baseline_free_runs_a_stable_system(brl):
+    u, y = _simulate(900, 1, 0.01)
+    tu, ty, vu, vy = brl.standardised(u[:600], y[:600], u[600:], y[600:])
+    row = brl.n4sid_row(tu, ty, vu, vy, order=2, rows=10, burn=20)
+    # the noise is 1% of the output: the free run tracks it closely, far below its spread (1)
+    assert math.isfinite(row["rmse"]) and row["rmse"] < 0.1
+    assert row["coverage95"] is None
+    # a model of the wrong system does not: the check can fail
+    bad = brl.n4sid_row(tu, ty, vu, -vy, order=2, rows=10, burn=20)
+    assert bad["rmse"] > 0.5
+
+
+@pytest.mark.slow
+def test_main_on_a_simulated_log(brl, tmp_path):
+    import json
+
+    u, y = _simulate(450, 2, 0.05)
+    (tmp_path / "robot-arm.csv").write_text(
+        "u,y\n" + "".join(f"{a},{b}\n" for a, b in zip(u, y, strict=True))
+    )
+    out = tmp_path / "out"
+    args = ["--data", str(tmp_path), "--out", str(out), "--logs", "robot-arm", "--order", "2"]
+    assert brl.main([*args, "--inducing", "4", "--block-rows", "10"]) == 0
+    res = json.loads((out / "bench_real_logs.json").read_text())["logs"]["robot-arm"]["rows"]
+    assert set(res) == {
+        "N4SID (nfoursid)", "torchfilt subspace", "torchfilt subspace + EM",
+        "torchfilt GP (measurement only)",
+    }  # fmt: skip
+    for name, row in res.items():
+        assert math.isfinite(row["rmse"]) and row["rmse"] < 0.3, (name, row)
+        if name.startswith("torchfilt") and name != "torchfilt subspace":
+            # the likelihood fits' noise covers the output (the subspace start's need not)
+            assert 0.8 <= row["coverage95"] <= 1.0, (name, row)
