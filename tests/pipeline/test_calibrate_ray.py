@@ -85,19 +85,26 @@ def test_calibrate_ray_refuses(ray_local, data):
         fit_measurement_only_ray(model, seqs, x0=x0, P0=P0, known_channels=[0], method="mle")
 
 
-def test_measurement_only_on_two_actors_equals_one_process(ray_local):
-    """Unknown Q and R of a scalar linear system, from measurements alone (gauge: h known)."""
-    g = torch.Generator().manual_seed(1)
+def _scalar_recordings(seed: int, steps: int) -> torch.Tensor:
+    """Four recordings ``(4, steps, 1)`` of ``x' = 0.9 x + w``, ``y = x + v`` (sd 0.5, 0.3)."""
+    g = torch.Generator().manual_seed(seed)
     x, ys = torch.zeros(4, 1, dtype=DT), []
-    for _ in range(50):
+    for _ in range(steps):
         x = 0.9 * x + 0.5 * torch.randn(4, 1, generator=g, dtype=DT)
         ys.append(x + 0.3 * torch.randn(4, 1, generator=g, dtype=DT))
-    y = torch.stack(ys, 1)
+    return torch.stack(ys, 1)
 
-    def model():
-        Q, R = ScalarCovariance(1.0, 1, dtype=DT), ScalarCovariance(1.0, 1, dtype=DT)
-        return torchfilt.StateSpaceModel(lambda x, u: 0.9 * x, lambda x, u: x, Q=Q, R=R)
 
+def _scalar_model() -> torchfilt.StateSpaceModel:
+    """That system with ``Q`` and ``R`` unknown (both start at 1); ``h`` known: the gauge."""
+    Q, R = ScalarCovariance(1.0, 1, dtype=DT), ScalarCovariance(1.0, 1, dtype=DT)
+    return torchfilt.StateSpaceModel(lambda x, u: 0.9 * x, lambda x, u: x, Q=Q, R=R)
+
+
+def test_measurement_only_on_two_actors_equals_one_process(ray_local):
+    """Unknown Q and R of a scalar linear system, from measurements alone (gauge: h known)."""
+    y = _scalar_recordings(1, 50)
+    model = _scalar_model
     # the workers cannot import this test module: send its functions by value
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
@@ -123,17 +130,8 @@ def test_measurement_only_on_two_actors_equals_one_process(ray_local):
 def test_compiled_likelihood_on_two_actors_equals_one_eager_process(ray_local, tmp_path):
     """``compile=True`` reaches each actor's filter (one compiled step, forward and backward):
     the data-parallel fit equals one eager process on all recordings."""
-    g = torch.Generator().manual_seed(2)
-    x, ys = torch.zeros(4, 1, dtype=DT), []
-    for _ in range(40):
-        x = 0.9 * x + 0.5 * torch.randn(4, 1, generator=g, dtype=DT)
-        ys.append(x + 0.3 * torch.randn(4, 1, generator=g, dtype=DT))
-    y = torch.stack(ys, 1)
-
-    def model():
-        Q, R = ScalarCovariance(1.0, 1, dtype=DT), ScalarCovariance(1.0, 1, dtype=DT)
-        return torchfilt.StateSpaceModel(lambda x, u: 0.9 * x, lambda x, u: x, Q=Q, R=R)
-
+    y = _scalar_recordings(2, 40)
+    model = _scalar_model
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
     kw = dict(
         x0=torch.zeros(1, dtype=DT), P0=torch.eye(1, dtype=DT), known_channels=[0], iterations=2
