@@ -233,6 +233,21 @@ def verdict(rows: dict[str, dict[str, Any]], method: str) -> dict[str, Any]:
     }
 
 
+#: the measurement-only fits of the case
+METHODS = ("em", "likelihood")
+
+
+def check_methods(methods: tuple[str, ...]) -> tuple[str, ...]:
+    """``methods`` if it is a non-empty selection of :data:`METHODS`.
+
+    Raises:
+        ValueError: naming ``methods``.
+    """
+    if not methods or set(methods) - set(METHODS):
+        raise ValueError(f"methods: expected some of 'em', 'likelihood', got {methods!r}")
+    return methods
+
+
 def oscillator_case(
     steps: int,
     test_runs: int,
@@ -240,15 +255,14 @@ def oscillator_case(
     *,
     state_iterations: int = 200,
     iterations: int | None = None,
-    methods: tuple[str, ...] = ("em", "likelihood"),
+    methods: tuple[str, ...] = METHODS,
     compile: bool = False,
 ) -> dict[str, Any]:
     """All rows on one ``steps``-step training recording and ``test_runs`` held-out ones of the
     same length; ``iterations=None`` is ``fit_measurement_only``'s default; ``methods``: the
     measurement-only fits to run (a subset of ``("em", "likelihood")``); ``compile``: of
     ``fit_measurement_only``."""
-    if not methods or set(methods) - {"em", "likelihood"}:
-        raise ValueError(f"methods: expected some of 'em', 'likelihood', got {methods!r}")
+    methods = check_methods(methods)
     train = simulate(1, steps, seed + 21)
     test = simulate(test_runs, steps, seed + 22)
     rows: dict[str, dict[str, Any]] = {

@@ -57,7 +57,7 @@ from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import environment, table, write_json
-from _oscillator_case import oscillator_case, oscillator_table, transition_mle
+from _oscillator_case import check_methods, oscillator_case, oscillator_table, transition_mle
 
 import torchfilt
 from torchfilt.models import (
@@ -627,7 +627,7 @@ def oscillator_report(args: argparse.Namespace) -> dict[str, Any]:
         args.oscillator_test_runs,
         args.seed,
         iterations=args.oscillator_iterations,
-        methods=tuple(m.strip() for m in args.oscillator_methods.split(",") if m.strip()),
+        methods=args.oscillator_methods,
         compile=args.oscillator_compile,
     )
     out["table"] = oscillator_table(out)
@@ -684,9 +684,11 @@ def main(argv: list[str] | None = None) -> int:
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     if unknown := sorted(set(cases) - set(CASES)):
         ap.error(f"--cases: unknown {unknown}; choose from {', '.join(CASES)}")
-    methods = {m.strip() for m in args.oscillator_methods.split(",") if m.strip()}
-    if not methods or methods - {"em", "likelihood"}:
-        ap.error(f"--oscillator-methods: expected some of em, likelihood, got {methods}")
+    try:  # parsed and checked once, before the cases run
+        given = tuple(m.strip() for m in args.oscillator_methods.split(",") if m.strip())
+        args.oscillator_methods = check_methods(given)
+    except ValueError as e:
+        ap.error(f"--oscillator-methods: {e}")
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
     args.out.mkdir(parents=True, exist_ok=True)
