@@ -285,7 +285,7 @@ def linear_em_rows(p: dict[str, np.ndarray], args: argparse.Namespace) -> list[d
     # the optimum per sequence on the 20 recordings (pykalman fits one): a long L-BFGS run,
     # untimed, or the best any method reached if that is higher
     optimum = max(
-        reference_optimum(p, args.reference_iterations) / B,
+        reference_optimum(p, y, x0, P0, args.reference_iterations) / B,
         *(float(np.nanmax(c[2])) / c[4] for c in curves if c[4] == B),
     )
     # the level dynamax's EM ends at (its best less the tolerance): who gets there first
@@ -308,12 +308,12 @@ def linear_em_rows(p: dict[str, np.ndarray], args: argparse.Namespace) -> list[d
     return [iter_row, *opt_rows]
 
 
-def reference_optimum(p: dict[str, np.ndarray], iterations: int) -> float:
-    """The maximised log-likelihood (summed over the recordings) of the linear problem, from
-    ``iterations`` of L-BFGS on the exact likelihood (untimed: the reference of the
+def reference_optimum(
+    p: dict[str, np.ndarray], y: Tensor, x0: Tensor, P0: Tensor, iterations: int
+) -> float:
+    """The maximised log-likelihood (summed over the recordings ``y``) of the linear problem
+    ``p``, from ``iterations`` of L-BFGS on the exact likelihood (untimed: the reference of the
     time-to-optimum row)."""
-    y = torch.tensor(p["y"], dtype=D)
-    x0, P0 = torch.tensor(p["m0"], dtype=D), torch.tensor(p["P0"], dtype=D)
     model = linear_model(p)
     fit_likelihood(
         model, y, parameters=learnable(model), x0=x0, P0=P0, optimizer="lbfgs",
