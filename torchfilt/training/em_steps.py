@@ -218,11 +218,10 @@ def _linear_m_step(
     AB = psd_solve(Szz, Sxz.mT, name="expected state second moment").mT
     if fixed & {"A", "B"}:
         AB = _fixed_transition(lin, AB, Sxz, Szz, n, with_B, fixed)
-        Q = _psd_part((Sxx - AB @ Sxz.mT - Sxz @ AB.mT + AB @ Szz @ AB.mT) / N).to(dtype)
+        S = Sxx - AB @ Sxz.mT - Sxz @ AB.mT + AB @ Szz @ AB.mT
     else:
-        Q = _psd_part((Sxx - AB @ Sxz.mT) / N).to(dtype)
-    if "Q" in fixed:
-        Q = lin.Q
+        S = Sxx - AB @ Sxz.mT
+    Q = lin.Q if "Q" in fixed else _psd_part(S / N).to(dtype)
     A = AB[:, :n].to(dtype)
     B = AB[:, n:].to(dtype) if with_B else lin.B
     H, R = lin.H, lin.R
