@@ -101,7 +101,7 @@ def test_a_flat_table_becomes_the_option_groups(tmp_path):
     assert opts == {
         "iterations": 7,
         "optimizer": OptimizerOptions("adam", lr=0.3),
-        "windows": WindowOptions(window=50, burn_in=20, per_iteration=16),
+        "windows": WindowOptions(window=50, burn_in=20, per_iteration=64),
     }  # no "stopping": the recipe did not set patience
     assert resolve_options("calibrate", **opts).stopping.patience == 15
     assert not resolve_options("calibrate", **opts).patience_given

@@ -64,7 +64,7 @@ def state(model: torchfilt.StateSpaceModel) -> list[torch.Tensor]:
 # ----------------------------------------------------------------------------- atol
 def test_atol_defaults_and_checks():
     assert StoppingOptions().atol == 0.01
-    assert DEFAULTS["calibrate"].windows.per_iteration == 16
+    assert DEFAULTS["calibrate"].windows.per_iteration == 64
     assert DEFAULTS["likelihood"].windows.per_iteration == "auto"  # every window, resolved
     with pytest.raises(InputError, match="atol"):
         StoppingOptions(atol=-1.0)
@@ -227,7 +227,7 @@ def test_lbfgs_refuses_subsets():
 def test_calibrate_on_subsets_and_lbfgs_on_all_windows():
     """calibrate's default subsets act with Adam on many windows; with L-BFGS its default is
     every window (no error), an explicit subset is refused."""
-    y = simulate(0.8, 0.5, 0.3, 2, 200, seed=4)
+    y = simulate(0.8, 0.5, 0.3, 6, 200, seed=4)
     model = ar1(a=0.8)
     default = DEFAULTS["calibrate"].windows.per_iteration
     kw = dict(x0=X0, P0=P0, iterations=6)
@@ -235,7 +235,7 @@ def test_calibrate_on_subsets_and_lbfgs_on_all_windows():
         model, Sequences(y), windows=WindowOptions(window=20, burn_in=5, per_iteration=default),
         **kw,
     )  # fmt: skip
-    assert res.fit.windows > 16
+    assert res.fit.windows > default
     assert any("objective" in h for h in res.fit.history)
     res = calibrate(
         model, Sequences(y), optimizer="lbfgs",
@@ -259,7 +259,7 @@ def test_recipe_calibrate_keys(tmp_path):
     p = tmp_path / "r.toml"
     p.write_text(base)
     c = load_recipe(p).calibrate
-    assert c["atol"] == 0.01 and c["per_iteration"] == 16
+    assert c["atol"] == 0.01 and c["per_iteration"] == 64
     p.write_text(base + "[calibrate]\natol = 0.5\nper_iteration = 4\n")
     c = load_recipe(p).calibrate
     assert c["atol"] == 0.5 and c["per_iteration"] == 4
@@ -270,19 +270,19 @@ def test_recipe_calibrate_keys(tmp_path):
 
 
 def test_per_iteration_auto_is_the_fits_default():
-    """``WindowOptions(window=...)`` leaves ``per_iteration="auto"``: calibrate's subsets of 16,
+    """``WindowOptions(window=...)`` leaves ``per_iteration="auto"``: calibrate's subsets of 64,
     every window for fit_likelihood; an explicit None is every window for calibrate too."""
     from torchfilt.optim import resolve_options
 
     w = WindowOptions(window=20, burn_in=5)
     assert w.per_iteration == "auto"
-    assert resolve_options("calibrate", windows=w).windows.per_iteration == 16
+    assert resolve_options("calibrate", windows=w).windows.per_iteration == 64
     assert resolve_options("likelihood", windows=w).windows.per_iteration is None
     assert resolve_options("likelihood").windows.per_iteration is None
     all_windows = WindowOptions(window=20, burn_in=5, per_iteration=None)
     assert resolve_options("calibrate", windows=all_windows).windows.per_iteration is None
-    y = simulate(0.8, 0.5, 0.3, 2, 200, seed=4)
+    y = simulate(0.8, 0.5, 0.3, 6, 200, seed=4)
     res = calibrate(ar1(a=0.8), Sequences(y), x0=X0, P0=P0, iterations=6, windows=w)
-    assert res.fit.windows > 16 and any("objective" in h for h in res.fit.history)
+    assert res.fit.windows > 64 and any("objective" in h for h in res.fit.history)
     with pytest.raises(InputError, match="per_iteration"):
         WindowOptions(per_iteration="some")  # type: ignore[arg-type]

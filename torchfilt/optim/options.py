@@ -134,7 +134,7 @@ class WindowOptions:
             estimate of the state just before it.
         refresh_every: iterations between refreshes of the window starts.
         per_iteration: at most this many windows per Adam iteration (``None``: all;
-            ``"auto"``, the default: the fit's own, 16 for ``calibrate``, all for
+            ``"auto"``, the default: the fit's own, 64 for ``calibrate``, all for
             ``fit_likelihood`` and ``fit_measurement_only``). With more
             windows than that, each iteration steps on a random subset of ``per_iteration`` of
             them, drawn from ``(seed, iteration)`` alone (a resumed fit draws the same ones),
@@ -311,7 +311,7 @@ DEFAULTS: Mapping[str, FitDefaults] = MappingProxyType(
         "calibrate": FitDefaults(
             100,
             OptimizerOptions("adam", lr=0.1),
-            WindowOptions(window=100, burn_in=20, per_iteration=16),
+            WindowOptions(window=100, burn_in=20, per_iteration=64),
             StoppingOptions(patience=15),
         ),
         "measurement_only": FitDefaults(

@@ -155,7 +155,7 @@ def _gp_keys(role: str) -> tuple[Key, ...]:
         ),
         Key("rank", "(none)", 'rank of the low-rank root (`variance = "lowrank"`)', kind="posint"),
         Key("tol", "`0.05`", 'relative variance tolerance of `variance = "auto"`', kind="posfloat"),
-        Key("chunk_size", "`128`", "points per kernel chunk in large batches", kind="posint"),
+        Key("chunk_size", "(auto)", "points per kernel chunk in large batches", kind="posint"),
     )
     return tuple(k for k in keys if role == "transition" or k.name != "increment")
 

@@ -267,3 +267,36 @@ def test_frozen_predictor_on_cuda_matches_cpu(data):
         gpu = model.predict(xq.cuda())
     torch.testing.assert_close(gpu.mean.cpu(), cpu.mean, rtol=1e-9, atol=1e-9)
     torch.testing.assert_close(gpu.var.cpu(), cpu.var, rtol=1e-7, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "options, entries_per_point",
+    [
+        (dict(variance="exact"), lambda S: 2 * S),  # one block of 2 outputs x S points
+        (dict(inputs=[[0], [1]]), lambda S: 2 * S),  # two blocks of 1 output x S points
+        (dict(structure="multitask", num_latents=2, variance="exact"), lambda S: 2 * S * 2**2),
+    ],
+    ids=["exact", "per-output-inputs", "multitask"],
+)
+def test_automatic_chunk_size(data, monkeypatch, options, entries_per_point):
+    """By default a chunk holds as many points as keep its kernel rows under CHUNK_ENTRIES (at
+    least CHUNK_SIZE), and the chunked predictions equal one chunk's."""
+    import torchfilt.models.gp.predictor as predictor
+
+    model = _fit(data, **options)
+    S = int(data[0].shape[0])  # training points
+    g = torch.Generator().manual_seed(10)
+    x = torch.randn(700, 2, generator=g, dtype=DT)
+    with torch.no_grad():
+        model.freeze(**{**model._freeze_opts, "chunk_size": None})
+        assert model.predictor.chunk_size == max(128, 2**21 // entries_per_point(S))
+        whole = model.predict(x)
+        monkeypatch.setattr(predictor, "CHUNK_ENTRIES", 300 * entries_per_point(S))
+        model.freeze(**{**model._freeze_opts, "chunk_size": None})
+        assert model.predictor.chunk_size == 300  # three chunks of 300, 300 and 100 points
+        chunked = model.predict(x)
+        monkeypatch.setattr(predictor, "CHUNK_ENTRIES", 1)
+        model.freeze(**{**model._freeze_opts, "chunk_size": None})
+        assert model.predictor.chunk_size == 128  # the floor
+    torch.testing.assert_close(chunked.mean, whole.mean, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(chunked.var, whole.var, rtol=1e-12, atol=1e-12)

@@ -71,7 +71,7 @@ def fit_model(
     variance: VarianceMode,
     rank: int | None,
     tol: float,
-    chunk_size: int,
+    chunk_size: int | None,
     device: str | torch.device | None,
     seed: int,
     callback: Callback | None,

@@ -74,7 +74,7 @@ class GPMeasurement(GPModel):
         variance: VarianceMode = "auto",
         rank: int | None = None,
         tol: float = 0.05,
-        chunk_size: int = 128,
+        chunk_size: int | None = None,
         dtype: torch.dtype = torch.float64,
         device: str | torch.device | None = None,
         seed: int = 0,
@@ -120,7 +120,8 @@ class GPMeasurement(GPModel):
                 (:meth:`~torchfilt.models.gp.GPModel.freeze`).
             rank: the low-rank root's rank (``variance="lowrank"``).
             tol: relative variance tolerance of ``variance="auto"``.
-            chunk_size: points per kernel chunk.
+            chunk_size: points per kernel chunk (``None``: from the training set's size; see
+                :meth:`~torchfilt.models.gp.GPModel.freeze`).
             dtype: training dtype.
             device: train and keep the model on this device (e.g. ``"cuda"``; ``None``: the CPU,
                 where the data are prepared).

@@ -33,7 +33,6 @@ from torchfilt.models.gp.group import GPGroup, GroupPosterior
 from torchfilt.models.gp.optimize import Callback, load_checkpoint, train_groups
 from torchfilt.models.gp.predictor import (
     AUTO_TOL,
-    CHUNK_SIZE,
     FrozenGP,
     FrozenOutput,
     VarianceMode,
@@ -328,7 +327,7 @@ class GPModel(ConditionalModel):
         rank: int | None = None,
         *,
         tol: float = AUTO_TOL,
-        chunk_size: int = CHUNK_SIZE,
+        chunk_size: int | None = None,
     ) -> GPModel:
         """Cache every training-set solve; :meth:`predict` then calls no GPyTorch code.
 
@@ -340,7 +339,8 @@ class GPModel(ConditionalModel):
                 the exact variance). A sparse model always uses its own inducing-point form.
             rank: rank of the low-rank root (required for ``"lowrank"``).
             tol: relative variance tolerance of ``"auto"``.
-            chunk_size: points per kernel chunk in large batches.
+            chunk_size: points per kernel chunk in large batches (``None``: from the training
+                set's size, :func:`~torchfilt.models.gp.predictor.auto_chunk_size`).
 
         Returns:
             ``self``. :attr:`variance_forms` tells which form each group got.
@@ -354,7 +354,7 @@ class GPModel(ConditionalModel):
             raise InputError("rank: a positive rank is required for variance='lowrank'")
         if not tol > 0:
             raise InputError(f"tol must be positive, got {tol}")
-        if chunk_size < 1:
+        if chunk_size is not None and (isinstance(chunk_size, bool) or chunk_size < 1):
             raise InputError(f"chunk_size must be positive, got {chunk_size}")
         with torch.no_grad():
             blocks = self._blocks(variance, rank, tol, differentiable=False)
@@ -441,7 +441,7 @@ class GPModel(ConditionalModel):
                 f"twin: only independent exact GPs have a differentiable twin; this model has "
                 f"structure {self.config.structure!r}"
             )
-        chunk = CHUNK_SIZE if self._freeze_opts is None else int(self._freeze_opts["chunk_size"])
+        chunk = None if self._freeze_opts is None else self._freeze_opts["chunk_size"]
         with torch.enable_grad():
             blocks = self._blocks("exact", None, AUTO_TOL, differentiable=True)
         return FrozenGP(blocks, self.target_std.shift, self.out_dim, chunk)
