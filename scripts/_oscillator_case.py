@@ -178,9 +178,11 @@ def measurement_only_row(
     seed: int,
     iterations: int | None,
     compile: bool = False,
+    noise_scale: str = "none",
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Fit the test's start from ``y (T, 2)`` alone with the defaults (``iterations=None``,
-    ``compile=False``); the row, and the fit's record (or the error it raised)."""
+    ``compile=False``, ``noise_scale="none"``); the row, and the fit's record (or the error it
+    raised)."""
     x0, P0 = prior()
     torch.manual_seed(seed)
     t0 = time.perf_counter()
@@ -192,7 +194,7 @@ def measurement_only_row(
         try:
             fit = torchfilt.fit_measurement_only(
                 model, y, x0=x0, P0=P0, known_channels=[0, 1], method=method,  # type: ignore[arg-type]
-                iterations=iterations, compile=compile,
+                iterations=iterations, compile=compile, noise_scale=noise_scale,  # type: ignore[arg-type]
             )  # fmt: skip
         except FitError as e:
             seconds = time.perf_counter() - t0
@@ -206,6 +208,7 @@ def measurement_only_row(
         "log_likelihood": fit.log_likelihood,
         "iterations": fit.iterations,
         "stopped": fit.stopped,
+        "noise_scale": None if fit.noise_scale is None else fit.noise_scale._asdict(),
         "warnings": sorted({str(w.message) for w in caught}),
     }
     return {**evaluate(fit.model, test), "train_s": seconds, "raised": None}, record
@@ -257,11 +260,13 @@ def oscillator_case(
     iterations: int | None = None,
     methods: tuple[str, ...] = METHODS,
     compile: bool = False,
+    noise_scale: str = "none",
 ) -> dict[str, Any]:
     """All rows on one ``steps``-step training recording and ``test_runs`` held-out ones of the
     same length; ``iterations=None`` is ``fit_measurement_only``'s default; ``methods``: the
     measurement-only fits to run (a subset of ``("em", "likelihood")``); ``compile``: of
-    ``fit_measurement_only``."""
+    ``fit_measurement_only``; ``noise_scale``: of ``fit_measurement_only`` (``"held-out"``: the
+    last fifth of the recording held out to scale the fitted process noise)."""
     methods = check_methods(methods)
     train = simulate(1, steps, seed + 21)
     test = simulate(test_runs, steps, seed + 22)
@@ -280,7 +285,7 @@ def oscillator_case(
     fits: dict[str, Any] = {}
     for method in methods:
         row, fits[method] = measurement_only_row(
-            method, train.measurements[0], test, seed, iterations, compile
+            method, train.measurements[0], test, seed, iterations, compile, noise_scale
         )
         rows[f"GP, measurement only ({method})"] = row
         print(f"oscillator, {method}: {fits[method]}", flush=True)
@@ -295,6 +300,7 @@ def oscillator_case(
         "inducing": INDUCING,
         "fit_iterations": iterations if iterations is not None else "default",
         "compile": compile,
+        "noise_scale": noise_scale,
         "rows": rows,
         "fits": fits,
         "targets": {m: verdict(rows, m) for m in methods},

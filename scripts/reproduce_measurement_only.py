@@ -629,6 +629,7 @@ def oscillator_report(args: argparse.Namespace) -> dict[str, Any]:
         iterations=args.oscillator_iterations,
         methods=args.oscillator_methods,
         compile=args.oscillator_compile,
+        noise_scale=args.oscillator_noise_scale,
     )
     out["table"] = oscillator_table(out)
     print(
@@ -679,6 +680,12 @@ def main(argv: list[str] | None = None) -> int:
         "--oscillator-compile",
         action="store_true",
         help="fit_measurement_only(compile=True) for the oscillator's fits",
+    )
+    ap.add_argument(
+        "--oscillator-noise-scale",
+        choices=("none", "held-out"),
+        default="none",
+        help="fit_measurement_only's noise_scale for the oscillator's fits (default none)",
     )
     args = ap.parse_args(argv)
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]

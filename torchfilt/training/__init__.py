@@ -32,6 +32,11 @@ from torchfilt.training.measurement_only import (
     fit_measurement_only,
     smoothed_pairs,
 )
+from torchfilt.training.noise_scale import (
+    NoiseScale,
+    held_out_noise_scale,
+    with_process_noise_scale,
+)
 from torchfilt.training.uncertainty import parameter_posterior
 from torchfilt.training.validation import one_step_metrics
 
@@ -43,6 +48,7 @@ __all__ = [
     "LikelihoodFit",
     "LikelihoodState",
     "MeasurementOnlyFit",
+    "NoiseScale",
     "RecipeError",
     "RunError",
     "Sequences",
@@ -53,10 +59,12 @@ __all__ = [
     "fit_em",
     "fit_likelihood",
     "fit_measurement_only",
+    "held_out_noise_scale",
     "one_step_metrics",
     "parameter_posterior",
     "smoothed_pairs",
     "step_log_likelihood",
+    "with_process_noise_scale",
 ]
 
 #: Names that moved to :mod:`torchfilt.pipeline` (deprecated here; remove in the next release).

@@ -55,7 +55,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Collection, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal, NamedTuple
 
@@ -84,7 +84,7 @@ from torchfilt.optim import (
     free_parameters,
     resolve_options,
 )
-from torchfilt.training.data import FitData, as_sequences
+from torchfilt.training.data import FitData, Sequences, as_sequences
 from torchfilt.training.em_accel import Squarem
 from torchfilt.training.em_steps import (
     SmoothedPairs,
@@ -102,6 +102,12 @@ from torchfilt.training.likelihood import (
     LikelihoodState,
     _fit_likelihood,
     _recordings,
+)
+from torchfilt.training.noise_scale import (
+    NoiseScale,
+    held_out_noise_scale,
+    split_tails,
+    with_process_noise_scale,
 )
 
 __all__ = [
@@ -184,6 +190,10 @@ class MeasurementOnlyFit:
         candidates: records of candidate starts; :func:`fit_measurement_only` fits the one
             model it is given and leaves this empty (a ``states = "none"`` run scores its
             candidate starts itself and records them in the bundle's training record).
+        noise_scale: with ``noise_scale="held-out"``, the held-out choice of the scale of the
+            transition variance (:class:`~torchfilt.training.noise_scale.NoiseScale`), which
+            ``model`` carries; the likelihoods above are the fit's, before the scale, on the
+            data it saw. ``None`` otherwise.
     """
 
     model: StateSpaceModel
@@ -198,6 +208,7 @@ class MeasurementOnlyFit:
     detail: EMFit | LikelihoodFit
     initial_log_likelihood: float = math.nan
     candidates: list[dict[str, Any]] = field(default_factory=list)
+    noise_scale: NoiseScale | None = None
 
 
 # ----------------------------------------------------------------------------------- EM
@@ -534,6 +545,8 @@ def fit_measurement_only(
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
     compile: bool | Literal["step", "loop"] = False,
+    noise_scale: Literal["none", "held-out"] = "none",
+    holdout: float = 0.2,
 ) -> MeasurementOnlyFit:
     """Learn a state-space model from measurements alone (no states), by EM or by the filter's
     likelihood (see the module docstring).
@@ -591,6 +604,14 @@ def fit_measurement_only(
             compiled against 0.41 s eager, after a first compile of 32 s on the 2-core
             machine: it pays once a fit runs more than about a hundred filters (an L-BFGS
             iteration runs up to 20). Default ``False``.
+        noise_scale: ``"held-out"``: after the fit, scale the transition's variance by the
+            largest factor (1/4 to 64) whose innovation likelihood on held-out data is within
+            1.92 nats of the best (:mod:`torchfilt.training.noise_scale`), against a fitted
+            ``Q`` that is too small for new data. The data are ``validation`` when given (the fit then sees all of
+            ``y``), else the last ``holdout`` of every recording, which the fit does not see.
+            The choice is the result's ``noise_scale``. Default ``"none"``.
+        holdout: the fraction of each recording held out for ``noise_scale="held-out"``
+            without ``validation`` (default 0.2).
 
     Returns:
         A :class:`MeasurementOnlyFit`.
@@ -607,6 +628,8 @@ def fit_measurement_only(
     """
     if method not in ("em", "likelihood"):
         raise InputError(f"method must be 'em' or 'likelihood', got {method!r}")
+    if noise_scale not in ("none", "held-out"):
+        raise InputError(f"noise_scale must be 'none' or 'held-out', got {noise_scale!r}")
     mode = compile_mode(compile)  # refuses anything but False, True, "step" or "loop"
     if not isinstance(model, StateSpaceModel):
         raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
@@ -615,6 +638,22 @@ def fit_measurement_only(
         "measurement_only", iterations=iterations, optimizer=optimizer, windows=windows,
         stopping=stopping, checkpoint=checkpoint, hooks=hooks,
     )  # fmt: skip
+    if noise_scale == "held-out":
+
+        def fit(fy: FitData, fu: Tensor | Sequence[Tensor] | None) -> MeasurementOnlyFit:
+            return fit_measurement_only(
+                model, fy, fu, x0=x0, P0=P0, known_channels=known, fixed=fixed,
+                validation=validation, iterations=iterations, optimizer=optimizer,
+                windows=windows, stopping=stopping, checkpoint=checkpoint, hooks=hooks,
+                progress=progress, callback=callback, dtype=dtype, rule=rule, method=method,
+                learn_measurement_noise=learn_measurement_noise,
+                m_step_iterations=m_step_iterations, compile=compile,
+            )  # fmt: skip
+
+        return _held_out_scaled(
+            fit, model, as_sequences(y, u, x0=x0, P0=P0), validation, holdout,
+            dtype=dtype, rule=rule, all_reduce=o.hooks.all_reduce,
+        )  # fmt: skip
     if method == "em":
         em = fit_em(
             model, y, u, x0=x0, P0=P0, known_channels=known, fixed=fixed,
@@ -657,6 +696,40 @@ def fit_measurement_only(
         detail=lf,
         initial_log_likelihood=lf.initial_log_likelihood,
     )
+
+
+def _held_out_scaled(
+    fit: Callable[[FitData, Tensor | Sequence[Tensor] | None], MeasurementOnlyFit],
+    model: StateSpaceModel,
+    data: Sequences,
+    validation: FitData | None,
+    holdout: float,
+    *,
+    dtype: torch.dtype,
+    rule: CubatureRule | None,
+    all_reduce: Callable[[Tensor], None] | None,
+) -> MeasurementOnlyFit:
+    """``fit`` on the heads of ``data`` (or on all of it, with ``validation``), its model's
+    process noise then scaled by the held-out tails (or ``validation``)."""
+    if validation is None:
+        heads, whole, starts = split_tails(model, data, holdout, dtype=dtype)
+        result = fit(heads, None)
+        choice = held_out_noise_scale(
+            result.model, whole, starts, dtype=dtype, rule=rule, all_reduce=all_reduce
+        )
+    else:
+        result = fit(data, None)
+        x0, P0 = data.x0, data.P0
+        assert x0 is not None and P0 is not None  # as_sequences with the fit's prior
+        n = model.state_dim
+        val = as_sequences(
+            validation, x0=x0.reshape(-1, n)[0], P0=P0.reshape(-1, n, n)[0], name="validation"
+        )
+        choice = held_out_noise_scale(
+            result.model, val, None, dtype=dtype, rule=rule, all_reduce=all_reduce
+        )
+    scaled = with_process_noise_scale(result.model, choice.scale, dtype=dtype)
+    return replace(result, model=scaled, noise_scale=choice)
 
 
 def _check_likelihood_fit(lf: LikelihoodFit, name: str) -> None:
