@@ -77,8 +77,11 @@ def test_main_on_a_simulated_log(brl, tmp_path):
     res = json.loads((out / "bench_real_logs.json").read_text())["logs"]["robot-arm"]["rows"]
     assert set(res) == {
         "N4SID (nfoursid)", "torchfilt subspace", "torchfilt subspace + EM",
-        "torchfilt GP (measurement only)",
+        "torchfilt subspace + EM + L-BFGS", "torchfilt GP (measurement only)",
     }  # fmt: skip
+    assert res["torchfilt subspace + EM + L-BFGS"]["stopped"] == "converged"
+    lbfgs, em = res["torchfilt subspace + EM + L-BFGS"], res["torchfilt subspace + EM"]
+    assert lbfgs["log_likelihood"] >= em["log_likelihood"] - 1e-6
     for name, row in res.items():
         assert math.isfinite(row["rmse"]) and row["rmse"] < 0.3, (name, row)
         if name.startswith("torchfilt") and name != "torchfilt subspace":

@@ -9,6 +9,7 @@ pushing cubature points through the maps.
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from typing import NamedTuple
 
 import torch
@@ -17,6 +18,7 @@ from torch import Tensor, nn
 from torchfilt.exceptions import InputError, ModelError, ShapeError
 from torchfilt.models.base import ConditionalModel, Prediction, TimeVarying
 from torchfilt.models.functional import FunctionModel, StateSpaceModel, WithNoise
+from torchfilt.models.params import CholeskyCovariance
 from torchfilt.numerics.dtypes import check_real_tensor
 
 __all__ = ["LinearGaussianModel", "LinearModel", "LinearSystem", "linear_system"]
@@ -252,3 +254,58 @@ class LinearGaussianModel(StateSpaceModel):
     def D(self) -> Tensor | None:
         """The feed-through matrix, shape ``(..., m, nu)``, or ``None``."""
         return self.measurement.D  # type: ignore[return-value]
+
+    def learnable(self, *, fixed: Collection[str] = ("H", "D")) -> LinearGaussianModel:
+        """A copy to fit by gradient: the matrices outside ``fixed`` are ``nn.Parameter`` s, the
+        noises :class:`~torchfilt.models.CholeskyCovariance` (unless ``"Q"`` or ``"R"`` is
+        fixed).
+
+        A closed-form fit (:func:`~torchfilt.training.fit_em`) returns its matrices as plain
+        tensors; this makes them something :func:`~torchfilt.training.fit_likelihood` can
+        move, e.g. to finish an EM fit with L-BFGS where EM converges slowly (a near
+        noise-free system). A noise covariance with a zero eigenvalue (EM sets the negative
+        ones to zero) gets ``1e-12`` times its mean variance on the diagonal: a Cholesky factor
+        needs a positive definite start.
+
+        Args:
+            fixed: the blocks kept as they are, of ``"A"``, ``"B"``, ``"H"``, ``"D"``, ``"Q"``,
+                ``"R"`` (default ``H`` and ``D``: a measurement-only fit's gauge).
+
+        Returns:
+            A new :class:`LinearGaussianModel` with copies of the values.
+
+        Raises:
+            InputError: an unknown name in ``fixed``, or a time-varying noise.
+        """
+        names = {"A", "B", "H", "D", "Q", "R"}
+        if unknown := sorted(set(fixed) - names):
+            raise InputError(f"fixed: unknown blocks {unknown}; expected some of {sorted(names)}")
+
+        def matrix(name: str, value: Tensor | None) -> Tensor | None:
+            if value is None:
+                return None
+            v = value.detach().clone()
+            return v if name in fixed else nn.Parameter(v)
+
+        def noise(name: str, side: ConditionalModel) -> Tensor | nn.Module:
+            cov = side.noise_cov()
+            if cov is None or side.time_varying_noise:
+                raise InputError(f"{name}: a time-varying noise has no learnable copy here")
+            cov = cov.detach().clone()
+            if name in fixed:
+                return cov
+            d = cov.shape[-1]
+            mean_var = (
+                cov.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(torch.finfo(cov.dtype).tiny)
+            )
+            jitter = 1e-12 * mean_var[..., None, None] * torch.eye(d, dtype=cov.dtype)
+            return CholeskyCovariance(cov + jitter)
+
+        return LinearGaussianModel(
+            matrix("A", self.A),  # type: ignore[arg-type]
+            matrix("H", self.H),  # type: ignore[arg-type]
+            noise("Q", self.transition),  # type: ignore[arg-type]
+            noise("R", self.measurement),  # type: ignore[arg-type]
+            B=matrix("B", self.B),
+            D=matrix("D", self.D),
+        )
