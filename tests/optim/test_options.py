@@ -243,8 +243,8 @@ def test_an_unknown_keyword_is_an_input_error(fit):
     assert message.startswith(f"{name}: unexpected keyword argument(s) ['iterationz']"), message
     assert "did you mean iterations= for iterationz=?" in message
     assert message.endswith(f"; valid: {valid}")
-    with pytest.raises(InputError, match=r"\['colour', 'shape'\]; valid"):
-        fit(None, None, colour=1, shape=2)  # nothing close: no hint
+    with pytest.raises(InputError, match=r"\['zebra', 'shape'\]; valid"):
+        fit(None, None, zebra=1, shape=2)  # nothing close: no hint
 
 
 def test_a_fit_with_var_keywords_is_not_checked():
