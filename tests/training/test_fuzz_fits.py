@@ -41,6 +41,8 @@ CORRUPTIONS = {
     "fixed unknown": "fixed",
     "accelerate not a bool": "accelerate",
     "compile not a mode": "compile",
+    "noise_scale unknown": "noise_scale",
+    "holdout out of range": "holdout",
 }
 FITS = ["fit_likelihood", "calibrate", "fit_em", "fit_measurement_only"]
 
@@ -88,6 +90,9 @@ def check_fits(data: st.DataObject) -> None:
     if fit == "fit_measurement_only":
         options["method"] = data.draw(st.sampled_from(["em", "likelihood"]), label="method")
         em = options["method"] == "em"
+        if data.draw(st.booleans(), label="held-out noise scale"):
+            # half of each recording (T >= 3): every one keeps 2 steps and holds out 1
+            options.update(noise_scale="held-out", holdout=0.5)
     if not em:
         options.update(lr=0.05, burn_in=0)
     elif fit == "fit_em":  # plain or SQUAREM-accelerated EM (None: the default, on here)
@@ -127,6 +132,17 @@ def check_fits(data: st.DataObject) -> None:
             options["compile"] = data.draw(st.sampled_from(["fast", 1, None]), label="compile")
         else:
             corruption, what = "none", None
+    elif corruption == "noise_scale unknown":
+        if fit == "fit_measurement_only":
+            options["noise_scale"] = data.draw(st.sampled_from(["auto", 1.0, None]), "scale")
+        else:
+            corruption, what = "none", None
+    elif corruption == "holdout out of range":
+        if fit == "fit_measurement_only":
+            options.update(noise_scale="held-out")
+            options["holdout"] = data.draw(st.sampled_from([0.0, 1.0, 1.5, -0.2]), "holdout")
+        else:
+            corruption, what = "none", None
     res, _ = attempt(fit, _call, fit, model, y, u, x0, P0, options)
     if what is not None:
         assert isinstance(res, Refused), f"{fit}, {corruption}: not refused"
@@ -138,6 +154,8 @@ def check_fits(data: st.DataObject) -> None:
     ll, ll0 = float(result.log_likelihood), float(result.initial_log_likelihood)
     assert math.isfinite(ll) and math.isfinite(ll0), (ll, ll0)
     assert ll >= ll0 - 1e-9 * abs(ll0), f"{fit}: returned {ll} below the initial {ll0}"
+    if options.get("noise_scale") == "held-out":
+        assert result.noise_scale is not None and result.noise_scale.held_out >= R
 
 
 test_fuzz_fits, test_fuzz_fits_long = property_tests(check_fits, short=12, long=300)
