@@ -228,3 +228,21 @@ def test_hung_actor_fails_after_the_timeout_and_a_foreign_checkpoint_is_refused(
         kw["checkpoint"] = CheckpointOptions(tmp_path / "ck", resume=True)
         fit_measurement_only_ray(ddp_support.em_linear(), Sequences(y[:3]), **kw)
     assert not isinstance(info.value, WorkerError)
+
+
+def test_held_out_noise_scale_on_two_actors_equals_one_process(ray_local):
+    """``noise_scale="held-out"``: each actor holds out its recordings' tails, the scores are
+    summed, and every actor chooses what one process on all recordings chooses."""
+    y = _scalar_recordings(1, 50)
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    kw = dict(
+        x0=torch.zeros(1, dtype=DT), P0=torch.eye(1, dtype=DT), known_channels=[0], iterations=3,
+        method="likelihood", noise_scale="held-out", holdout=0.3,
+    )  # fmt: skip
+    local = torchfilt.fit_measurement_only(_scalar_model(), y, **kw)
+    res = fit_measurement_only_ray(_scalar_model(), Sequences(y), workers=2, **kw)
+    assert local.noise_scale is not None and res.noise_scale is not None
+    assert res.noise_scale.scale == local.noise_scale.scale
+    assert res.noise_scale.held_out == local.noise_scale.held_out == 4 * 15
+    for (s, a), (_, b) in zip(res.noise_scale.scores, local.noise_scale.scores, strict=True):
+        assert a == pytest.approx(b, rel=1e-8), s

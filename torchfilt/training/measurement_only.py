@@ -710,7 +710,9 @@ def _held_out_scaled(
     all_reduce: Callable[[Tensor], None] | None,
 ) -> MeasurementOnlyFit:
     """``fit`` on the heads of ``data`` (or on all of it, with ``validation``), its model's
-    process noise then scaled by the held-out tails (or ``validation``)."""
+    process noise then scaled by the held-out tails (or ``validation``). A data-parallel fit
+    sums the tails' scores over its processes; ``validation`` is every process's own copy of
+    the same data (as for the likelihood fit's early stopping), scored without a sum."""
     if validation is None:
         heads, whole, starts = split_tails(model, data, holdout, dtype=dtype)
         result = fit(heads, None)
@@ -725,9 +727,7 @@ def _held_out_scaled(
         val = as_sequences(
             validation, x0=x0.reshape(-1, n)[0], P0=P0.reshape(-1, n, n)[0], name="validation"
         )
-        choice = held_out_noise_scale(
-            result.model, val, None, dtype=dtype, rule=rule, all_reduce=all_reduce
-        )
+        choice = held_out_noise_scale(result.model, val, None, dtype=dtype, rule=rule)
     scaled = with_process_noise_scale(result.model, choice.scale, dtype=dtype)
     return replace(result, model=scaled, noise_scale=choice)
 

@@ -153,6 +153,8 @@ def fit_measurement_only_ray(
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
     compile: bool | Literal["step", "loop"] = False,
+    noise_scale: Literal["none", "held-out"] = "none",
+    holdout: float = 0.2,
     timeout: float = GROUP_TIMEOUT,
     callback_on: Literal["actors", "driver"] = "actors",
 ) -> Any:
@@ -189,6 +191,10 @@ def fit_measurement_only_ray(
         m_step_iterations: as in :func:`~torchfilt.training.fit_measurement_only`.
         compile: as in :func:`~torchfilt.training.fit_measurement_only` (each actor compiles
             its own filter).
+        noise_scale: as in :func:`~torchfilt.training.fit_measurement_only`: each actor holds
+            out the tails of its own recordings, and the scores are summed over the actors, so
+            all choose the same scale.
+        holdout: as in :func:`~torchfilt.training.fit_measurement_only`.
         timeout: as in :func:`calibrate_ray`.
         callback_on: as in :func:`calibrate_ray`.
 
@@ -216,6 +222,8 @@ def fit_measurement_only_ray(
         "learn_measurement_noise": learn_measurement_noise,
         "m_step_iterations": m_step_iterations,
         "compile": compile,
+        "noise_scale": noise_scale,
+        "holdout": holdout,
         "dtype": dtype,
         "callback": callback,
         "checkpoint": ckpt,
