@@ -300,3 +300,36 @@ def test_automatic_chunk_size(data, monkeypatch, options, entries_per_point):
         assert model.predictor.chunk_size == 128  # the floor
     torch.testing.assert_close(chunked.mean, whole.mean, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(chunked.var, whole.var, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("options", [dict(variance="lowrank", rank=8), dict(variance="auto")])
+def test_outputs_fitted_on_their_own_rows_run_as_one_stacked_block(data, options):
+    """Outputs with missing rows of their own become one block each; the low-rank blocks run
+    stacked (padded points, zero weights), with the same predictions and gradients as the
+    blocks one by one."""
+    from torchfilt.models.gp.blocks import _IndependentBlock
+
+    x, y = data
+    y = y.clone()
+    y[::3, 0] = float("nan")  # each output on its own rows: two groups
+    y[1::4, 1] = float("nan")
+    model = GPMeasurement.fit(x, y, iterations=ITERS, progress=False, **options)
+    pred = model.predictor
+    assert len(pred.blocks) == 2
+    stacked = [b for b in pred.runs if isinstance(b, _IndependentBlock) and b.form != "exact"]
+    if options["variance"] == "lowrank":
+        assert len(pred.runs) == 1 and stacked
+    g = torch.Generator().manual_seed(11)
+    z = torch.randn(40, 2, generator=g, dtype=DT).requires_grad_(True)
+    got = pred(z)
+    parts = [b(z) for b in pred.blocks]  # the blocks one by one, in output order
+    idx = torch.cat([b.outputs for b in pred.blocks]).argsort()
+    want_mean = torch.cat([p[0] for p in parts], 1)[:, idx]
+    want_var = torch.cat([p[1] for p in parts], 1)[:, idx]
+    torch.testing.assert_close(got.mean, want_mean, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(got.var, want_var, rtol=1e-12, atol=1e-12)
+    (g1,) = torch.autograd.grad((got.mean.sum() + got.var.sum()), z)
+    (g2,) = torch.autograd.grad((want_mean.sum() + want_var.sum()), z)
+    torch.testing.assert_close(g1, g2, rtol=1e-10, atol=1e-12)
+    cached = type(pred).from_cache(pred.cache())
+    torch.testing.assert_close(cached(z.detach()).var, got.var.detach(), rtol=1e-12, atol=1e-12)

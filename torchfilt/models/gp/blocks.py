@@ -12,7 +12,7 @@ from torch import Tensor, nn
 
 from torchfilt.models.gp.kernels import correlation, scaled_sq_dist
 
-__all__ = ["independent_khat", "multitask_khat"]
+__all__ = ["independent_khat", "multitask_khat", "stack_key"]
 
 
 class _Block(nn.Module):
@@ -136,6 +136,48 @@ class _IndependentBlock(_Block):
         self._buf("qscale", amp.pow(2).unsqueeze(-1))  # exact form: |L^-1 c|^2 * amp^2
         self._buf("factor", factor)
 
+    @classmethod
+    def stacked(cls, blocks: list[_IndependentBlock]) -> _IndependentBlock:
+        """One block computing the outputs of ``blocks`` at once: each one's training (or
+        inducing) points padded to the largest count with zeros, whose ``alpha`` and variance
+        factor rows are zero, so the padding adds nothing to the mean or the variance.
+
+        Only frozen low-rank or sparse blocks of one kernel, one rank and the same input
+        features stack (an exact block's triangular solve would count the padding); the caller
+        checks (:func:`stack_key`). For the outputs of a GP whose outputs were fitted on
+        different rows (missing measurements), which become one block per output.
+        """
+        first = blocks[0]
+        out = cls.__new__(cls)
+        _Block.__init__(out, first.kernel, first.form, first.rank, False)
+        out.cache_args = {}  # a stacked block is built from cached blocks, never cached itself
+        out.prefix, out.num_selected = first.prefix, first.num_selected
+        S = max(int(b.points.shape[1]) for b in blocks)
+
+        def padded(name: str) -> Tensor:
+            parts = []
+            for b in blocks:
+                t = getattr(b, name)
+                if t.shape[1] < S:
+                    fill = t.new_zeros((t.shape[0], S - t.shape[1], *t.shape[2:]))
+                    t = torch.cat([t, fill], 1)
+                parts.append(t)
+            return torch.cat(parts, 0)
+
+        for name in ("points", "points_sq", "alpha"):
+            out._buf(name, padded(name))
+        factor = padded("factor")
+        if first.form == "sparse":  # (g, M, M): the padded columns too
+            M = factor.shape[1]
+            if factor.shape[2] < M:
+                fill = factor.new_zeros((factor.shape[0], M, M - factor.shape[2]))
+                factor = torch.cat([factor, fill], 2)
+        out._buf("factor", factor)
+        for name in ("outputs", "in_weight", "in_bias", "mean0", "var0", "noise", "qscale"):
+            out._buf(name, torch.cat([getattr(b, name) for b in blocks], 0))
+        out._buf("features", first.features)
+        return out
+
     def correlation_rows(self, z: Tensor) -> Tensor:
         """Unit-variance ``k(z, X)`` for every output, ``(N, F)`` -> ``(g, N, S)``."""
         whole = self.prefix and z.shape[-1] == self.num_selected
@@ -248,6 +290,17 @@ class _MultitaskBlock(_Block):
         s = self.out_scale
         cov = cov * (s.unsqueeze(-1) * s.unsqueeze(-2))
         return mean * s + self.out_shift, cov.diagonal(dim1=-2, dim2=-1), cov
+
+
+def stack_key(block: nn.Module) -> tuple[object, ...] | None:
+    """What blocks must share to be :meth:`_IndependentBlock.stacked` together (``None``: this
+    one does not stack)."""
+    if type(block) is not _IndependentBlock or block.differentiable:
+        return None
+    if block.form not in ("lowrank", "sparse"):
+        return None
+    features = tuple(int(i) for i in block.features.tolist())
+    return (block.kernel, block.form, int(block.factor.shape[-1]), features)
 
 
 def _cache_args(form: str, **args: Tensor) -> dict[str, Tensor]:

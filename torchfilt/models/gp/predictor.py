@@ -26,6 +26,12 @@ arithmetic, dominates a filter step's cost at the batch sizes of a fit: a step o
 cubature points (138 points) cost 1.2 times one of 16 windows in two chunks of 128, and 1.05
 times in one. Inputs are standardised and outputs de-standardised inside.
 
+Outputs fitted on rows of their own (a measurement missing at other times than another's)
+become one block each. The low-rank and sparse blocks of one kernel, rank and input set run as
+one stacked block (their points padded with zeros of zero weight): one round of kernel
+operations instead of one per output. On Plaza2's four range outputs a call took 0.30 ms
+against 0.58 ms at 138 points, and 0.08 ms against 0.25 ms at 6.
+
 This module holds the predictor and the functions that freeze a group; the frozen blocks (one per
 output group) and the kernel matrices they are built from are in :mod:`~torchfilt.models.gp.blocks`.
 """
@@ -47,6 +53,7 @@ from torchfilt.models.gp.blocks import (
     _MultitaskBlock,
     independent_khat,
     multitask_khat,
+    stack_key,
 )
 from torchfilt.models.gp.kernels import correlation, scaled_sq_dist
 from torchfilt.models.gp.root import (
@@ -84,6 +91,27 @@ AUTO_TOL = 0.05
 #: Training points (at most) used to validate a low-rank root, and jitters (in lengthscales).
 AUTO_POINTS = 256
 AUTO_JITTERS = (0.1, 0.5)
+
+
+def _stacked(blocks: Sequence[nn.Module]) -> list[nn.Module]:
+    """``blocks`` with each set of two or more that stack (:func:`stack_key`) replaced, at the
+    place of its first, by one :meth:`_IndependentBlock.stacked` block."""
+    groups: dict[tuple[object, ...], list[_IndependentBlock]] = {}
+    for b in blocks:
+        key = stack_key(b)
+        if key is not None:
+            assert isinstance(b, _IndependentBlock)
+            groups.setdefault(key, []).append(b)
+    out: list[nn.Module] = []
+    done: set[tuple[object, ...]] = set()
+    for b in blocks:
+        key = stack_key(b)
+        if key is None or len(groups[key]) == 1:
+            out.append(b)
+        elif key not in done:
+            done.add(key)
+            out.append(_IndependentBlock.stacked(groups[key]))
+    return out
 
 
 def auto_chunk_size(blocks: Sequence[nn.Module]) -> int:
@@ -142,12 +170,15 @@ class FrozenGP(nn.Module):
     ) -> None:
         super().__init__()
         self.blocks = nn.ModuleList(blocks)
+        #: the blocks the predictions run on: those that stack (one kernel, rank and feature
+        #: set, each output fitted on its own rows) as one block (:func:`stack_key`)
+        self.runs = nn.ModuleList(_stacked(blocks))
         self.register_buffer("fill_mean", fill_mean.detach().clone(), persistent=False)
         self.out_dim = int(out_dim)
         self.chunk_size = auto_chunk_size(blocks) if chunk_size is None else int(chunk_size)
         self.correlated = any(isinstance(b, _MultitaskBlock) for b in blocks)
         d = self.out_dim
-        first = blocks[0] if len(blocks) == 1 else None
+        first = self.runs[0] if len(self.runs) == 1 else None
         self._whole = isinstance(first, _Block) and bool(
             torch.equal(first.outputs.cpu(), torch.arange(d))
         )
@@ -295,22 +326,22 @@ class FrozenGP(nn.Module):
 
     def _chunk_mean(self, z: Tensor) -> Tensor:
         if self._whole:
-            return self.blocks[0].mean(z)  # type: ignore[operator]
+            return self.runs[0].mean(z)  # type: ignore[operator]
         mean = self.fill_mean.expand(z.shape[0], self.out_dim)
-        for blk in self.blocks:
+        for blk in self.runs:
             assert isinstance(blk, _Block)
             mean = mean.index_copy(1, blk.outputs, blk.mean(z))
         return mean
 
     def _chunk(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
         if self._whole:
-            out: tuple[Tensor, Tensor, Tensor | None] = self.blocks[0](z)
+            out: tuple[Tensor, Tensor, Tensor | None] = self.runs[0](z)
             return out
         N, d = z.shape[0], self.out_dim
         mean = self.fill_mean.expand(N, d)
         var = z.new_zeros(N, d)
         cov = z.new_zeros(N, d, d) if self.correlated else None
-        for blk in self.blocks:
+        for blk in self.runs:
             assert isinstance(blk, _Block)
             m, v, c = blk(z)
             idx = blk.outputs
