@@ -226,10 +226,8 @@ def held_out_noise_scale(
         total = float((ll * scored.to(ll.dtype)).sum())
         totals.append(total if math.isfinite(total) else -math.inf)
     flat = torch.tensor([*totals, float(counted)], dtype=torch.float64)
-    if all_reduce is not None:
-        flat = torch.where(torch.isfinite(flat), flat, torch.full_like(flat, -1e300))
+    if all_reduce is not None:  # a sum of finite values and -inf: -inf where any process failed
         all_reduce(flat)
-        flat = torch.where(flat > -1e299, flat, torch.full_like(flat, -math.inf))
     held_out = int(flat[-1])
     if held_out == 0:
         raise InputError("no held-out measurement is observed: nothing to choose a scale by")

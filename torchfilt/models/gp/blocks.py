@@ -142,9 +142,10 @@ class _IndependentBlock(_Block):
         inducing) points padded to the largest count with zeros, whose ``alpha`` and variance
         factor rows are zero, so the padding adds nothing to the mean or the variance.
 
-        Only frozen low-rank or sparse blocks of one kernel, one rank and the same input
-        features stack (an exact block's triangular solve would count the padding); the caller
-        checks (:func:`stack_key`). For the outputs of a GP whose outputs were fitted on
+        Only frozen low-rank blocks of one kernel, one rank and the same input features, or
+        sparse ones of one kernel, one inducing count and the same features (no padding then),
+        stack (an exact block's triangular solve would count the padding); the caller checks
+        (:func:`stack_key`). For the outputs of a GP whose outputs were fitted on
         different rows (missing measurements), which become one block per output.
         """
         first = blocks[0]
@@ -164,15 +165,8 @@ class _IndependentBlock(_Block):
                 parts.append(t)
             return torch.cat(parts, 0)
 
-        for name in ("points", "points_sq", "alpha"):
+        for name in ("points", "points_sq", "alpha", "factor"):
             out._buf(name, padded(name))
-        factor = padded("factor")
-        if first.form == "sparse":  # (g, M, M): the padded columns too
-            M = factor.shape[1]
-            if factor.shape[2] < M:
-                fill = factor.new_zeros((factor.shape[0], M, M - factor.shape[2]))
-                factor = torch.cat([factor, fill], 2)
-        out._buf("factor", factor)
         for name in ("outputs", "in_weight", "in_bias", "mean0", "var0", "noise", "qscale"):
             out._buf(name, torch.cat([getattr(b, name) for b in blocks], 0))
         out._buf("features", first.features)
@@ -294,7 +288,8 @@ class _MultitaskBlock(_Block):
 
 def stack_key(block: nn.Module) -> tuple[object, ...] | None:
     """What blocks must share to be :meth:`_IndependentBlock.stacked` together (``None``: this
-    one does not stack)."""
+    one does not stack): kernel, form, input features and the factor's last size (a low-rank
+    block's rank; a sparse block's inducing count, so sparse blocks never need padding)."""
     if type(block) is not _IndependentBlock or block.differentiable:
         return None
     if block.form not in ("lowrank", "sparse"):

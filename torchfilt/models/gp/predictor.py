@@ -96,16 +96,15 @@ AUTO_JITTERS = (0.1, 0.5)
 def _stacked(blocks: Sequence[nn.Module]) -> list[nn.Module]:
     """``blocks`` with each set of two or more that stack (:func:`stack_key`) replaced, at the
     place of its first, by one :meth:`_IndependentBlock.stacked` block."""
+    keys = [stack_key(b) for b in blocks]
     groups: dict[tuple[object, ...], list[_IndependentBlock]] = {}
-    for b in blocks:
-        key = stack_key(b)
+    for b, key in zip(blocks, keys, strict=True):
         if key is not None:
             assert isinstance(b, _IndependentBlock)
             groups.setdefault(key, []).append(b)
     out: list[nn.Module] = []
     done: set[tuple[object, ...]] = set()
-    for b in blocks:
-        key = stack_key(b)
+    for b, key in zip(blocks, keys, strict=True):
         if key is None or len(groups[key]) == 1:
             out.append(b)
         elif key not in done:
