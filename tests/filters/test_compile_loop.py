@@ -80,9 +80,13 @@ def test_model_with_a_graph_break_compiles_in_chunks():
     torch.testing.assert_close(got.log_likelihood, eager.log_likelihood, rtol=COMPILE_RTOL, atol=0)
 
 
-def test_gradient_through_the_compiled_loop_equals_eager():
+@pytest.mark.parametrize(
+    ("compile", "execution"), [("loop", "compiled-chunks"), ("step", "compiled-step")]
+)
+def test_gradient_through_the_compiled_filter_equals_eager(compile, execution):
     """Likelihood training differentiates through the filter: under autograd ``compile="loop"``
-    runs compiled chunks (the while-loop has no backward here), whose gradient is the eager one."""
+    runs compiled chunks (the while-loop has no backward here), and ``compile="step"`` one step
+    compiled forward and backward (without SIMD for small models); both gradients are eager's."""
     p = make_problem(11, n=2, m=1, T=4)
 
     def grad(compile):
@@ -95,6 +99,6 @@ def test_gradient_through_the_compiled_loop_equals_eager():
         return A.grad, res.numerics.execution
 
     want, _ = grad(False)
-    got, how = grad("loop")
-    assert how == "compiled-chunks"
+    got, how = grad(compile)
+    assert how == execution
     torch.testing.assert_close(got, want, rtol=COMPILE_RTOL, atol=1e-12)

@@ -184,14 +184,30 @@ class Engine:
         """The step, compiled (once per device type) when the plan compiles."""
         if not plan.compiled:
             return self.step.step
-        fn = self._steps.get(device.type)
+        key = f"{device.type}-grad" if plan.records_grad else device.type
+        fn = self._steps.get(key)
         if fn is None:
-            # On the CPU a C++ wrapper around the generated kernels removes most of the per-call
-            # Python overhead, which dominates when few sequences are filtered.
-            options: dict[str, Any] | None = {"cpp_wrapper": True} if device.type == "cpu" else None
+            options = self._step_options(device, plan.records_grad)
             fn = torch.compile(self.step.step, dynamic=False, options=options)
-            self._steps[device.type] = fn
+            self._steps[key] = fn
         return fn
+
+    def _step_options(self, device: torch.device, grad: bool) -> dict[str, Any] | None:
+        """Inductor's options for a compiled step on ``device`` (forward and backward when
+        ``grad``)."""
+        if device.type != "cpu":
+            return None
+        # On the CPU a C++ wrapper around the generated kernels removes most of the per-call
+        # Python overhead, which dominates when few sequences are filtered.
+        options: dict[str, Any] = {"cpp_wrapper": True}
+        model = self.step.model
+        if grad and max(model.state_dim, model.obs_dim) <= SMALL_MAX:
+            # Under autograd the forward and backward graphs hold many small kernels; vectorising
+            # them (SIMD) buys little on matrices this small and costs a third of the cold
+            # compile: re-entry's 64 x 100 gradient compiled in 43 s against 63 s, for 0.086 s
+            # per call against 0.069 s (scripts/results/cpu-2026-12-03-reentry-compile/).
+            options["cpp.simdlen"] = 1
+        return options
 
     def _chunk_function(self, device: torch.device) -> Callable[..., Any]:
         fn = self._chunks.get(device.type)
