@@ -178,10 +178,10 @@ def measurement_only_row(
     seed: int,
     iterations: int | None,
     compile: bool = False,
-    noise_scale: str = "none",
+    noise_scale: str = "auto",
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Fit the test's start from ``y (T, 2)`` alone with the defaults (``iterations=None``,
-    ``compile=False``, ``noise_scale="none"``); the row, and the fit's record (or the error it
+    ``compile=False``, ``noise_scale="auto"``); the row, and the fit's record (or the error it
     raised)."""
     x0, P0 = prior()
     torch.manual_seed(seed)
@@ -260,7 +260,7 @@ def oscillator_case(
     iterations: int | None = None,
     methods: tuple[str, ...] = METHODS,
     compile: bool = False,
-    noise_scale: str = "none",
+    noise_scale: str = "auto",
 ) -> dict[str, Any]:
     """All rows on one ``steps``-step training recording and ``test_runs`` held-out ones of the
     same length; ``iterations=None`` is ``fit_measurement_only``'s default; ``methods``: the

@@ -35,7 +35,9 @@ Standardisation uses the training part's mean and standard deviation. Every mode
 * ``torchfilt GP (measurement only)``: :meth:`InducingTransition.model_from_linear` on the best
   linear fit (the L-BFGS one where it raised EM's likelihood, else EM's; ``start`` in the JSON),
   ``--inducing`` points on its smoothed training states, then
-  :func:`~torchfilt.training.fit_measurement_only` with its defaults (EM, 30 iterations).
+  :func:`~torchfilt.training.fit_measurement_only` with its defaults (EM, 30 iterations,
+  ``noise_scale="auto"``: the last fifth of the training log held out to scale the process
+  noise).
 
 Every torchfilt row is evaluated by :func:`~torchfilt.filters.free_run`: the first ``--burn-in``
 (20) held-out samples are filtered from the prior ``N(0, P0)`` (the subspace fit's ``P0``), then
@@ -236,6 +238,7 @@ def run_log(name: str, data: Path, args: argparse.Namespace) -> dict[str, Any]:
         "stopped": mo.stopped,
         "initial_log_likelihood": mo.initial_log_likelihood,
         "log_likelihood": mo.log_likelihood,
+        "noise_scale": None if mo.noise_scale is None else mo.noise_scale._asdict(),
     }
     return _summary(rows, y_tr, y_te, n, burn)
 

@@ -111,9 +111,9 @@ def test_measurement_only_on_two_actors_equals_one_process(ray_local):
     kw = dict(
         x0=torch.zeros(1, dtype=DT), P0=torch.eye(1, dtype=DT), known_channels=[0], iterations=3
     )
-    local = model()
-    torchfilt.fit_measurement_only(local, y, method="likelihood", **kw)
+    local = torchfilt.fit_measurement_only(model(), y, method="likelihood", **kw).model
     res = fit_measurement_only_ray(model(), Sequences(y), workers=2, **kw)
+    assert res.noise_scale is not None  # "auto": 10 held-out steps of each of 4 recordings
 
     def noises(m: torchfilt.StateSpaceModel) -> torch.Tensor:
         with torch.no_grad():
@@ -190,6 +190,9 @@ def test_em_on_two_actors_survives_a_lost_actor(ray_local, tmp_path):
     ll = [h["log_likelihood"] for h in res.history]
     assert ll == pytest.approx([h["log_likelihood"] for h in local.history], rel=1e-10)
     assert local.log_likelihood > local.detail.initial_log_likelihood + 10  # the fit moved
+    # noise_scale="auto" scales here (tails of 12, 9, 12, 10 steps), alike in both
+    assert res.noise_scale is not None and local.noise_scale is not None
+    assert res.noise_scale.scale == local.noise_scale.scale
 
 
 def _sleep_on_rank_1(state) -> None:

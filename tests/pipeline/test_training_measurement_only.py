@@ -185,6 +185,7 @@ def test_learned_transition_is_the_direct_fit_and_beats_the_initial_model(fresh,
         iterations=ITERATIONS,
         m_step_iterations=M_STEP,
         learn_measurement_noise=False,
+        noise_scale="none",  # as the pipeline's stage fits
     )
     st = load_bundle(fresh)["transition"]["state"]
     f = fit.model.transition

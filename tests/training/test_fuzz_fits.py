@@ -90,9 +90,12 @@ def check_fits(data: st.DataObject) -> None:
     if fit == "fit_measurement_only":
         options["method"] = data.draw(st.sampled_from(["em", "likelihood"]), label="method")
         em = options["method"] == "em"
-        if data.draw(st.booleans(), label="held-out noise scale"):
+        scale = data.draw(st.sampled_from(["auto", "none", "held-out"]), label="noise scale")
+        if scale == "held-out":
             # half of each recording (T >= 3): every one keeps 2 steps and holds out 1
             options.update(noise_scale="held-out", holdout=0.5)
+        elif scale == "none":
+            options["noise_scale"] = "none"
     if not em:
         options.update(lr=0.05, burn_in=0)
     elif fit == "fit_em":  # plain or SQUAREM-accelerated EM (None: the default, on here)
@@ -134,7 +137,7 @@ def check_fits(data: st.DataObject) -> None:
             corruption, what = "none", None
     elif corruption == "noise_scale unknown":
         if fit == "fit_measurement_only":
-            options["noise_scale"] = data.draw(st.sampled_from(["auto", 1.0, None]), "scale")
+            options["noise_scale"] = data.draw(st.sampled_from(["Auto", 1.0, None]), "scale")
         else:
             corruption, what = "none", None
     elif corruption == "holdout out of range":

@@ -13,11 +13,15 @@ from reference import kalman_filter
 
 import torchfilt
 from torchfilt.exceptions import InputError
-from torchfilt.models import LinearGaussianModel, StateSpaceModel
+from torchfilt.models import CholeskyCovariance, LinearGaussianModel, StateSpaceModel
 from torchfilt.training import Sequences, fit_measurement_only
 from torchfilt.training.noise_scale import (
+    AUTO_MIN_HELD_OUT,
+    INFLATE_SCALES,
     NOISE_SCALES,
     held_out_noise_scale,
+    scales_by_default,
+    split_held_out,
     split_tails,
     with_process_noise_scale,
 )
@@ -57,6 +61,15 @@ def test_scaled_models_filter_as_the_scaled_noise():
     scaled = with_process_noise_scale(plain(Q), 2.5)
     assert with_process_noise_scale(plain(Q), 1.0) is not scaled
     assert not any(p.requires_grad for p in scaled.transition.parameters())
+    # the wrapper's scale is fixed; the wrapped transition's own parameters are left alone
+    learnable = StateSpaceModel(
+        lambda x, u=None: x @ A.mT, lambda x, u=None: x @ H.mT, Q=CholeskyCovariance(Q), R=R
+    )
+    wrapped = with_process_noise_scale(learnable, 2.5)
+    assert all(p.requires_grad for p in learnable.parameters())
+    assert sum(p.requires_grad for p in wrapped.transition.parameters()) == sum(
+        1 for _ in learnable.transition.parameters()
+    )
     got = torchfilt.CKF(scaled).filter(y, x0=x0, P0=P0)
     want = torchfilt.CKF(plain(2.5 * Q)).filter(y, x0=x0, P0=P0)
     torch.testing.assert_close(got.mean, want.mean, rtol=1e-12, atol=1e-12)
@@ -154,23 +167,103 @@ def test_split_tails_refuses_bad_holdouts():
 
 
 def test_fit_measurement_only_fits_the_heads_then_scales():
-    """noise_scale="held-out": the fit sees the heads only (the same fit as on the heads with
-    "none"), its model carries the chosen scale; with validation= it fits on all of y."""
+    """noise_scale="held-out": the fit sees the heads only (the same fit as on them with "none"),
+    its model carries the scale chosen on the tails, from 1 up; with validation= it fits on all
+    of y."""
     p = make_problem(8, T=10, missing=0.0)
     y = t64(_simulate(p, 2, 60, seed=9))
     x0, P0 = t64(p["m0"]), t64(p["P0"])
     kw = dict(x0=x0, P0=P0, known_channels=[0, 1], iterations=3)
     fit = fit_measurement_only(_linear(p, 0.3), y, noise_scale="held-out", holdout=0.25, **kw)
-    heads = fit_measurement_only(_linear(p, 0.3), y[:, :45], **kw)
+    heads = fit_measurement_only(_linear(p, 0.3), y[:, :45], noise_scale="none", **kw)
     assert fit.noise_scale is not None and heads.noise_scale is None
     assert fit.noise_scale.held_out == 2 * 15 * 2
+    assert [s for s, _ in fit.noise_scale.scores] == list(INFLATE_SCALES)  # 1 and up only
+    data = Sequences(y, None, x0, P0)
+    want = held_out_noise_scale(heads.model, data, [45, 45], dtype=DT, scales=INFLATE_SCALES)
+    assert fit.noise_scale.scale == want.scale
     assert fit.log_likelihood == pytest.approx(heads.log_likelihood, rel=1e-12)
     Qh = heads.model.transition.noise_cov()
     torch.testing.assert_close(fit.model.transition.noise_cov(), fit.noise_scale.scale * Qh)
     val = t64(_simulate(p, 2, 60, seed=10))
     fv = fit_measurement_only(_linear(p, 0.3), y, noise_scale="held-out", validation=val, **kw)
-    whole = fit_measurement_only(_linear(p, 0.3), y, **kw)
+    whole = fit_measurement_only(_linear(p, 0.3), y, noise_scale="none", **kw)
     assert fv.log_likelihood == pytest.approx(whole.log_likelihood, rel=1e-12)
     assert fv.noise_scale is not None and fv.noise_scale.held_out == 2 * 60 * 2
     with pytest.raises(InputError, match="noise_scale"):
         fit_measurement_only(_linear(p), y, noise_scale="validation", **kw)  # type: ignore[arg-type]
+
+
+def test_auto_scales_when_held_out_data_can_be_scored():
+    """noise_scale="auto" (the default) is "held-out" with at least 30 held-out steps, or with
+    validation=; else, with a fixed Q, or for a model whose noise cannot be scaled, "none"."""
+    p = make_problem(8, T=10, missing=0.0)
+    x0, P0 = t64(p["m0"]), t64(p["P0"])
+    kw = dict(x0=x0, P0=P0, known_channels=[0, 1], iterations=3)
+    long = t64(_simulate(p, 2, 80, seed=11))  # 2 x 16 held-out steps: 32
+    auto = fit_measurement_only(_linear(p, 0.3), long, **kw)
+    held = fit_measurement_only(_linear(p, 0.3), long, noise_scale="held-out", **kw)
+    assert auto.noise_scale == held.noise_scale and auto.noise_scale is not None
+    torch.testing.assert_close(
+        auto.model.transition.noise_cov(), held.model.transition.noise_cov(), rtol=0, atol=0
+    )
+    short = long[:, :70]  # 2 x 14 held-out steps: 28
+    for kwargs in ({}, {"fixed": ("Q",)}):
+        got = fit_measurement_only(_linear(p, 0.3), short, **kwargs, **kw)
+        want = fit_measurement_only(_linear(p, 0.3), short, noise_scale="none", **kwargs, **kw)
+        assert got.noise_scale is None and got.log_likelihood == want.log_likelihood
+    fixed_q = fit_measurement_only(_linear(p, 0.3), long, fixed=("Q",), **kw)
+    assert fixed_q.noise_scale is None
+    val = fit_measurement_only(_linear(p, 0.3), short, validation=long, **kw)
+    assert val.noise_scale is not None and val.noise_scale.held_out == 2 * 80 * 2
+    with pytest.raises(InputError, match="holdout"):  # refused whether or not it is used
+        fit_measurement_only(_linear(p), short, noise_scale="none", holdout=1.0, **kw)
+
+
+def test_auto_rule_counts_held_out_steps_over_processes():
+    """scales_by_default: the held-out steps of every process count (a fake all_reduce doubling
+    them); a subclass of StateSpaceModel with its own structure, or a fixed transition
+    parameter, is left unscaled."""
+    p = make_problem(8, T=10, missing=0.0)
+    model = _linear(p)
+    data = Sequences(t64(_simulate(p, 1, 100, seed=12)))  # 20 held-out steps
+
+    def doubled(t):
+        t.mul_(2)
+
+    assert 20 < AUTO_MIN_HELD_OUT <= 40
+    assert not scales_by_default(model, data, 0.2, validation=False)
+    assert scales_by_default(model, data, 0.2, validation=False, all_reduce=doubled)
+    assert scales_by_default(model, data, 0.2, validation=True)
+    assert not scales_by_default(model, data, 0.2, validation=True, fixed=("transition.A",))
+
+    class Custom(StateSpaceModel):
+        pass
+
+    custom = Custom(model.transition, model.measurement)
+    assert not scales_by_default(custom, data, 0.2, validation=True)
+    assert scales_by_default(StateSpaceModel(model.transition, model.measurement), data, 0.2,
+                             validation=True)  # fmt: skip
+
+
+def test_five_or_more_recordings_hold_out_whole_ones():
+    """With 6 recordings the fit sees the first 5 (the same fit as on them with "none") and
+    every step of the sixth is scored; the split keeps the recordings' own priors."""
+    p = make_problem(8, T=10, missing=0.0)
+    x0, P0 = t64(p["m0"]), t64(p["P0"])
+    y = t64(_simulate(p, 6, 20, seed=13))
+    data = Sequences(y, None, x0, P0)
+    train, scored, starts = split_held_out(_linear(p), data, 0.2, dtype=DT)
+    assert starts is None and len(train.y) == 5 and len(scored.y) == 1
+    torch.testing.assert_close(scored.y[0], y[5], rtol=0, atol=0)
+    kw = dict(x0=x0, P0=P0, known_channels=[0, 1], iterations=3)
+    fit = fit_measurement_only(_linear(p, 0.3), y, noise_scale="held-out", **kw)
+    first = fit_measurement_only(_linear(p, 0.3), y[:5], noise_scale="none", **kw)
+    assert fit.log_likelihood == pytest.approx(first.log_likelihood, rel=1e-12)
+    assert fit.noise_scale is not None and fit.noise_scale.held_out == 20 * 2
+    scored = Sequences(y[5:], None, x0, P0)
+    want = held_out_noise_scale(first.model, scored, None, dtype=DT, scales=INFLATE_SCALES)
+    assert fit.noise_scale.scale == want.scale
+    for (s, a), (_, b) in zip(fit.noise_scale.scores, want.scores, strict=True):
+        assert a == pytest.approx(b, rel=1e-12), s
+    assert len(split_held_out(_linear(p), Sequences(y[:4], None, x0, P0), 0.2, dtype=DT)[0].y) == 4

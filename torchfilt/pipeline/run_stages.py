@@ -107,6 +107,7 @@ class MeasurementOnlyFitter(Protocol):
         learn_measurement_noise: bool,
         m_step_iterations: int,
         compile: bool,
+        noise_scale: Literal["auto", "none", "held-out"],
         callback: Callable[[EMState | LikelihoodState], bool | None] | None,
         progress: bool,
         dtype: torch.dtype,
@@ -577,6 +578,10 @@ def _fit_measurement_only_stage(
             learn_measurement_noise=learn_R,
             m_step_iterations=int(o["m_step_iterations"]),
             compile=bool(o["compile"]),
+            # the bundle's "inducing" entry keeps the transition's own state, which has no
+            # place for a held-out noise scale (a CalibratedModel around it): the fit is as
+            # before the "auto" default
+            noise_scale="none",
             callback=callback,
             progress=False,
             dtype=dtype,

@@ -104,9 +104,12 @@ from torchfilt.training.likelihood import (
     _recordings,
 )
 from torchfilt.training.noise_scale import (
+    INFLATE_SCALES,
     NoiseScale,
+    check_holdout,
     held_out_noise_scale,
-    split_tails,
+    scales_by_default,
+    split_held_out,
     with_process_noise_scale,
 )
 
@@ -174,7 +177,8 @@ class MeasurementOnlyFit:
     """Outcome of :func:`fit_measurement_only`.
 
     Attributes:
-        model: the fitted model.
+        model: the fitted model. Use it, not the model given to the fit: when the process
+            noise is scaled (``noise_scale``), the given model holds the fit before the scale.
         method: ``"em"`` or ``"likelihood"``.
         log_likelihood: innovation log-likelihood of the training data at the returned
             parameters (for ``"likelihood"`` with windows: over the counted steps).
@@ -190,10 +194,11 @@ class MeasurementOnlyFit:
         candidates: records of candidate starts; :func:`fit_measurement_only` fits the one
             model it is given and leaves this empty (a ``states = "none"`` run scores its
             candidate starts itself and records them in the bundle's training record).
-        noise_scale: with ``noise_scale="held-out"``, the held-out choice of the scale of the
+        noise_scale: when the noise was scaled (``noise_scale="held-out"``, or ``"auto"``
+            where it applies), the held-out choice of the scale of the
             transition variance (:class:`~torchfilt.training.noise_scale.NoiseScale`), which
-            ``model`` carries; the likelihoods above are the fit's, before the scale, on the
-            data it saw. ``None`` otherwise.
+            ``model`` carries; the record above is the fit's on the data it saw (before the
+            scale). ``None`` otherwise.
     """
 
     model: StateSpaceModel
@@ -545,7 +550,7 @@ def fit_measurement_only(
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
     compile: bool | Literal["step", "loop"] = False,
-    noise_scale: Literal["none", "held-out"] = "none",
+    noise_scale: Literal["auto", "none", "held-out"] = "auto",
     holdout: float = 0.2,
 ) -> MeasurementOnlyFit:
     """Learn a state-space model from measurements alone (no states), by EM or by the filter's
@@ -605,13 +610,22 @@ def fit_measurement_only(
             machine: it pays once a fit runs more than about a hundred filters (an L-BFGS
             iteration runs up to 20). Default ``False``.
         noise_scale: ``"held-out"``: after the fit, scale the transition's variance by the
-            largest factor (1/4 to 64) whose innovation likelihood on held-out data is within
+            largest factor (1 to 64) whose innovation likelihood on held-out data is within
             1.92 nats of the best (:mod:`torchfilt.training.noise_scale`), against a fitted
-            ``Q`` that is too small for new data. The data are ``validation`` when given (the fit then sees all of
-            ``y``), else the last ``holdout`` of every recording, which the fit does not see.
-            The choice is the result's ``noise_scale``. Default ``"none"``.
-        holdout: the fraction of each recording held out for ``noise_scale="held-out"``
-            without ``validation`` (default 0.2).
+            ``Q`` that is too small for new data. The data are ``validation`` when given,
+            else held out from ``y``: the last ``holdout`` of the recordings, whole, when
+            there are at least 5, else the last ``holdout`` of every recording; the fit
+            sees the rest (with ``validation``, all of ``y``). Only factors of 1 and up are
+            tried: the fitted noise is inflated, never shrunk. The choice is the result's
+            ``noise_scale``. ``"auto"`` (the default):
+            ``"held-out"`` when there is held-out data to score (``validation``, or at least
+            30 held-out steps in all), the model's process noise can be scaled (a
+            ``LinearGaussianModel`` with a constant ``Q``, or a plain ``StateSpaceModel``), and
+            ``fixed`` holds neither ``"Q"`` nor a ``"transition."`` parameter; else
+            ``"none"`` (:func:`~torchfilt.training.noise_scale.scales_by_default`).
+            ``"none"``: the model as fitted, on all of ``y``.
+        holdout: the fraction of each recording held out when the noise is scaled without
+            ``validation`` (default 0.2).
 
     Returns:
         A :class:`MeasurementOnlyFit`.
@@ -628,8 +642,9 @@ def fit_measurement_only(
     """
     if method not in ("em", "likelihood"):
         raise InputError(f"method must be 'em' or 'likelihood', got {method!r}")
-    if noise_scale not in ("none", "held-out"):
-        raise InputError(f"noise_scale must be 'none' or 'held-out', got {noise_scale!r}")
+    if noise_scale not in ("auto", "none", "held-out"):
+        raise InputError(f"noise_scale must be 'auto', 'none' or 'held-out', got {noise_scale!r}")
+    check_holdout(holdout)
     mode = compile_mode(compile)  # refuses anything but False, True, "step" or "loop"
     if not isinstance(model, StateSpaceModel):
         raise InputError(f"model must be a StateSpaceModel, got {type(model).__name__}")
@@ -638,20 +653,26 @@ def fit_measurement_only(
         "measurement_only", iterations=iterations, optimizer=optimizer, windows=windows,
         stopping=stopping, checkpoint=checkpoint, hooks=hooks,
     )  # fmt: skip
+    data = as_sequences(y, u, x0=x0, P0=P0)
+    if noise_scale == "auto":
+        noise_scale = "held-out" if scales_by_default(
+            model, data, holdout, validation=validation is not None, fixed=fixed,
+            all_reduce=o.hooks.all_reduce,
+        ) else "none"  # fmt: skip
     if noise_scale == "held-out":
 
-        def fit(fy: FitData, fu: Tensor | Sequence[Tensor] | None) -> MeasurementOnlyFit:
+        def fit(fy: FitData) -> MeasurementOnlyFit:
             return fit_measurement_only(
-                model, fy, fu, x0=x0, P0=P0, known_channels=known, fixed=fixed,
+                model, fy, None, x0=x0, P0=P0, known_channels=known, fixed=fixed,
                 validation=validation, iterations=iterations, optimizer=optimizer,
                 windows=windows, stopping=stopping, checkpoint=checkpoint, hooks=hooks,
                 progress=progress, callback=callback, dtype=dtype, rule=rule, method=method,
                 learn_measurement_noise=learn_measurement_noise,
-                m_step_iterations=m_step_iterations, compile=compile,
+                m_step_iterations=m_step_iterations, compile=compile, noise_scale="none",
             )  # fmt: skip
 
         return _held_out_scaled(
-            fit, model, as_sequences(y, u, x0=x0, P0=P0), validation, holdout,
+            fit, model, data, validation, holdout,
             dtype=dtype, rule=rule, all_reduce=o.hooks.all_reduce,
         )  # fmt: skip
     if method == "em":
@@ -699,7 +720,7 @@ def fit_measurement_only(
 
 
 def _held_out_scaled(
-    fit: Callable[[FitData, Tensor | Sequence[Tensor] | None], MeasurementOnlyFit],
+    fit: Callable[[FitData], MeasurementOnlyFit],
     model: StateSpaceModel,
     data: Sequences,
     validation: FitData | None,
@@ -709,25 +730,30 @@ def _held_out_scaled(
     rule: CubatureRule | None,
     all_reduce: Callable[[Tensor], None] | None,
 ) -> MeasurementOnlyFit:
-    """``fit`` on the heads of ``data`` (or on all of it, with ``validation``), its model's
-    process noise then scaled by the held-out tails (or ``validation``). A data-parallel fit
-    sums the tails' scores over its processes; ``validation`` is every process's own copy of
-    the same data (as for the likelihood fit's early stopping), scored without a sum."""
+    """``fit`` on the kept part of ``data`` (:func:`split_held_out`: whole recordings or the
+    heads; all of it, with ``validation``), its process noise then scaled by the held-out part
+    (or ``validation``), from :data:`INFLATE_SCALES`. A data-parallel fit sums the held-out
+    scores over its processes (each splits its own recordings); ``validation`` is every
+    process's own copy of the same data (as for the likelihood fit's early stopping), scored
+    without a sum."""
     if validation is None:
-        heads, whole, starts = split_tails(model, data, holdout, dtype=dtype)
-        result = fit(heads, None)
+        kept, scored, starts = split_held_out(model, data, holdout, dtype=dtype)
+        result = fit(kept)
         choice = held_out_noise_scale(
-            result.model, whole, starts, dtype=dtype, rule=rule, all_reduce=all_reduce
-        )
+            result.model, scored, starts, dtype=dtype, rule=rule, all_reduce=all_reduce,
+            scales=INFLATE_SCALES,
+        )  # fmt: skip
     else:
-        result = fit(data, None)
+        result = fit(data)
         x0, P0 = data.x0, data.P0
         assert x0 is not None and P0 is not None  # as_sequences with the fit's prior
         n = model.state_dim
         val = as_sequences(
             validation, x0=x0.reshape(-1, n)[0], P0=P0.reshape(-1, n, n)[0], name="validation"
         )
-        choice = held_out_noise_scale(result.model, val, None, dtype=dtype, rule=rule)
+        choice = held_out_noise_scale(
+            result.model, val, None, dtype=dtype, rule=rule, scales=INFLATE_SCALES
+        )
     scaled = with_process_noise_scale(result.model, choice.scale, dtype=dtype)
     return replace(result, model=scaled, noise_scale=choice)
 

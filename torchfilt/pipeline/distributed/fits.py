@@ -153,7 +153,7 @@ def fit_measurement_only_ray(
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
     compile: bool | Literal["step", "loop"] = False,
-    noise_scale: Literal["none", "held-out"] = "none",
+    noise_scale: Literal["auto", "none", "held-out"] = "auto",
     holdout: float = 0.2,
     timeout: float = GROUP_TIMEOUT,
     callback_on: Literal["actors", "driver"] = "actors",
@@ -191,9 +191,12 @@ def fit_measurement_only_ray(
         m_step_iterations: as in :func:`~torchfilt.training.fit_measurement_only`.
         compile: as in :func:`~torchfilt.training.fit_measurement_only` (each actor compiles
             its own filter).
-        noise_scale: as in :func:`~torchfilt.training.fit_measurement_only`: each actor holds
-            out the tails of its own recordings, and the scores are summed over the actors, so
-            all choose the same scale.
+        noise_scale: as in :func:`~torchfilt.training.fit_measurement_only` (default
+            ``"auto"``): each actor holds out part of its own recordings (whole ones where it
+            has at least 5, else the tails), and the scores are summed over the actors, so all
+            choose the same scale. The split is not the one process's split of all the
+            recordings, so the fit equals the one-process fit where the two splits agree
+            (e.g. tails everywhere), or with ``"none"``.
         holdout: as in :func:`~torchfilt.training.fit_measurement_only`.
         timeout: as in :func:`calibrate_ray`.
         callback_on: as in :func:`calibrate_ray`.
