@@ -653,28 +653,27 @@ def fit_measurement_only(
         "measurement_only", iterations=iterations, optimizer=optimizer, windows=windows,
         stopping=stopping, checkpoint=checkpoint, hooks=hooks,
     )  # fmt: skip
-    data = as_sequences(y, u, x0=x0, P0=P0)
-    if noise_scale == "auto":
-        noise_scale = "held-out" if scales_by_default(
+    if noise_scale != "none":
+        data = as_sequences(y, u, x0=x0, P0=P0)
+        if noise_scale == "held-out" or scales_by_default(
             model, data, holdout, validation=validation is not None, fixed=fixed,
             all_reduce=o.hooks.all_reduce,
-        ) else "none"  # fmt: skip
-    if noise_scale == "held-out":
+        ):  # fmt: skip
 
-        def fit(fy: FitData) -> MeasurementOnlyFit:
-            return fit_measurement_only(
-                model, fy, None, x0=x0, P0=P0, known_channels=known, fixed=fixed,
-                validation=validation, iterations=iterations, optimizer=optimizer,
-                windows=windows, stopping=stopping, checkpoint=checkpoint, hooks=hooks,
-                progress=progress, callback=callback, dtype=dtype, rule=rule, method=method,
-                learn_measurement_noise=learn_measurement_noise,
-                m_step_iterations=m_step_iterations, compile=compile, noise_scale="none",
+            def fit(fy: FitData) -> MeasurementOnlyFit:
+                return fit_measurement_only(
+                    model, fy, None, x0=x0, P0=P0, known_channels=known, fixed=fixed,
+                    validation=validation, iterations=iterations, optimizer=optimizer,
+                    windows=windows, stopping=stopping, checkpoint=checkpoint, hooks=hooks,
+                    progress=progress, callback=callback, dtype=dtype, rule=rule,
+                    method=method, learn_measurement_noise=learn_measurement_noise,
+                    m_step_iterations=m_step_iterations, compile=compile, noise_scale="none",
+                )  # fmt: skip
+
+            return _held_out_scaled(
+                fit, model, data, validation, holdout,
+                dtype=dtype, rule=rule, all_reduce=o.hooks.all_reduce,
             )  # fmt: skip
-
-        return _held_out_scaled(
-            fit, model, data, validation, holdout,
-            dtype=dtype, rule=rule, all_reduce=o.hooks.all_reduce,
-        )  # fmt: skip
     if method == "em":
         em = fit_em(
             model, y, u, x0=x0, P0=P0, known_channels=known, fixed=fixed,

@@ -44,7 +44,7 @@ job.
 
 :func:`scales_by_default` is the rule of ``noise_scale="auto"`` (the default of
 :func:`~torchfilt.training.fit_measurement_only`): scale when there is held-out data to score
-(``validation``, or tails of at least :data:`AUTO_MIN_HELD_OUT` steps in all), the model's
+(``validation``, or at least :data:`AUTO_MIN_HELD_OUT` held-out steps in all), the model's
 process noise can be scaled, and no transition parameter is held fixed.
 """
 
@@ -94,7 +94,7 @@ INFLATE_SCALES: tuple[float, ...] = tuple(s for s in NOISE_SCALES if s >= 1.0)
 LR_MARGIN = 1.92
 #: Fewest recordings from which whole recordings, rather than tails, are held out.
 WHOLE_RECORDINGS_MIN = 5
-#: Fewest held-out steps (tails summed over the recordings, and over the processes of a
+#: Fewest held-out steps (summed over the recordings, and over the processes of a
 #: data-parallel fit) for which ``noise_scale="auto"`` scales.
 AUTO_MIN_HELD_OUT = 30
 
@@ -165,9 +165,13 @@ def with_process_noise_scale(
 
 
 def scalable(model: StateSpaceModel) -> bool:
-    """Whether :func:`with_process_noise_scale` can scale ``model``'s process noise."""
+    """Whether :func:`with_process_noise_scale` can scale ``model``'s process noise: a
+    constant one (neither a time-varying ``Q`` nor the wrapper take it) of a
+    ``LinearGaussianModel`` or a plain ``StateSpaceModel``."""
+    if model.transition.time_varying_noise:
+        return False
     if isinstance(model, LinearGaussianModel):
-        return not model.transition.time_varying_noise and model.transition.noise_cov() is not None
+        return model.transition.noise_cov() is not None
     return type(model) is StateSpaceModel
 
 
