@@ -13,7 +13,10 @@ sources:
   samples): the first two thirds train, the rest is held out;
 * ``robot-arm.csv`` (DaISy, flexible robot arm; ``u, y``; 1024 samples): the same split;
 * ``tanque.csv`` (nonlinearbenchmark.org, cascaded tanks with overflow; ``uEst, uVal, yEst,
-  yVal``; 1024 + 1024 samples): the benchmark's own estimation and validation records.
+  yVal``; 1024 + 1024 samples): the benchmark's own estimation and validation records;
+* ``exchanger.csv`` (DaISy 97-002, a liquid-saturated steam heat exchanger; input the liquid
+  flow rate ``q``, output the outlet liquid temperature ``th``; 4000 samples at 1 s): the
+  first two thirds train, the rest is held out.
 
 Standardisation uses the training part's mean and standard deviation. Every model has
 ``--order`` states (default 4). Rows:
@@ -75,6 +78,7 @@ LOGS: dict[str, dict[str, Any]] = {
     "ball-and-beam": {"file": "ball-and-beam.csv", "columns": ("u", "y")},
     "robot-arm": {"file": "robot-arm.csv", "columns": ("u", "y")},
     "cascaded-tanks": {"file": "tanque.csv", "columns": ("uEst", "yEst", "uVal", "yVal")},
+    "exchanger": {"file": "exchanger.csv", "columns": ("q", "th")},
 }
 #: share of a single log that trains (the rest is held out)
 TRAIN_SHARE = 2 / 3

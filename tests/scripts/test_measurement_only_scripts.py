@@ -51,6 +51,7 @@ def test_reproduce_measurement_only_reduced(tmp_path):
     assert "more recordings" in post["sandwich"]["skipped"]
     if "skipped" not in post["hessian"]:
         rows = out["reentry"]["rows"]
-        carried = rows["grey-box, ranges only (likelihood) + parameter uncertainty (hessian)"]
-        assert carried["coverage95"] >= rows["grey-box, ranges only (likelihood)"]["coverage95"]
+        fit = "grey-box, ranges only (likelihood, noise_scale='none')"
+        carried = rows[f"{fit} + parameter uncertainty (hessian)"]
+        assert carried["coverage95"] >= rows[fit]["coverage95"]
     assert (tmp_path / "reaction_rmse.png").stat().st_size > 0

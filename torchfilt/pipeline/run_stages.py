@@ -578,9 +578,9 @@ def _fit_measurement_only_stage(
             learn_measurement_noise=learn_R,
             m_step_iterations=int(o["m_step_iterations"]),
             compile=bool(o["compile"]),
-            # the bundle's "inducing" entry keeps the transition's own state, which has no
-            # place for a held-out noise scale (a CalibratedModel around it): the fit is as
-            # before the "auto" default
+            # the pipeline scales the transition's variance in its calibration stage (on by
+            # default, inflate_only): a CalibratedModel the bundle keeps and verifies. A
+            # second scale here would hold recordings out of the fit for nothing
             noise_scale="none",
             callback=callback,
             progress=False,
