@@ -107,3 +107,19 @@ def test_em_initial_log_likelihood_of_a_linear_model() -> None:
     fit = fit_em(lin, y, x0=X0, P0=P0, known_channels=[0, 1], iterations=2)
     assert fit.initial_log_likelihood == pytest.approx(ref, rel=1e-10)
     assert np.isfinite(fit.log_likelihood) and fit.log_likelihood > ref
+
+
+def test_fitting_the_gp_model_leaves_the_linear_model_alone() -> None:
+    """The GP model's measurement side is a copy: EM on it (which learns R) must not move the
+    learnable linear model it started from."""
+    y = _data()
+    lin = LinearGaussianModel(A, H, Q, R).learnable()
+    before = {k: v.detach().clone() for k, v in lin.state_dict().items()}
+    with torch.no_grad():
+        sm = torchfilt.filters.rts_smooth(torchfilt.CKF(lin).filter(y, x0=X0, P0=P0))
+    model = InducingTransition.model_from_linear(lin, inducing=4, states=sm.mean)
+    fit = fit_em(model, y, x0=X0, P0=P0, known_channels=[0], iterations=2)
+    assert fit.log_likelihood > fit.initial_log_likelihood  # the fit moved its own model
+    assert not torch.allclose(model.measurement.noise_cov(), R)
+    for k, v in lin.state_dict().items():
+        torch.testing.assert_close(v, before[k], rtol=0, atol=0)

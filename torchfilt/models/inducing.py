@@ -23,6 +23,7 @@ physics and learns its error.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable
 
@@ -219,8 +220,8 @@ class InducingTransition(ConditionalModel):
         """A state-space model with a GP transition that starts exactly at a linear-Gaussian
         model: the transition of :meth:`from_linear` on ``A`` (and ``B``), the full process noise
         ``Q`` as a learnable :class:`~torchfilt.models.CholeskyCovariance`, and the linear
-        model's measurement side (``H``, ``D`` and the full ``R``, as learnable as they are in
-        ``linear``). Its filter likelihood equals the linear model's Kalman likelihood.
+        model's measurement side (a copy: ``H``, ``D`` and the full ``R``, as learnable as they
+        are in ``linear``; fitting the new model leaves ``linear`` as it is). Its filter likelihood equals the linear model's Kalman likelihood.
 
         Args:
             linear: the linear model (e.g. :func:`~torchfilt.training.fit_em`'s result).
@@ -249,7 +250,9 @@ class InducingTransition(ConditionalModel):
             linear.A, linear.B, inducing=inducing, states=states, inputs=inputs,
             lengthscale=lengthscale, outputscale=outputscale,
         )  # fmt: skip
-        return StateSpaceModel(f, linear.measurement, Q=CholeskyCovariance(Q.detach().clone()))
+        # a copy: fitting the GP model must not move the linear model's R (or H) in place
+        h = copy.deepcopy(linear.measurement)
+        return StateSpaceModel(f, h, Q=CholeskyCovariance(Q.detach().clone()))
 
     def lengthscale(self) -> Tensor:
         """The lengthscales ``(n + nu,)`` as the model uses them (``exp`` of the log-lengthscales
