@@ -151,3 +151,37 @@ def test_errors():
         subspace_identify(y, u, order=40, block_rows=6)
     with pytest.raises(InputError, match="too short"):
         subspace_identify(y[:, :10], u[:, :10], order=2, block_rows=6)
+
+
+def test_stable_keeps_a_stable_estimate_as_it_is():
+    rng, A, H, B, Q, R = _system(seed=3)
+    y, u = _simulate(rng, A, H, B, Q, R, reps=2, T=300)
+    plain = subspace_identify(y, u, order=4).model
+    kept = subspace_identify(y, u, order=4, stable=True).model
+    assert float(np.abs(np.linalg.eigvals(plain.A.numpy())).max()) < 1.0
+    torch.testing.assert_close(kept.A, plain.A, rtol=0, atol=0)
+
+
+def _observability(A, C, rows):
+    return torch.tensor(np.concatenate([C @ np.linalg.matrix_power(A, j) for j in range(rows)]))
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_stable_shift_invariance_has_no_pole_outside_the_unit_circle(seed):
+    from torchfilt.models.subspace import _shift_invariance
+
+    rng = np.random.default_rng(seed)
+    n, m = 3, 2
+    # an exactly shift-invariant Gamma of an unstable system: the plain estimate recovers it
+    V = rng.standard_normal((n, n))
+    A = V @ np.diag([1.05, 0.8, -0.3]) @ np.linalg.inv(V)
+    Gam = _observability(A, rng.standard_normal((m, n)), rows=6)
+    plain = _shift_invariance(Gam, m, stable=False)
+    np.testing.assert_allclose(_eig(plain), _eig(A), atol=1e-8)
+    stab = _shift_invariance(Gam, m, stable=True)
+    assert float(np.abs(np.linalg.eigvals(stab.numpy())).max()) <= 1.0 + 1e-12
+    # and any Gamma at all (no structure): the bound is the projection's, not the data's
+    G = torch.tensor(rng.standard_normal((12, n)) * rng.uniform(0.1, 10.0, n))
+    assert float(np.abs(np.linalg.eigvals(_shift_invariance(G, m, stable=True).numpy())).max()) <= (
+        1.0 + 1e-12
+    )

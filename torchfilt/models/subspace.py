@@ -9,7 +9,9 @@ Identification for Linear Systems*, 1996, algorithm 1 of ch. 4) on block Hankel 
 2. its SVD ``O_i = U S V^T``: the order ``n`` is the number of dominant singular values (see
    :func:`subspace_order`) and the extended observability matrix is
    ``Gamma_i = [C; C A; ...; C A^{i-1}] = U_1 S_1^{1/2}``;
-3. ``C`` its first block row and ``A`` from its shift invariance (least squares), as in MOESP;
+3. ``C`` its first block row and ``A`` from its shift invariance (least squares), as in MOESP
+   (for a plant known to be stable, ``stable=True`` re-estimates an unstable ``A`` with the
+   shifted matrix padded by zeros, which keeps its eigenvalues in the unit disc);
 4. ``B``, ``D'`` and each recording's initial state by linear least squares on all outputs
    given ``A, C`` (the output is linear in them).
 
@@ -276,6 +278,21 @@ def _input_maps(
     return B, D, x0, res
 
 
+def _shift_invariance(Gam: Tensor, m: int, *, stable: bool) -> Tensor:
+    """``A`` from ``Gamma_{2:} = Gamma_{:-1} A`` by least squares, for ``Gamma`` ``(i m, n)``.
+
+    With ``stable`` and an estimate with an eigenvalue on or outside the unit circle: ``A``
+    from ``Gamma A = [Gamma_{2:}; 0]`` instead. For an eigenpair ``A v = lambda v``,
+    ``|lambda| |Gamma v| = |P [Gamma_{2:} v; 0]| <= |Gamma_{2:} v| <= |Gamma v|`` (``P`` the
+    projection onto the range of ``Gamma``), so ``|lambda| <= 1`` (Maciejowski 1995).
+    """
+    A = torch.linalg.lstsq(Gam[:-m], Gam[m:], driver="gelsd").solution
+    if stable and float(torch.linalg.eigvals(A).abs().max()) >= 1.0:
+        shifted = torch.cat([Gam[m:], Gam.new_zeros(m, Gam.shape[-1])], 0)
+        A = torch.linalg.lstsq(Gam, shifted, driver="gelsd").solution
+    return A
+
+
 def subspace_identify(
     y: Tensor | Sequence[Tensor],
     u: Tensor | Sequence[Tensor] | None = None,
@@ -283,6 +300,7 @@ def subspace_identify(
     order: int,
     block_rows: int | None = None,
     feedthrough: bool = False,
+    stable: bool = False,
 ) -> SubspaceFit:
     """Identify a linear-Gaussian model of order ``order`` by N4SID (see the module docstring).
 
@@ -293,6 +311,12 @@ def subspace_identify(
         block_rows: block rows ``i`` of the Hankel matrices (default from ``order`` and ``m``;
             more rows: less bias, more cost).
         feedthrough: estimate the feed-through ``D`` (else the model has none).
+        stable: for a plant known to be stable: when the shift-invariance estimate of ``A``
+            has an eigenvalue on or outside the unit circle, estimate it again with ``m`` zero
+            rows appended to the shifted observability matrix (Maciejowski 1995), whose
+            eigenvalues lie inside it (on it only in degenerate cases). The price is a bias towards zero (on the robot-arm log
+            the slowest pole moved from 0.994 to 0.954), which EM or a likelihood fit removes;
+            a stable estimate is kept as it is. Default ``False``: the estimate as it comes.
 
     Returns:
         A :class:`SubspaceFit` in float64: the model (``B`` only with inputs, ``D`` only with
@@ -315,7 +339,7 @@ def subspace_identify(
     O_i = _projection(ys, us, i)
     Uo, s, _ = torch.linalg.svd(O_i, full_matrices=False)
     Gam = Uo[:, :n] * s[:n].sqrt()  # extended observability matrix [C; C A; ...]
-    A = torch.linalg.lstsq(Gam[:-m], Gam[m:], driver="gelsd").solution  # shift invariance
+    A = _shift_invariance(Gam, m, stable=stable)
     C = Gam[:m]
     Bp, Dp, x0s, res = _input_maps(A, C, ys, us)
     if float(torch.linalg.svdvals(A).min()) <= 1e-12 * float(torch.linalg.svdvals(A).max()):
@@ -357,6 +381,7 @@ def subspace_start(
     *,
     known_channels: Sequence[int],
     block_rows: int | None = None,
+    stable: bool = False,
 ) -> SubspaceFit:
     """A subspace start for a linear EM or likelihood fit, in the gauge of ``model``.
 
@@ -375,6 +400,7 @@ def subspace_start(
         u: inputs ``(..., T, nu)``, a list, or ``None``.
         known_channels: the channels whose rows of ``H`` are known.
         block_rows: of :func:`subspace_identify`.
+        stable: of :func:`subspace_identify` (for a plant known to be stable).
 
     Returns:
         A :class:`SubspaceFit` whose model's known rows of ``H`` are ``model``'s (float64).
@@ -391,7 +417,12 @@ def subspace_start(
     if not known or any(not 0 <= c < m for c in known):
         raise InputError(f"known_channels: expected indices in 0..{m - 1}, got {known}")
     fit = subspace_identify(
-        y, u, order=sys.A.shape[-1], block_rows=block_rows, feedthrough=sys.D is not None
+        y,
+        u,
+        order=sys.A.shape[-1],
+        block_rows=block_rows,
+        feedthrough=sys.D is not None,
+        stable=stable,
     )
     est = fit.model
     M = _gauge(est.H[known], sys.H.detach().to(f64)[known])
