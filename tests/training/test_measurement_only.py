@@ -486,3 +486,54 @@ def test_compiled_likelihood_fit_equals_the_eager_one(data):
     assert fits[1].log_likelihood == pytest.approx(fits[0].log_likelihood, rel=1e-8)
     for a, b in zip(fits[0].model.parameters(), fits[1].model.parameters(), strict=True):
         torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-9)
+
+
+def _gp_model(seed: int = 1, inducing: int = 6) -> StateSpaceModel:
+    f = InducingTransition(2, inducing, linear=A_INIT, outputscale=0.01, lengthscale=1.0)
+    f.init_inducing(torch.randn(50, 2, generator=torch.Generator().manual_seed(seed), dtype=DT))
+    h = LinearModel(H, CholeskyCovariance(torch.eye(1, dtype=DT)), name="measurement")
+    return StateSpaceModel(f, h, Q=CholeskyCovariance(0.3 * torch.eye(2, dtype=DT)))
+
+
+def test_accelerated_gradient_em_starts_as_two_plain_steps_and_climbs_further(data):
+    """SQUAREM over the gradient M-step: its first cycle (the bound on the steplength is 1) is
+    exactly two plain iterations; no cycle lowers the likelihood; and for the same number of
+    M-steps it ends higher than plain EM (here it lags in the first cycles and leads in the
+    tail, where plain EM slows down)."""
+    y = data[:150]
+    kw = dict(x0=X0, P0=P0, known_channels=[0], stopping=StoppingOptions(tol=0.0, rtol=0.0))
+    fast = fit_em(_gp_model(), y, iterations=10, accelerate=True, **kw)
+    ll = np.array([fast.initial_log_likelihood] + [r["log_likelihood"] for r in fast.history])
+    assert (np.diff(ll) >= 0).all()
+    # M-steps and extrapolations (each with its filter): more than two per cycle
+    m_steps = int(fast.history[-1]["e_steps"])
+    assert m_steps > 2 * 10
+    plain = fit_em(_gp_model(), y, iterations=m_steps, accelerate=False, **kw)
+    assert fast.history[0]["log_likelihood"] == plain.history[1]["log_likelihood"]
+    assert fast.log_likelihood > plain.log_likelihood
+
+
+def test_accelerated_gradient_em_resume_equals_uninterrupted(data, tmp_path):
+    y = data[:80]
+    kw = dict(
+        x0=X0, P0=P0, known_channels=[0], stopping=StoppingOptions(tol=0.0, rtol=0.0),
+        m_step_iterations=3, accelerate=True,
+    )  # fmt: skip
+    full = fit_em(_gp_model(2, 4), y, iterations=4, **kw)
+    ck = tmp_path / "em_gp_accel.pt"
+    fit_em(_gp_model(2, 4), y, iterations=2, checkpoint=ck, **kw)
+    resumed = fit_em(
+        _gp_model(2, 4), y, iterations=4, checkpoint=CheckpointOptions(ck, resume=True), **kw
+    )
+    assert [h["log_likelihood"] for h in resumed.history] == [
+        h["log_likelihood"] for h in full.history
+    ]
+    assert resumed.history[-1]["e_steps"] == full.history[-1]["e_steps"]
+
+
+def test_accelerate_is_of_em_alone(data):
+    with pytest.raises(InputError, match="accelerate"):
+        fit_measurement_only(
+            learnable_linear(), data[:50], x0=X0, P0=P0, known_channels=[0],
+            method="likelihood", accelerate=True,
+        )  # fmt: skip
