@@ -35,7 +35,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchfilt.exceptions import InputError, ModelError, ShapeError
+from torchfilt.exceptions import InputError, InputTypeError, ModelError, ShapeError
 from torchfilt.models.functional import StateSpaceModel
 from torchfilt.models.linear import LinearGaussianModel, linear_system
 
@@ -76,6 +76,8 @@ def _series(x: Tensor | Sequence[Tensor] | None, name: str) -> list[Tensor] | No
     """The recordings ``(T_i, d)`` of ``x (..., T, d)`` or of a list, in float64."""
     if x is None:
         return None
+    if any(isinstance(r, Tensor) and r.is_complex() for r in ([x] if isinstance(x, Tensor) else x)):
+        raise InputTypeError(f"{name}: expected real data, got a complex tensor")
     if isinstance(x, Tensor):
         if x.dim() < 2:
             raise ShapeError(f"{name}: expected shape (..., T, d), got {tuple(x.shape)}")
