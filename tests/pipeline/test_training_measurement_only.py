@@ -488,3 +488,39 @@ def test_recipe_compile_reaches_the_transition_fit(tmp_path, data):
     bad = write(tmp_path / "bad.toml", data, text.replace("[train]", 'compile = "yes"\n[train]'))
     with pytest.raises(RecipeError, match="compile"):
         load_recipe(bad)
+
+
+def test_recipe_accelerate_reaches_the_transition_fit(tmp_path, data):
+    """``[measurement_only] accelerate = true`` reaches the fitter as ``accelerate=True`` (and
+    is not passed at its default); it belongs to method "em" alone, and leaves the digest of a
+    recipe without it unchanged."""
+    from torchfilt.pipeline.run_stages import StageFitters
+
+    seen: list[object] = []
+
+    def fitter(*args, **kwargs):
+        seen.append(kwargs.get("accelerate", "absent"))
+        return fit_measurement_only(*args, **{**kwargs, "iterations": 1})
+
+    text = RECIPE.replace("[calibrate]\niterations = 4", "[calibrate]\nenabled = false")
+    for flag, expected in (("", False), ("accelerate = true\n", True)):
+        recipe = write(
+            tmp_path / f"a{expected}.toml", data, text.replace("[train]", f"{flag}[train]", 1)
+        )
+        assert load_recipe(recipe).measurement_only["accelerate"] is expected
+        train_recipe(
+            recipe, tmp_path / f"run{expected}", progress=False,
+            fitters=StageFitters(measurement_only=fitter, name="recording"),
+        )  # fmt: skip
+    assert seen == ["absent", True]
+    off = write(tmp_path / "off.toml", data, text.replace("[train]", "accelerate = false\n[train]"))
+    digests = {load_recipe(p).digest() for p in (tmp_path / "aFalse.toml", off)}
+    assert len(digests) == 1 and load_recipe(tmp_path / "aTrue.toml").digest() not in digests
+    lik = (
+        text.replace("[train]", "accelerate = true\n[train]")
+        .replace(f"m_step_iterations = {M_STEP}\n", "")
+        .replace(f"iterations = {ITERATIONS}", f'method = "likelihood"\niterations = {ITERATIONS}')
+    )
+    bad = write(tmp_path / "lik.toml", data, lik)
+    with pytest.raises(RecipeError, match=r"\['accelerate'\]: not an option of method"):
+        load_recipe(bad)

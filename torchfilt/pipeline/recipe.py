@@ -307,6 +307,7 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
             kind="posint",
         ),
         Key("compile", "`false`", "`torchfilt.fit_measurement_only(compile=...)`", kind="bool"),
+        Key("accelerate", "`false`", 'SQUAREM cycles of the M-steps (`"em"` only)', kind="bool"),
     ),
     "train": (
         Key(
@@ -396,7 +397,10 @@ CALIBRATE_DEFAULTS: dict[str, Any] = {
 
 #: Keys added after recipes were first digested, by table: a run's digest holds them only when a
 #: recipe sets them to something else than the default (:func:`~.recipe_keys.digested`).
-_LATER_KEYS = {"calibrate": ("atol", "per_iteration"), "measurement_only": ("compile",)}
+_LATER_KEYS = {
+    "calibrate": ("atol", "per_iteration"),
+    "measurement_only": ("compile", "accelerate"),
+}
 
 #: Defaults of the ``[measurement_only]`` section (``states = "none"``; those of its option keys
 #: from ``DEFAULTS["measurement_only"]``); ``None``: see :data:`RECIPE_SCHEMA`
@@ -414,7 +418,9 @@ MEASUREMENT_ONLY_DEFAULTS: dict[str, Any] = {
     "process_noise": None,
     "m_step_iterations": 20,
     "compile": False,
+    "accelerate": False,
 }
+_EM_ONLY = ("m_step_iterations", "accelerate")
 
 
 #: The GP options of a recipe: ``GPTransition.fit``'s keywords (``lr``: ``optimizer=``'s field).
@@ -715,11 +721,7 @@ def check_states(r: Recipe) -> None:
 
 def _measurement_only_options(table: dict[str, Any]) -> dict[str, Any]:
     """``[measurement_only]`` checked (keys, values, the options of its method) and completed
-    with its defaults.
-
-    Raises:
-        RecipeError: naming the key.
-    """
+    with its defaults; a ``RecipeError`` names the key."""
     mo = _check_keys(table, _allowed("measurement_only"), "measurement_only", None)
     _check_values({k: v for k, v in mo.items() if v is not None}, "measurement_only", None)
     out = {**MEASUREMENT_ONLY_DEFAULTS, **mo}
@@ -728,7 +730,7 @@ def _measurement_only_options(table: dict[str, Any]) -> dict[str, Any]:
         wrong = [k for k in keys if out[k] != MEASUREMENT_ONLY_DEFAULTS[k]]
         other = "likelihood"
     else:
-        wrong = [k for k in ("m_step_iterations",) if out[k] != MEASUREMENT_ONLY_DEFAULTS[k]]
+        wrong = [k for k in _EM_ONLY if out[k] != MEASUREMENT_ONLY_DEFAULTS[k]]
         other = "em"
     if wrong:
         raise RecipeError(

@@ -116,6 +116,7 @@ class MeasurementOnlyFitter(Protocol):
         optimizer: OptimizerOptions | Literal["adam", "lbfgs"] | None = ...,
         windows: WindowOptions | None = ...,
         stopping: StoppingOptions | None = ...,
+        accelerate: bool | None = ...,
     ) -> MeasurementOnlyFit: ...
 
 
@@ -526,6 +527,8 @@ def _fit_measurement_only_stage(
     counted = max(1, sum(int(torch.isfinite(y).sum()) for y in ys))
     options = fit_options(o, "measurement_only", _given(r, "measurement_only"))
     iterations = int(options["iterations"])
+    if o.get("accelerate"):  # passed only when set: a fitter of before need not know it
+        options["accelerate"] = True
     ckpt = out / MEASUREMENT_ONLY_CHECKPOINT
     if resume and ckpt.exists():
         log(f"transition: resuming from iteration {_checkpoint_iteration(ckpt)}")
