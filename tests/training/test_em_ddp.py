@@ -36,16 +36,26 @@ def test_two_processes_em_like_one(tmp_path):
     )  # fmt: skip
     want_gp = torch.cat([p.detach().reshape(-1) for p in gp_model.parameters()])
     want_gp_ll = torch.tensor([h["log_likelihood"] for h in gp.history])
+    fast_model = ddp_support.em_gp()
+    fast = torchfilt.fit_em(
+        fast_model, ddp_support.em_data(ddp_support.GP_LENGTHS, seed=4), iterations=3,
+        accelerate=True, **ddp_support.GP_KW,
+    )  # fmt: skip
+    want_fast = torch.cat([p.detach().reshape(-1) for p in fast_model.parameters()])
+    want_fast_ll = torch.tensor([h["log_likelihood"] for h in fast.history])
     for r in ranks:
         assert close(r["linear"], want), (r["linear"], want)
         assert close(r["linear_ll"], want_ll)
         assert r["measurements"] == lin.measurements
         assert close(r["gp"], want_gp), (r["gp"] - want_gp).abs().max()
         assert close(r["gp_ll"], want_gp_ll)
+        assert close(r["fast"], want_fast), (r["fast"] - want_fast).abs().max()
+        assert close(r["fast_ll"], want_fast_ll)
         assert close(r["resumed"], want), (r["resumed"], want)
         assert close(r["resumed_ll"], want_ll)
     # the fits moved: a reduction that did nothing would not pass
     assert want_ll[-1] > lin.initial_log_likelihood + 10
     assert gp.log_likelihood > gp.initial_log_likelihood + 1
+    assert fast.history[-1]["e_steps"] > 2 * 3  # an extrapolation was tried
     assert torch.equal(ranks[0]["linear"], ranks[1]["linear"])
     assert torch.equal(ranks[0]["gp"], ranks[1]["gp"])
