@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Iterator
 
 import torch
 from torch import Tensor
@@ -82,9 +83,7 @@ class Squarem:
         _, sp1 = self._e_step(em)
         theta1 = em.state()
         em.closed_form(sp1)
-        theta2 = em.state()
-        r = [a - b for a, b in zip(theta1, theta0, strict=True)]
-        v = [c - 2 * a + b for c, a, b in zip(theta2, theta1, theta0, strict=True)]
+        r, v = _directions(theta0, theta1, em.state())
         alpha = self._steplength(_norm(r), _norm(v))
         _, sp_x = self._extrapolated(em, theta0, r, v, alpha, ll)
         em.closed_form(sp_x)  # the stabilising EM step
@@ -110,26 +109,18 @@ class Squarem:
         if stalled:  # the second found nothing: the parameters are back at theta_1
             return ll1, sp1, False
         theta2 = em.state()
-        r = [a - b for a, b in zip(theta1, theta0, strict=True)]
-        v = [c - 2 * a + b for c, a, b in zip(theta2, theta1, theta0, strict=True)]
-        alpha = self._steplength(_norm(r), _norm(v))
-        for _ in range(_BACKTRACKS):
-            if alpha > -1.0 - 1e-3:
-                break
-            step = zip(theta0, r, v, strict=True)
-            em.load([t + (-2.0 * alpha) * a + alpha * alpha * b for t, a, b in step])
+        r, v = _directions(theta0, theta1, theta2)
+        for alpha in self._tried(self._steplength(_norm(r), _norm(v))):
+            em.load(_point(theta0, r, v, alpha))
             self.e_steps += 1
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 ll_x, res_x = em._trial()
             if res_x is not None and math.isfinite(ll_x) and ll_x >= ll2:
-                for w in caught:  # the kept point's own warnings
-                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+                _replay(caught)  # the kept point's own warnings
                 ll_s, sp_s, stalled = em.m_step(ll_x, em.smoothed(res_x))
                 self.e_steps += 1
                 return ll_s, sp_s, False
-            alpha = (alpha - 1.0) / 2.0
-            self.max_step = max(1.0, -alpha)
         em.load(theta2)
         return ll2, sp2, False
 
@@ -142,6 +133,16 @@ class Squarem:
         if alpha <= -self.max_step:
             self.max_step *= 4.0
         return alpha
+
+    def _tried(self, alpha: float) -> Iterator[float]:
+        """The steplengths an extrapolation tries, from ``alpha`` halved towards ``-1`` (at most
+        :data:`_BACKTRACKS`; none at ``-1``): each one the caller rejects lowers ``max_step``."""
+        for _ in range(_BACKTRACKS):
+            if alpha > -1.0 - 1e-3:
+                return
+            yield alpha
+            alpha = (alpha - 1.0) / 2.0
+            self.max_step = max(1.0, -alpha)
 
     def _extrapolated(
         self,
@@ -156,15 +157,8 @@ class Squarem:
         admissible and no worse than ``ll0``, the cycle's start) and return its E-step. ``em``
         holds ``theta_2`` on entry: the point at ``alpha = -1``."""
         theta2 = em.state()
-        for _ in range(_BACKTRACKS):
-            if alpha > -1.0 - 1e-3:
-                break
-            em.load(
-                [
-                    t + (-2.0 * alpha) * a + alpha * alpha * b
-                    for t, a, b in zip(theta0, r, v, strict=True)
-                ]
-            )
+        for a in self._tried(alpha):
+            em.load(_point(theta0, r, v, a))
             if _admissible(em):
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always")
@@ -173,17 +167,36 @@ class Squarem:
                     except torch.linalg.LinAlgError:
                         ll_x, sp_x = -math.inf, None
                 if sp_x is not None and math.isfinite(ll_x) and ll_x >= ll0:
-                    for w in caught:  # the kept point's own warnings
-                        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+                    _replay(caught)  # the kept point's own warnings
                     return ll_x, sp_x
-            alpha = (alpha - 1.0) / 2.0
-            self.max_step = max(1.0, -alpha)
         em.load(theta2)
         return self._e_step(em)
 
     def _e_step(self, em: _EMProblem) -> tuple[float, SmoothedPairs]:
         self.e_steps += 1
         return em.e_step()
+
+
+def _directions(
+    theta0: list[Tensor], theta1: list[Tensor], theta2: list[Tensor]
+) -> tuple[list[Tensor], list[Tensor]]:
+    """``r = theta_1 - theta_0`` and ``v = theta_2 - 2 theta_1 + theta_0`` of a cycle."""
+    r = [a - b for a, b in zip(theta1, theta0, strict=True)]
+    v = [c - 2 * a + b for c, a, b in zip(theta2, theta1, theta0, strict=True)]
+    return r, v
+
+
+def _point(theta0: list[Tensor], r: list[Tensor], v: list[Tensor], alpha: float) -> list[Tensor]:
+    """The extrapolation ``theta_0 - 2 alpha r + alpha^2 v``."""
+    return [
+        t + (-2.0 * alpha) * a + alpha * alpha * b for t, a, b in zip(theta0, r, v, strict=True)
+    ]
+
+
+def _replay(caught: list[warnings.WarningMessage]) -> None:
+    """Emit the warnings recorded while a kept point was evaluated."""
+    for w in caught:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
 
 def _norm(xs: list[Tensor]) -> float:
