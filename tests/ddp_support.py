@@ -176,8 +176,9 @@ def linear_values(m: torchfilt.StateSpaceModel) -> torch.Tensor:
 
 def em_worker(rank: int, world: int, init: str, out: str) -> None:
     """Data-parallel EM on the recordings ``rank::world``: the linear EM (6 iterations), a GP EM
-    (3 iterations, plain and ``accelerate=True``), and the linear EM resumed from checkpoints one iteration apart (rank 0 at 3,
-    rank 1 at 2, as after a process lost between the two saves)."""
+    (3 iterations, plain and ``accelerate=True``), and the linear EM resumed from checkpoints
+    one iteration apart (rank 0 at 3, rank 1 at 2, as after a process lost between the two
+    saves)."""
     import shutil
 
     torch.set_num_threads(1)

@@ -221,7 +221,8 @@ class InducingTransition(ConditionalModel):
         model: the transition of :meth:`from_linear` on ``A`` (and ``B``), the full process noise
         ``Q`` as a learnable :class:`~torchfilt.models.CholeskyCovariance`, and the linear
         model's measurement side (a copy: ``H``, ``D`` and the full ``R``, as learnable as they
-        are in ``linear``; fitting the new model leaves ``linear`` as it is). Its filter likelihood equals the linear model's Kalman likelihood.
+        are in ``linear``; fitting the new model leaves ``linear`` as it is). Its filter
+        likelihood equals the linear model's Kalman likelihood.
 
         Args:
             linear: the linear model (e.g. :func:`~torchfilt.training.fit_em`'s result).

@@ -316,8 +316,9 @@ def subspace_identify(
         stable: for a plant known to be stable: when the shift-invariance estimate of ``A``
             has an eigenvalue on or outside the unit circle, estimate it again with ``m`` zero
             rows appended to the shifted observability matrix (Maciejowski 1995), whose
-            eigenvalues lie inside it (on it only in degenerate cases). The price is a bias towards zero (on the robot-arm log
-            the slowest pole moved from 0.994 to 0.954), which EM or a likelihood fit removes;
+            eigenvalues lie inside it (on it only in degenerate cases). The price is a bias
+            towards zero (on the robot-arm log the slowest pole moved from 0.994 to 0.954),
+            which EM or a likelihood fit removes;
             a stable estimate is kept as it is. Default ``False``: the estimate as it comes.
 
     Returns:

@@ -325,8 +325,9 @@ def fit_em(
             <torchfilt.training.em_accel.Squarem.cycle_gradient>`): three or four M-steps per
             iteration, never worse than two plain ones (on the robot-arm GP of
             ``scripts/bench_real_logs.py`` 30 iterations climbed to 2415.9 and stopped by
-            themselves; 100 plain iterations reach 2411.6, still climbing). ``None`` (default): on for a linear-Gaussian model, off otherwise;
-            ``False``: plain EM, one E-step (one M-step) per iteration.
+            themselves; 100 plain iterations reach 2411.6, still climbing). ``None``
+            (default): on for a linear-Gaussian model, off otherwise; ``False``: plain EM, one
+            E-step (one M-step) per iteration.
 
     Returns:
         An :class:`EMFit` (log-likelihoods and ``measurements`` summed over the processes).
