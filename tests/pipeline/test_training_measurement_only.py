@@ -458,33 +458,42 @@ def test_a_recipe_built_in_code_with_a_partial_calibrate_table(tmp_path, data):
     assert not (tmp_path / "bad").exists()
 
 
-def test_recipe_compile_reaches_the_transition_fit(tmp_path, data):
-    """``[measurement_only] compile = true`` is passed to the fitter as ``compile=True``
-    (default ``False``); a value that is not a boolean is a RecipeError naming the key."""
+def _boolean_key_runs(tmp_path, data, key: str, override: dict) -> tuple[list[object], str]:
+    """Train the recipe without ``[measurement_only] key`` and with ``key = true``, through a
+    fitter that records the ``key`` it was passed (``"absent"`` when not) and runs with
+    ``override``; check the key's parsed value, and that ``key = false`` keeps the digest of a
+    recipe without it while ``true`` changes it (a key added later). The recorded values and
+    the recipe text without the key."""
     from torchfilt.pipeline.run_stages import StageFitters
 
     seen: list[object] = []
 
     def fitter(*args, **kwargs):
-        seen.append(kwargs["compile"])
-        return fit_measurement_only(*args, **{**kwargs, "compile": False, "iterations": 1})
+        seen.append(kwargs.get(key, "absent"))
+        return fit_measurement_only(*args, **{**kwargs, **override, "iterations": 1})
 
     text = RECIPE.replace("[calibrate]\niterations = 4", "[calibrate]\nenabled = false")
-    for flag, expected in (("", False), ("compile = true\n", True)):
+    for flag, expected in (("", False), (f"{key} = true\n", True)):
         recipe = write(
             tmp_path / f"r{expected}.toml", data, text.replace("[train]", f"{flag}[train]", 1)
         )
-        assert load_recipe(recipe).measurement_only["compile"] is expected
+        assert load_recipe(recipe).measurement_only[key] is expected
         train_recipe(
             recipe, tmp_path / f"run{expected}", progress=False,
             fitters=StageFitters(measurement_only=fitter, name="recording"),
         )  # fmt: skip
-    assert seen == [False, True]
-    # a key added later: the digest of a recipe that leaves it at its default stays the same
-    off = write(tmp_path / "off.toml", data, text.replace("[train]", "compile = false\n[train]"))
+    off = write(tmp_path / "off.toml", data, text.replace("[train]", f"{key} = false\n[train]"))
     digests = {load_recipe(p).digest() for p in (tmp_path / "rFalse.toml", off)}
     assert len(digests) == 1 and load_recipe(tmp_path / "rTrue.toml").digest() not in digests
-    assert "compile" not in load_recipe(off).resolved()["measurement_only"]
+    assert key not in load_recipe(off).resolved()["measurement_only"]
+    return seen, text
+
+
+def test_recipe_compile_reaches_the_transition_fit(tmp_path, data):
+    """``[measurement_only] compile = true`` is passed to the fitter as ``compile=True``
+    (default ``False``); a value that is not a boolean is a RecipeError naming the key."""
+    seen, text = _boolean_key_runs(tmp_path, data, "compile", {"compile": False})
+    assert seen == [False, True]
     bad = write(tmp_path / "bad.toml", data, text.replace("[train]", 'compile = "yes"\n[train]'))
     with pytest.raises(RecipeError, match="compile"):
         load_recipe(bad)
@@ -494,28 +503,8 @@ def test_recipe_accelerate_reaches_the_transition_fit(tmp_path, data):
     """``[measurement_only] accelerate = true`` reaches the fitter as ``accelerate=True`` (and
     is not passed at its default); it belongs to method "em" alone, and leaves the digest of a
     recipe without it unchanged."""
-    from torchfilt.pipeline.run_stages import StageFitters
-
-    seen: list[object] = []
-
-    def fitter(*args, **kwargs):
-        seen.append(kwargs.get("accelerate", "absent"))
-        return fit_measurement_only(*args, **{**kwargs, "iterations": 1})
-
-    text = RECIPE.replace("[calibrate]\niterations = 4", "[calibrate]\nenabled = false")
-    for flag, expected in (("", False), ("accelerate = true\n", True)):
-        recipe = write(
-            tmp_path / f"a{expected}.toml", data, text.replace("[train]", f"{flag}[train]", 1)
-        )
-        assert load_recipe(recipe).measurement_only["accelerate"] is expected
-        train_recipe(
-            recipe, tmp_path / f"run{expected}", progress=False,
-            fitters=StageFitters(measurement_only=fitter, name="recording"),
-        )  # fmt: skip
+    seen, text = _boolean_key_runs(tmp_path, data, "accelerate", {})
     assert seen == ["absent", True]
-    off = write(tmp_path / "off.toml", data, text.replace("[train]", "accelerate = false\n[train]"))
-    digests = {load_recipe(p).digest() for p in (tmp_path / "aFalse.toml", off)}
-    assert len(digests) == 1 and load_recipe(tmp_path / "aTrue.toml").digest() not in digests
     lik = (
         text.replace("[train]", "accelerate = true\n[train]")
         .replace(f"m_step_iterations = {M_STEP}\n", "")
