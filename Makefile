@@ -25,8 +25,10 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/python scripts/quickstart.py --out $(OUT)/quickstart
 
+# -n auto: one pytest worker per core (xdist), whole test files per worker (loadfile) so that
+# a module's fixtures are built once; conftest.py gives every worker one torch thread.
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --dist loadfile
 
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
