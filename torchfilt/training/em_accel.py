@@ -115,7 +115,7 @@ class Squarem:
             self.e_steps += 1
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                ll_x, res_x = em._trial()
+                ll_x, res_x = em.trial()
             if res_x is not None and math.isfinite(ll_x) and ll_x >= ll2:
                 _replay(caught)  # the kept point's own warnings
                 ll_s, sp_s, stalled = em.m_step(ll_x, em.smoothed(res_x))

@@ -726,20 +726,20 @@ class _EMProblem:
                 self.m_step_iterations, self.reduce, blocks=blocks,
             )  # fmt: skip
             # smoothed only once a step is kept: a rejected trial needs its likelihood alone
-            ll_new, res_new = self._trial()
+            ll_new, res_new = self.trial()
             after = self.state()
             for k in range(1, self.backtracks + 1):
                 if ll_new >= ll:
                     break
                 t = 0.5**k
                 self.load([b + t * (a - b) for a, b in zip(after, before, strict=True)])
-                ll_new, res_new = self._trial()
+                ll_new, res_new = self.trial()
             if ll_new >= ll and res_new is not None:
                 return ll_new, self.smoothed(res_new), False
             self.load(before)
         return ll, sp, True
 
-    def _trial(self) -> tuple[float, FilterResult | None]:
+    def trial(self) -> tuple[float, FilterResult | None]:
         """The filter log-likelihood of an M-step's trial parameters (``-inf``, no result, where
         a factorisation in the model failed there: the trial is rejected like a worse one)."""
         try:
