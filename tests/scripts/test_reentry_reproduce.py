@@ -40,7 +40,9 @@ def test_shortened_reproduction_and_reuse(tmp_path):
     ckf1 = r["CKF1 (true model)"]
     assert r["CKF2 (M = 3e5)"]["failed"] == 40
     learned = {k: v for k, v in r.items() if k.startswith("MF-CKF")}
-    assert len(learned) == 6  # (a), (b), (c), unconstrained and with x3 >= 0
+    # (a), (b), (c), unconstrained and with x3 >= 0, and (a) calibrated by the filter likelihood
+    want = {mod.variant_label(k, c) for k in mod.VARIANTS for c in (False, True)}
+    assert set(learned) == want | {mod.variant_label(k) for k in mod.CALIBRATED}
     assert r["CKF1 (true model) + x3>=0"]["runs"] == 10
     for name, s in learned.items():
         assert s["failed"] < s["runs"], name
