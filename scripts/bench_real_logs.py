@@ -189,6 +189,20 @@ def lbfgs_row(
 ACCEL_ROW = "torchfilt GP (measurement only, accelerate=True)"
 
 
+def gp_from_linear(
+    start: LinearGaussianModel, sub: Any, y_tr: Tensor, u_tr: Tensor, inducing: int
+) -> torchfilt.StateSpaceModel:
+    """The GP model that starts exactly at ``start``: ``InducingTransition.model_from_linear``
+    with ``inducing`` points on ``start``'s smoothed training states (from the subspace fit
+    ``sub``'s prior), lengthscales the spread of those states and the inputs."""
+    with torch.no_grad():
+        states = kalman_smoother(start, y_tr, u_tr, x0=sub.x0, P0=sub.P0).mean[0]
+    cloud = torch.cat([states, u_tr[0]], -1)
+    return InducingTransition.model_from_linear(
+        start, inducing=inducing, states=states, inputs=u_tr[0], lengthscale=cloud.std(0)
+    )
+
+
 def gp_row(
     start: LinearGaussianModel,
     sub: Any,
@@ -202,12 +216,7 @@ def gp_row(
     its defaults (``accelerate`` aside): the row (its ``train_s`` from the GP's start)."""
     y_tr, u_tr, y_te, u_te = data
     t0 = time.perf_counter()
-    with torch.no_grad():
-        states = kalman_smoother(start, y_tr, u_tr, x0=sub.x0, P0=sub.P0).mean[0]
-    cloud = torch.cat([states, u_tr[0]], -1)
-    gp = InducingTransition.model_from_linear(
-        start, inducing=inducing, states=states, inputs=u_tr[0], lengthscale=cloud.std(0)
-    )
+    gp = gp_from_linear(start, sub, y_tr, u_tr, inducing)
     try:
         mo = fit_measurement_only(
             gp, y_tr, u_tr, x0=sub.x0, P0=sub.P0, known_channels=[0], accelerate=accelerate

@@ -40,11 +40,17 @@ from typing import Any
 
 import torch
 from _common import environment, table, write_json
-from bench_real_logs import LOGS, lbfgs_row, read_log, standardised, torchfilt_row
+from bench_real_logs import (
+    LOGS,
+    gp_from_linear,
+    lbfgs_row,
+    read_log,
+    standardised,
+    torchfilt_row,
+)
 
 from torchfilt.exceptions import CholeskyJitterWarning
-from torchfilt.filters import kalman_smoother
-from torchfilt.models import InducingTransition, LinearGaussianModel, subspace_identify
+from torchfilt.models import LinearGaussianModel, subspace_identify
 from torchfilt.training import fit_em, fit_measurement_only
 
 #: held-out samples filtered before the free run (as in the bench)
@@ -62,14 +68,8 @@ def gp_start(log: str, data: Path, order: int, block_rows: int, inducing: int) -
     lbfgs, lin = lbfgs_row(em.model, (y_tr, u_tr, y_te, u_te), sub, P0, BURN)
     start = lin if lin is not None and lbfgs["log_likelihood"] > em.log_likelihood else em.model
     assert start is not None
-    with torch.no_grad():
-        states = kalman_smoother(start, y_tr, u_tr, x0=sub.x0, P0=sub.P0).mean[0]
-    cloud = torch.cat([states, u_tr[0]], -1)
-    gp = InducingTransition.model_from_linear(
-        start, inducing=inducing, states=states, inputs=u_tr[0], lengthscale=cloud.std(0)
-    )
     return {
-        "gp": gp,
+        "gp": gp_from_linear(start, sub, y_tr, u_tr, inducing),
         "fit": (y_tr, u_tr, sub.x0, sub.P0),
         "test": (y_te, u_te, P0),
         "linear": {
