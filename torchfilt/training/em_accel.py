@@ -74,6 +74,16 @@ class Squarem:
         """Continue from :meth:`state` (a resumed fit then takes the same cycles)."""
         self.max_step, self.e_steps = float(values[0]), int(values[1])
 
+    def iterate(
+        self, em: _EMProblem, ll: float, sp: SmoothedPairs
+    ) -> tuple[float, SmoothedPairs, bool]:
+        """One iteration of an accelerated fit: :meth:`cycle` for the closed-form M-step of a
+        linear-Gaussian model, :meth:`cycle_gradient` otherwise. The log-likelihood, the
+        smoothed pairs, and whether the fit stalled (the gradient M-step only)."""
+        if em.lin is None:
+            return self.cycle_gradient(em, ll, sp)
+        return (*self.cycle(em, ll, sp), False)
+
     def cycle(self, em: _EMProblem, ll: float, sp: SmoothedPairs) -> tuple[float, SmoothedPairs]:
         """One cycle from the parameters of ``em`` and their E-step ``(ll, sp)``: the parameters
         end at the stabilised extrapolation, and its log-likelihood and smoothed pairs are

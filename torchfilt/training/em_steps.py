@@ -32,6 +32,16 @@ __all__ = ["SmoothedPairs", "smoothed_pairs"]
 #: filter likelihood: the joint step, the maps alone, the noises alone.
 _M_STEP_BLOCKS: tuple[tuple[str, ...], ...] = (("noise", "maps", "noise"), ("maps",), ("noise",))
 
+#: ECM: a maps block whose gain in ``Q`` is at most this share of its M-step's whole gain found
+#: nothing worth its cost (on the near-noise-free robot-arm GP of ``scripts/bench_real_logs.py``
+#: its 20 L-BFGS iterations, 24 evaluations of ``Q``, raised ``Q`` by 1.5e-6 per measurement at
+#: every M-step while the noise step moved the likelihood by a nat; leaving it out cut 30
+#: iterations from 36.1 s to 22.7 s)...
+MAPS_IDLE_SHARE = 0.01
+#: ... and is left out of the joint step of the next M-steps: 1 after the first idle block, twice
+#: as many after each further one in a row, at most this many; then it is tried again
+MAPS_PAUSE_MAX = 8
+
 
 # ----------------------------------------------------------------------------------- E-step
 class SmoothedPairs(NamedTuple):
@@ -441,11 +451,16 @@ def _gradient_m_step(
     all_reduce: Callable[[Tensor], None] | None = None,
     *,
     blocks: tuple[str, ...] = ("noise", "maps", "noise"),
-) -> None:
+    skip_maps: bool = False,
+) -> tuple[float, float] | None:
     """Block coordinate L-BFGS on ``-Q(theta)`` over ``blocks`` in turn: by default the noise
     covariances, then the other parameters (the maps), then the noise again (the maps'
     gradients dwarf the noises', so a joint step leaves ``Q`` and ``R`` almost where they
-    were); undone if ``Q`` does not improve (generalised EM).
+    were); undone if ``Q`` does not improve (generalised EM). ``skip_maps`` leaves the maps
+    block out (ECM, see :data:`MAPS_IDLE_SHARE`).
+
+    Returns the maps block's gain in ``Q`` and the whole step's (``None`` where the maps block
+    did not run or the step was undone).
 
     Data-parallel (``all_reduce``): every evaluation of ``Q`` and its gradient is one collective
     that sums them over the processes (whatever the local outcome: a process whose evaluation
@@ -523,6 +538,7 @@ def _gradient_m_step(
 
         opt.step(closure)  # type: ignore[arg-type]
 
+    maps_gain: float | None = None
     try:
         for b in blocks:
             if b == "noise" and noise:
@@ -530,8 +546,10 @@ def _gradient_m_step(
                 others = [p for p in noise if id(p) not in done]
                 if others:
                     run(others)
-            elif b == "maps" and rest:
+            elif b == "maps" and rest and not skip_maps:
+                q_maps = q_value()
                 run(rest)
+                maps_gain = q_value() - q_maps
         q1 = q_value()
         ok = math.isfinite(q1) and q1 >= q0
     except (RuntimeError, ValueError, IndexError):  # a failed factorisation, or torch's
@@ -543,6 +561,8 @@ def _gradient_m_step(
         with torch.no_grad():
             for p, v in zip(plist, before, strict=True):
                 p.copy_(v)
+        return None
+    return None if maps_gain is None else (maps_gain, q1 - q0)
 
 
 def _closed_form_noises(
@@ -643,6 +663,9 @@ class _EMProblem:
         )
         #: the part of the iteration under way, for an error's message
         self.phase = "E-step"
+        #: ECM (:data:`MAPS_IDLE_SHARE`): the M-steps whose joint step still leaves the maps
+        #: out, and how many the next idle maps block leaves out
+        self.maps_pause, self.maps_next = 0, 1
 
     def current(self) -> StateSpaceModel:
         """The model at the current parameters."""
@@ -720,11 +743,15 @@ class _EMProblem:
         # step still lowers it, try the maps alone, then the noises alone (expectation-conditional
         # maximisation): a wrong model's smoothed states look noisy, and the noise step alone can
         # be what lowers the likelihood.
+        skip, self.maps_pause = self.maps_pause > 0, max(0, self.maps_pause - 1)
         for blocks in _M_STEP_BLOCKS:
-            _gradient_m_step(
+            gains = _gradient_m_step(
                 self.model, self.plist, sp, self.Y, self.U, self.valid, self.rule, self.learn_R,
                 self.m_step_iterations, self.reduce, blocks=blocks,
+                skip_maps=skip and blocks is _M_STEP_BLOCKS[0],
             )  # fmt: skip
+            if gains is not None and blocks is _M_STEP_BLOCKS[0]:
+                self._pace_maps(*gains)
             # smoothed only once a step is kept: a rejected trial needs its likelihood alone
             ll_new, res_new = self.trial()
             after = self.state()
@@ -738,6 +765,23 @@ class _EMProblem:
                 return ll_new, self.smoothed(res_new), False
             self.load(before)
         return ll, sp, True
+
+    def _pace_maps(self, maps_gain: float, total: float) -> None:
+        """After a joint step whose maps block ran: pause the maps block where it found nothing
+        (:data:`MAPS_IDLE_SHARE`), for twice as many M-steps as the last pause in a row."""
+        if maps_gain <= MAPS_IDLE_SHARE * max(total, 0.0):
+            self.maps_pause = self.maps_next
+            self.maps_next = min(2 * self.maps_next, MAPS_PAUSE_MAX)
+        else:
+            self.maps_next = 1
+
+    def ecm_state(self) -> list[int]:
+        """What a checkpoint keeps of the maps block's pauses: ``[maps_pause, maps_next]``."""
+        return [self.maps_pause, self.maps_next]
+
+    def ecm_load(self, values: list[int]) -> None:
+        """Continue from :meth:`ecm_state`."""
+        self.maps_pause, self.maps_next = int(values[0]), int(values[1])
 
     def trial(self) -> tuple[float, FilterResult | None]:
         """The filter log-likelihood of an M-step's trial parameters (``-inf``, no result, where

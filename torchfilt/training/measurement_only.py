@@ -56,6 +56,7 @@ import math
 import time
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any, Literal, NamedTuple
 
@@ -300,7 +301,9 @@ def fit_em(
         rule: cubature rule of the filter and of the M-step expectation (default third degree).
         learn_measurement_noise: update ``R`` (linear) / include the measurement term in the
             M-step (others).
-        m_step_iterations: L-BFGS iterations per M-step (non-linear models).
+        m_step_iterations: L-BFGS iterations per M-step (non-linear models). A maps block
+            that found nothing is left out of the next M-steps, 1, 2, 4, then 8 at a time, and
+            tried again (ECM: :data:`~torchfilt.training.em_steps.MAPS_IDLE_SHARE`).
         backtracks: step halvings of a non-linear M-step that lowered the filter likelihood
             before it is undone (0: undone at once) and the next block of the M-step is tried:
             the joint step, then the maps alone, then the noises alone (an iteration where none
@@ -399,6 +402,8 @@ def fit_em(
         initial = float(ck["initial"])
         if squarem is not None and "squarem" in ck:
             squarem.load(ck["squarem"])
+        if "ecm" in ck:
+            em.ecm_load(ck["ecm"])
     t_start = time.perf_counter()
     ll, sp = _initial_e_step(em)
     if initial is None:
@@ -422,7 +427,7 @@ def fit_em(
         )
 
     def payload() -> dict[str, Any]:
-        body: dict[str, Any] = {"state": em.state(), "initial": initial}
+        body: dict[str, Any] = {"state": em.state(), "initial": initial, "ecm": em.ecm_state()}
         if squarem is not None:
             body["squarem"] = squarem.state()
         return body
@@ -510,13 +515,8 @@ def _em_iteration(
         FitError: a factorisation failed, or the log-likelihood after it is not finite.
     """
     with failed_step("fit_em", lambda: f"iteration {it}, {em.phase}"):
-        if squarem is not None and em.lin is None:
-            ll_new, sp_new, stalled = squarem.cycle_gradient(em, ll, sp)
-        elif squarem is not None:
-            ll_new, sp_new = squarem.cycle(em, ll, sp)
-            stalled = False
-        else:
-            ll_new, sp_new, stalled = em.m_step(ll, sp)
+        step = em.m_step if squarem is None else partial(squarem.iterate, em)
+        ll_new, sp_new, stalled = step(ll, sp)
     if not math.isfinite(ll_new):
         raise FitError(
             f"fit_em: iteration {it}, E-step after the M-step: the log-likelihood is "
