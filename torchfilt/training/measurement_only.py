@@ -327,8 +327,8 @@ def fit_em(
             model: the same cycle over the gradient M-step (:meth:`Squarem.cycle_gradient
             <torchfilt.training.em_accel.Squarem.cycle_gradient>`): three or four M-steps per
             iteration, never worse than two plain ones (on the robot-arm GP of
-            ``scripts/bench_real_logs.py`` 30 iterations climbed to 2415.9 and stopped by
-            themselves; 100 plain iterations reach 2411.6, still climbing). ``None``
+            ``scripts/bench_real_logs.py`` 30 iterations climbed to 2416.8; 100 plain
+            iterations reach 2411.6; both still climbing). ``None``
             (default): on for a linear-Gaussian model, off otherwise; ``False``: plain EM, one
             E-step (one M-step) per iteration.
 
