@@ -114,6 +114,24 @@ def test_patience_without_validation_warns():
         fit_likelihood(ar1(), y, x0=X0, P0=P0, iterations=2)  # the default: no warning
 
 
+def test_patience_given_to_em_warns_that_em_has_no_early_stopping():
+    """EM has no held-out early stopping: a patience given to it (directly, or through
+    fit_measurement_only's EM) warns instead of being dropped in silence; the default does not."""
+    y = simulate(0.9, 0.3, 0.5, 60, seed=1)
+    lg = LinearGaussianModel(0.5 * torch.eye(1, dtype=DT), torch.eye(1, dtype=DT), P0, P0)
+    kw = dict(x0=X0, P0=P0, known_channels=[0], iterations=2)
+    with pytest.warns(ConvergenceWarning, match="patience=3 was given, but fit_em has no early"):
+        fit = fit_em(lg, y, **kw, stopping=StoppingOptions(patience=3))
+    assert fit.iterations == 2
+    with pytest.warns(ConvergenceWarning, match="fit_em has no early stopping"):
+        torchfilt.fit_measurement_only(
+            lg, y, **kw, stopping=StoppingOptions(patience=3), noise_scale="none"
+        )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit_em(lg, y, **kw, stopping=StoppingOptions(tol=1e-12))  # no patience: no warning
+
+
 class _Seen:
     def __init__(self) -> None:
         self.info: list[str] = []

@@ -47,7 +47,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, Literal, NamedTuple, TypeVar
 
-from torchfilt.exceptions import InputError, InputTypeError
+from torchfilt.exceptions import ConvergenceWarning, InputError, InputTypeError
 
 if TYPE_CHECKING:
     from torch import Tensor
@@ -349,6 +349,19 @@ class FitOptions(NamedTuple):
     patience_given: bool
     checkpoint: CheckpointOptions
     hooks: FitHooks
+
+    def warn_unused_patience(self, fit: str, instead: str) -> None:
+        """Warn (:class:`~torchfilt.exceptions.ConvergenceWarning`) where the caller gave
+        ``patience`` to ``fit``, a fit without early stopping on held-out data; ``instead``
+        names a fit that has it."""
+        if self.patience_given:
+            warnings.warn(
+                f"stopping: patience={self.stopping.patience} was given, but {fit} has no "
+                "early stopping on held-out data: it stops at convergence (tol, rtol) or its "
+                f"iteration budget. Early stopping is {instead}'s",
+                ConvergenceWarning,
+                stacklevel=4,
+            )
 
 
 def _typed(value: Any, name: str, cls: type, shortcut: tuple[type, ...], text: str) -> None:

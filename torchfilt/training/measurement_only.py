@@ -278,7 +278,8 @@ def fit_em(
             log-likelihood per measurement changes by less than it in an iteration (default
             ``1e-9``); ``rtol``, ``rtol_window`` stop (``"converged"``) when the negative
             log-likelihood per measurement ``L`` moved by at most ``rtol * max(1, |L_k|)`` over
-            the last ``rtol_window`` iterations (default ``1e-6`` over 20; 0: off).
+            the last ``rtol_window`` iterations (default ``1e-6`` over 20; 0: off). No
+            early stopping on held-out data: a ``patience`` given warns.
         checkpoint: :class:`~torchfilt.optim.CheckpointOptions` or the file's path (atomic,
             every iteration by default); with ``resume=True`` an existing one is continued and
             the result equals an uninterrupted fit.
@@ -354,6 +355,7 @@ def fit_em(
     )
     if o.hooks.project is not None or o.hooks.prepare is not None:
         raise InputError("hooks: fit_em uses all_reduce alone (no project or prepare)")
+    o.warn_unused_patience("fit_em", "fit_measurement_only(method='likelihood', validation=...)")
     iterations, stop_o, ckpt_o = o.iterations, o.stopping, o.checkpoint
     all_reduce = o.hooks.all_reduce
     tol = stop_o.tolerance("lbfgs")
