@@ -69,7 +69,8 @@ def _candidate_score(train: list, val: list, scale: float) -> float:
 
 def _linear_candidate_score(train: list, val: list) -> float:
     """The linear-EM candidate rebuilt from public parts: the sensor's ``H`` (linear: its
-    Jacobian), N4SID in its gauge, 20 EM iterations with ``H`` and ``R`` fixed, a GP transition
+    Jacobian), N4SID in its gauge, 20 EM iterations (``fit_em``'s default for a linear model:
+    SQUAREM cycles) with ``H`` and ``R`` fixed, a GP transition
     starting exactly at it on the smoothed states, scored by the CKF on the validation data."""
     spec = get_system("reaction")
     h = spec.model().measurement
@@ -83,7 +84,6 @@ def _linear_candidate_score(train: list, val: list) -> float:
     start = LinearGaussianModel(sub.A, J, sub.transition.noise_cov(), R)
     lin = fit_em(
         start, ys, x0=m0, P0=P0, known_channels=[0], fixed=("H", "R"), iterations=20,
-        accelerate=False,
     )  # fmt: skip
     X = torch.cat([kalman_smoother(lin.model, y, x0=m0, P0=P0).mean for y in ys])
     f = InducingTransition.from_linear(
@@ -122,6 +122,11 @@ def test_pilot_starts_are_scored_on_held_out_data_and_the_best_kept(tmp_path) ->
     assert log.count("transition: candidate start") == len(PILOT_NOISE_SCALES)
     assert log.count("transition: linear-EM candidate") == 1
     assert f"transition: starting from candidate {best + 1}" in log
+    # the fit used its whole budget (RECIPE: 1 iteration): the log says so, and how to go on
+    assert (
+        "transition: stopped at its budget of 1 iteration, not converged (raise "
+        "[measurement_only] iterations to go on)" in log
+    )
 
 
 def test_linear_candidate_starts_exactly_at_the_linear_fit(tmp_path) -> None:

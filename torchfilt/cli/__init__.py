@@ -14,6 +14,7 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from torchfilt.exceptions import InputError, TorchfiltError
 
@@ -212,13 +213,20 @@ def _info(args: argparse.Namespace) -> int:
         print(
             f"  learned from: measurements alone (method {mo.get('method')}, known channels "
             f"{', '.join(map(str, mo.get('known_channels', [])))}, {mo.get('iterations')} "
-            f"iterations, {mo.get('stopped')}; log-likelihood "
+            f"iterations, {_stop_words(mo.get('stopped'))}; log-likelihood "
             f"{float(mo.get('initial_log_likelihood', float('nan'))):.6g} -> "
             f"{float(mo.get('log_likelihood', float('nan'))):.6g})"
         )
+        if mo.get("measurement_R") is not None:
+            print(f"  sensor noise: R learned with the transition, {mo['measurement_R']}")
     if spec.info:
         print(json.dumps(spec.info, indent=2, default=str))
     return 0
+
+
+def _stop_words(stopped: Any) -> str:
+    """A fit's ``stopped`` for a reader: ``"iterations"`` is its budget."""
+    return "stopped at its budget, not converged" if stopped == "iterations" else str(stopped)
 
 
 def _parser() -> argparse.ArgumentParser:

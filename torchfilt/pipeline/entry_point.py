@@ -31,7 +31,13 @@ from typing import Any
 import torch
 
 from torchfilt.exceptions import BundleError, RecipeError, TorchfiltError
-from torchfilt.models import ConditionalModel, as_conditional
+from torchfilt.models import (
+    CholeskyCovariance,
+    ConditionalModel,
+    CovarianceParameter,
+    DiagonalCovariance,
+    as_conditional,
+)
 
 __all__ = [
     "ENTRY_POINT",
@@ -39,6 +45,7 @@ __all__ = [
     "entry_point_digest",
     "entry_point_entry",
     "is_entry_point",
+    "learned_noise",
     "load_entry_point",
 ]
 
@@ -127,6 +134,7 @@ def load_entry_point(
     state_dim: int,
     obs_dim: int | None,
     input_dim: int = 0,
+    learn_R: bool = False,
 ) -> tuple[ConditionalModel, str | None]:
     """Import an entry point and build the known side it names, checked against the dataset's
     dimensions.
@@ -138,9 +146,14 @@ def load_entry_point(
         state_dim: ``n``.
         obs_dim: ``m`` (the dataset's measurement channels), or ``None`` to take it from ``R``.
         input_dim: ``nu`` (probe inputs are zeros).
+        learn_R: ``R`` (required) is the start of a learnable noise
+            (``[measurement_only] learn_measurement_noise``): a
+            :class:`~torchfilt.models.DiagonalCovariance` where the recipe gave variances, a
+            :class:`~torchfilt.models.CholeskyCovariance` where it gave a matrix; its parameters
+            alone are left free.
 
     Returns:
-        The frozen side, and the SHA-256 of the module's source file.
+        The side, frozen but for a learnable ``R``, and the SHA-256 of the module's source file.
 
     Raises:
         RecipeError: the module does not import, the attribute is missing or neither callable
@@ -148,7 +161,14 @@ def load_entry_point(
             ``(1, n)`` states to ``(1, m)`` measurements.
     """
     obj, digest = _import(spec, role)
-    noise = None if R is None else _noise(R, obs_dim, spec, role)
+    noise: Any = None if R is None else _noise(R, obs_dim, spec, role)
+    if learn_R:
+        if noise is None:
+            raise RecipeError(
+                f'[{role}] R: a learned noise of model = "{spec}" needs R (its start)'
+            )
+        flat = torch.as_tensor(R, dtype=torch.float64).dim() == 1
+        noise = DiagonalCovariance(noise) if flat else CholeskyCovariance(noise)
     if isinstance(obj, ConditionalModel):
         side = _conditional(obj, noise, spec, role, state_dim)
     elif callable(obj):
@@ -164,6 +184,8 @@ def load_entry_point(
             f"ConditionalModel, got {type(obj).__name__}"
         )
     side.requires_grad_(False)
+    if isinstance(noise, CovarianceParameter):
+        noise.requires_grad_(True)
     x = torch.zeros(1, state_dim, dtype=torch.float64)
     u = torch.zeros(1, input_dim, dtype=torch.float64) if input_dim else None
     try:
@@ -181,6 +203,15 @@ def load_entry_point(
             f"{tuple(out.shape)}, expected (1, {m}) (the dataset's measurement channels)"
         )
     return side, digest
+
+
+def learned_noise(side: ConditionalModel) -> torch.Tensor | None:
+    """The learnable noise ``(m, m)`` of a side built with ``learn_R=True`` (detached), or
+    ``None`` where it has none."""
+    for mod in side.modules():
+        if isinstance(mod, CovarianceParameter) and any(p.requires_grad for p in mod.parameters()):
+            return mod().detach().clone()
+    return None
 
 
 def entry_point_entry(

@@ -1,6 +1,7 @@
 """The linear-EM candidate start of a ``states = "none"`` run (see
 :func:`torchfilt.pipeline.run_stages._start`): a linear-Gaussian model fitted to the training
-measurements by a short :func:`~torchfilt.training.fit_em` from an N4SID start
+measurements by a short :func:`~torchfilt.training.fit_em` (:data:`LINEAR_EM_ITERATIONS` SQUAREM
+cycles, ``fit_em``'s default for a linear model) from an N4SID start
 (:func:`~torchfilt.models.subspace_start`; from a random walk where the data has missing values
 or the subspace fit fails), turned into a GP transition that starts exactly at it
 (:meth:`~torchfilt.models.InducingTransition.from_linear`) under the recipe's own measurement
@@ -35,7 +36,9 @@ from torchfilt.training.measurement_only import fit_em
 
 __all__ = ["LINEAR_EM_ITERATIONS", "LinearStart", "linear_em_start"]
 
-#: EM iterations of the linear candidate (its cost stays a small part of the stage).
+#: EM iterations of the linear candidate, each a SQUAREM cycle (three E-steps or more): its cost
+#: stays a small part of the stage (under a second on 12 x 300 steps), and on nearly noise-free
+#: logs the cycles climb where plain EM creeps.
 LINEAR_EM_ITERATIONS = 20
 
 
@@ -123,7 +126,7 @@ def linear_em_start(
     try:
         fit = fit_em(
             start, ys, us, x0=m0, P0=P0, known_channels=known, fixed=("H", "R"),
-            iterations=LINEAR_EM_ITERATIONS, dtype=dtype, accelerate=False,
+            iterations=LINEAR_EM_ITERATIONS, dtype=dtype,
         )  # fmt: skip
     except TorchfiltError:
         return None

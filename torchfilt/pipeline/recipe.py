@@ -31,7 +31,6 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
-import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +40,11 @@ from torchfilt.exceptions import RecipeError
 from torchfilt.optim import field_docs
 from torchfilt.pipeline.entry_point import is_entry_point
 from torchfilt.pipeline.recipe_keys import Key, _file, digested
+from torchfilt.pipeline.recipe_measurement_only import (
+    MEASUREMENT_ONLY_DEFAULTS,
+    check_learned_noise,
+    complete,
+)
 from torchfilt.pipeline.recipe_options import OPTION_KEYS, fit_options, option_default
 
 __all__ = [
@@ -197,8 +201,9 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
             '`"logged"`: learn from the recordings\' logged states; `"none"`: learn from the '
             "measurements and inputs alone (the training recordings' state columns are never "
             "read and may be absent or NaN; the transition is set in `[measurement_only]`, the "
-            '`[measurement]` side must be a known `model = "system:NAME"` (the gauge) and the '
-            '`[filter]` prior `"system:NAME"` or `mean`/`cov_diag`)',
+            '`[measurement]` side must be a known `model = "system:NAME"` or your own sensor '
+            '`"package.module:function"` (the gauge) and the `[filter]` prior `"system:NAME"` or '
+            "`mean`/`cov_diag`)",
             kind="choice",
             choices=STATES,
         ),
@@ -308,6 +313,13 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
         ),
         Key("compile", "`false`", "`torchfilt.fit_measurement_only(compile=...)`", kind="bool"),
         Key("accelerate", "`false`", 'SQUAREM cycles of the M-steps (`"em"` only)', kind="bool"),
+        Key(
+            "learn_measurement_noise",
+            "`false`",
+            "learn your own sensor's noise `R` with the transition, from its start `[measurement] "
+            'R` (`model = "package.module:function"` only); the bundle keeps the learned `R`',
+            kind="bool",
+        ),
     ),
     "train": (
         Key(
@@ -399,28 +411,8 @@ CALIBRATE_DEFAULTS: dict[str, Any] = {
 #: recipe sets them to something else than the default (:func:`~.recipe_keys.digested`).
 _LATER_KEYS = {
     "calibrate": ("atol", "per_iteration"),
-    "measurement_only": ("compile", "accelerate"),
+    "measurement_only": ("compile", "accelerate", "learn_measurement_noise"),
 }
-
-#: Defaults of the ``[measurement_only]`` section (``states = "none"``; those of its option keys
-#: from ``DEFAULTS["measurement_only"]``); ``None``: see :data:`RECIPE_SCHEMA`
-#: (``known_channels``: all; ``process_noise``: 1e-2 x the prior variances; ``window``: whole
-#: recordings; ``lr``: the optimiser's default).
-MEASUREMENT_ONLY_DEFAULTS: dict[str, Any] = {
-    "method": "em",
-    **{
-        k: option_default("measurement_only", k)
-        for k in ("iterations", "optimizer", "lr", "window", "burn_in")
-    },
-    "inducing": 16,
-    "known_channels": None,
-    "nominal": None,
-    "process_noise": None,
-    "m_step_iterations": 20,
-    "compile": False,
-    "accelerate": False,
-}
-_EM_ONLY = ("m_step_iterations", "accelerate")
 
 
 #: The GP options of a recipe: ``GPTransition.fit``'s keywords (``lr``: ``optimizer=``'s field).
@@ -715,6 +707,7 @@ def check_states(r: Recipe) -> None:
             '[measurement_only]: use gp = "none"'
         )
     out = _measurement_only_options(r.measurement_only)
+    check_learned_noise(out, r.measurement)
     r.measurement_only.clear()
     r.measurement_only.update(out)
 
@@ -724,54 +717,7 @@ def _measurement_only_options(table: dict[str, Any]) -> dict[str, Any]:
     with its defaults; a ``RecipeError`` names the key."""
     mo = _check_keys(table, _allowed("measurement_only"), "measurement_only", None)
     _check_values({k: v for k, v in mo.items() if v is not None}, "measurement_only", None)
-    out = {**MEASUREMENT_ONLY_DEFAULTS, **mo}
-    if out["method"] == "em":
-        keys = ("window", "burn_in", "optimizer", "lr")
-        wrong = [k for k in keys if out[k] != MEASUREMENT_ONLY_DEFAULTS[k]]
-        other = "likelihood"
-    else:
-        wrong = [k for k in _EM_ONLY if out[k] != MEASUREMENT_ONLY_DEFAULTS[k]]
-        other = "em"
-    if wrong:
-        raise RecipeError(
-            f'[measurement_only] {wrong}: not an option of method = "{out["method"]}" (they '
-            f'belong to method = "{other}"); remove them or change the method'
-        )
-    kc = out["known_channels"]
-    if kc is not None and (
-        not isinstance(kc, list)
-        or not kc
-        or not all(isinstance(c, str) and c for c in kc)
-        or len(set(kc)) != len(kc)
-    ):
-        raise RecipeError(
-            "[measurement_only] known_channels must be a non-empty list of distinct measurement "
-            f"channel names, got {kc!r}"
-        )
-    nom = out["nominal"]
-    if nom is not None and (not isinstance(nom, dict) or "system" not in nom):
-        raise RecipeError(
-            "[measurement_only] nominal must be a table with 'system' (and parameters), "
-            f"got {nom!r}"
-        )
-    pn = out["process_noise"]
-    if pn is not None:
-        vals = pn if isinstance(pn, list) else [pn]
-        if not vals or not all(
-            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0
-            for v in vals
-        ):
-            raise RecipeError(
-                "[measurement_only] process_noise must be a number > 0 or a list of them (one "
-                f"per state), got {pn!r}"
-            )
-    if out["window"] is not None and not 0 <= out["burn_in"] < out["window"]:
-        raise RecipeError(
-            f"[measurement_only] burn_in must be an integer in [0, window), got {out['burn_in']!r}"
-        )
-    if out["lr"] is not None:
-        out["lr"] = float(out["lr"])
-    return out
+    return complete(mo)
 
 
 def _calibrate(table: Any, path: Path | None) -> dict[str, Any]:

@@ -61,7 +61,12 @@ from torchfilt.io.lock import DirectoryLock
 from torchfilt.io.recording import Recording
 from torchfilt.models import StateSpaceModel
 from torchfilt.pipeline.bundle import BUNDLE_SCHEMA, apply_calibration, build_side, save_bundle
-from torchfilt.pipeline.entry_point import entry_point_digest, entry_point_entry, is_entry_point
+from torchfilt.pipeline.entry_point import (
+    entry_point_digest,
+    entry_point_entry,
+    is_entry_point,
+    load_entry_point,
+)
 from torchfilt.pipeline.recipe import Recipe, check_calibrate, check_states, load_recipe
 from torchfilt.pipeline.run_checks import STAGES, _check_against_dataset
 from torchfilt.pipeline.run_stages import (
@@ -461,7 +466,7 @@ def _train_sides(
                 entries[stage] = _load_stage(done)
                 log(f"{stage}: already trained (resumed)")
                 continue
-            h0 = build_side(_known_entry(r, ds, "measurement"), "measurement")
+            h0 = _sensor(r, ds)
             entries[stage] = _fit_measurement_only_stage(
                 r, ds, h0, train, val, m0, P0, dtype, out, resume, progress, stream, log,
                 fitters,
@@ -470,9 +475,14 @@ def _train_sides(
             _remove(out / MEASUREMENT_ONLY_CHECKPOINT)
             continue
         if "model" in opts:
-            entries[stage] = _known_entry(r, ds, stage)
+            learned = (entries.get("transition") or {}).get("fit", {}).get("measurement_R")
+            R = None if stage != "measurement" or learned is None else learned
+            entries[stage] = _known_entry(r, ds, stage, R)
             what = "built-in" if entries[stage]["kind"] == "system" else "known (entry point)"
-            log(f"{stage}: {what} model {opts['model']}")
+            log(
+                f"{stage}: {what} model {opts['model']}"
+                + ("" if R is None else f", its noise R learned with the transition: {R}")
+            )
             continue
         if resume and done.is_file():
             entries[stage] = _load_stage(done)
@@ -485,17 +495,28 @@ def _train_sides(
     return entries
 
 
-def _known_entry(r: Recipe, ds: Dataset, stage: str) -> dict[str, Any]:
+def _known_entry(r: Recipe, ds: Dataset, stage: str, R: Any = None) -> dict[str, Any]:
     """The bundle entry of a side with a known ``model``: a built-in system, or an entry point
-    (with its ``R`` and its module file's SHA-256)."""
+    (with its ``R``, or the learned ``R`` given, and its module file's SHA-256)."""
     opts = getattr(r, stage)
     spec = str(opts["model"])
     if stage == "measurement" and is_entry_point(spec):
         return entry_point_entry(
-            spec, opts.get("R"), role=stage, state_dim=ds.state_dim, obs_dim=ds.obs_dim,
-            input_dim=ds.input_dim,
+            spec, opts.get("R") if R is None else R, role=stage, state_dim=ds.state_dim,
+            obs_dim=ds.obs_dim, input_dim=ds.input_dim,
         )  # fmt: skip
     return {"kind": "system", "system": spec.split(":", 1)[1]}
+
+
+def _sensor(r: Recipe, ds: Dataset) -> Any:
+    """The known measurement side of a ``states = "none"`` fit: frozen, or with its noise
+    learnable from the recipe's ``R`` (``[measurement_only] learn_measurement_noise``)."""
+    if not r.measurement_only.get("learn_measurement_noise"):
+        return build_side(_known_entry(r, ds, "measurement"), "measurement")
+    return load_entry_point(
+        str(r.measurement["model"]), r.measurement["R"], role="measurement",
+        state_dim=ds.state_dim, obs_dim=ds.obs_dim, input_dim=ds.input_dim, learn_R=True,
+    )[0]  # fmt: skip
 
 
 def _sensor_digests(r: Recipe) -> dict[str, Any]:

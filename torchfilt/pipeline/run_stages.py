@@ -26,6 +26,7 @@ from torchfilt.io.recording import Recording
 from torchfilt.models import CholeskyCovariance, InducingTransition, StateSpaceModel
 from torchfilt.optim import CheckpointOptions, OptimizerOptions, StoppingOptions, WindowOptions
 from torchfilt.pipeline.bundle import inducing_state, nominal_model
+from torchfilt.pipeline.entry_point import learned_noise
 from torchfilt.pipeline.linear_start import linear_em_start
 from torchfilt.pipeline.recipe import OPTION_KEYS, Recipe, fit_options
 from torchfilt.pipeline.recipe_options import option_default
@@ -282,6 +283,17 @@ def _fmt(v: list[float]) -> str:
     return "[" + ", ".join(f"{x:.4g}" for x in v) + "]"
 
 
+def _ended(stopped: str, iterations: int, section: str) -> str:
+    """Why a stage's fit ended, for the log: a fit that used its whole budget says so and how to
+    give it more (``stopped`` is the fit's own ``"iterations"``, ``"converged"``, ...)."""
+    its = f"{iterations} iteration{'s' if iterations != 1 else ''}"
+    if stopped == "iterations":
+        return (
+            f"stopped at its budget of {its}, not converged (raise [{section}] iterations to go on)"
+        )
+    return f"{stopped} after {its}"
+
+
 def _fit_stage(
     r: Recipe,
     stage: str,
@@ -534,7 +546,9 @@ def _fit_measurement_only_stage(
         log(f"transition: resuming from iteration {_checkpoint_iteration(ckpt)}")
     log(
         f"transition: learning from measurements alone ({o['method']}, {model.transition.base.num_inducing} "  # type: ignore[union-attr]
-        f"inducing points, known channels {[ds.manifest.names('measurement')[i] for i in known]})"
+        f"inducing points, known channels {[ds.manifest.names('measurement')[i] for i in known]}"
+        + (", and the sensor's noise R" if o.get("learn_measurement_noise") else "")
+        + ")"
     )
     bar = ProgressBar("train transition", iterations, stream, enabled=progress)
     clock = _StageClock("transition", iterations, log)
@@ -596,8 +610,11 @@ def _fit_measurement_only_stage(
     entry = _measurement_only_entry(fit, o, ds.manifest.names("measurement"))
     if candidates:
         entry["fit"]["candidates"] = candidates
+    R = learned_noise(fit.model.measurement) if learn_R else None
+    if R is not None:  # the bundle's measurement entry takes it (run._train_sides)
+        entry["fit"]["measurement_R"] = R.tolist()
     log(
-        f"transition: {fit.stopped} after {fit.iterations} iterations; log-likelihood "
+        f"transition: {_ended(fit.stopped, fit.iterations, 'measurement_only')}; log-likelihood "
         f"{entry['fit']['initial_log_likelihood']:.6g} -> {fit.log_likelihood:.6g}"
     )
     return entry
@@ -724,7 +741,7 @@ def _calibrate_stage(
     _save(done, entry)
     _remove(ckpt)
     log(
-        f"calibrate: {fit.stopped} after {fit.iterations} iterations; log-likelihood "
+        f"calibrate: {_ended(fit.stopped, fit.iterations, 'calibrate')}; log-likelihood "
         f"{fit.initial_log_likelihood:.6g} -> {fit.log_likelihood:.6g}; "
         + "; ".join(
             f"{k} scale {_fmt(v['scale'])} floor {_fmt(v['floor'])}"
