@@ -225,6 +225,27 @@ def measonly_runs(ray_local, tmp_path_factory):
     return recipe, local, dp
 
 
+def test_data_parallel_learns_the_local_sensor_noise(ray_local, tmp_path):
+    """``learn_measurement_noise = true`` with your own sensor: the actors learn the ``R`` of a
+    local run (summation order apart), and the bundles' sensors hold it."""
+    simulate_dataset("reaction", tmp_path / "data", recordings=4, steps=60, seed=0)
+    text = MEASONLY.format(data=(tmp_path / "data").as_posix()).replace(
+        'model = "system:reaction"\n[filter]',
+        'model = "run_support:total_pressure"\nR = [0.1]\n[filter]',
+    )
+    recipe = tmp_path / "r.toml"
+    recipe.write_text(text.replace("[train]", "learn_measurement_noise = true\n[train]"))
+    a = load_bundle(train_recipe(recipe, tmp_path / "local", progress=False))
+    b = load_bundle(train_recipe_data_parallel(recipe, tmp_path / "dp", workers=2, progress=False))
+    _close(a["transition"], b["transition"], "transition")
+    R = torch.tensor(b["transition"]["fit"]["measurement_R"], dtype=torch.float64)
+    assert abs(float(R) - 0.1) > 1e-3  # it moved from its start
+    torch.testing.assert_close(
+        a["measurement"]["R"], b["measurement"]["R"], rtol=ORDER_RTOL, atol=0
+    )
+    torch.testing.assert_close(b["measurement"]["R"].to(torch.float64), R, rtol=1e-12, atol=0)
+
+
 def test_data_parallel_measurement_only_stage_gives_the_local_bundle(measonly_runs, capsys):
     """``states = "none"``: the EM of the transition stage on two actors learns the transition
     of the local run."""
@@ -313,3 +334,29 @@ def test_without_ray_data_parallel_says_how_to_install(tmp_path, capsys, monkeyp
     assert cli_main(argv) == 2
     assert "torchfilt[distributed]" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
+
+
+def test_actors_import_the_drivers_modules_or_say_which_is_missing(tmp_path, monkeypatch):
+    """An actor adds the driver's folders that exist on its machine to ``sys.path`` before it
+    unpickles the job (a recipe's own sensor module); a module it still cannot import is a
+    MissingDependencyError naming it, not a raw unpickling error."""
+    import pickle
+    import sys
+
+    from torchfilt.exceptions import MissingDependencyError
+
+    folder = tmp_path / "mods"
+    folder.mkdir()
+    (folder / "far_sensor.py").write_text("def h(x):\n    return x\n")
+    monkeypatch.syspath_prepend(str(folder))
+    import far_sensor  # created above
+
+    packed = group_mod._packed({"model": far_sensor.h}, pickle.dumps)
+    assert str(folder) in packed[0]
+    # an actor: another process, without the module and without its folder on sys.path
+    monkeypatch.delitem(sys.modules, "far_sensor")
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p != str(folder)])
+    with pytest.raises(MissingDependencyError, match="cannot import module 'far_sensor'"):
+        group_mod._unpacked(([], packed[1]))
+    job = group_mod._unpacked(packed)  # the driver's folder exists here: found
+    assert job["model"](3) == 3 and str(folder) in sys.path

@@ -3,6 +3,9 @@ process per actor, the driver that waits for them, and the errors of a lost acto
 
 from __future__ import annotations
 
+import os
+import pickle
+import sys
 import threading
 from dataclasses import replace
 from pathlib import Path
@@ -10,7 +13,7 @@ from typing import Any
 
 import torch
 
-from torchfilt.exceptions import InputError, TorchfiltError, WorkerError
+from torchfilt.exceptions import InputError, MissingDependencyError, TorchfiltError, WorkerError
 from torchfilt.optim import FitHooks
 from torchfilt.pipeline.distributed.session import _free_address, import_ray, ray_session
 
@@ -68,6 +71,37 @@ def _fit_rank(rank: int, world: int, init: str, job: dict[str, Any]) -> dict[str
     finally:
         dist.destroy_process_group()
     return {"result": res if rank == 0 else None}
+
+
+def _packed(job: dict[str, Any], dumps: Any) -> tuple[list[str], bytes]:
+    """A job as the actors receive it: the driver's ``sys.path`` and the job pickled (by
+    ``dumps``, Ray's cloudpickle). Unpickling the job imports the modules of the model's
+    functions (a recipe's own sensor, ``package.module:function``), which the actors find only
+    on their own path: :func:`_unpacked` first adds the driver's folders that exist there."""
+    return [p for p in sys.path if p], dumps(job)
+
+
+def _unpacked(packed: tuple[list[str], bytes]) -> dict[str, Any]:
+    """The job of :func:`_packed`, after adding to ``sys.path`` the driver's folders that exist
+    on this machine (a local cluster, or a shared file system).
+
+    Raises:
+        MissingDependencyError: a module of the job cannot be imported here; the message names
+            it and says how to make it importable on the workers.
+    """
+    paths, blob = packed
+    for p in paths:
+        if p not in sys.path and os.path.isdir(p):
+            sys.path.append(p)
+    try:
+        job: dict[str, Any] = pickle.loads(blob)
+    except ModuleNotFoundError as e:
+        raise MissingDependencyError(
+            f"the Ray workers cannot import module {e.name!r}, which the model uses (your own "
+            "sensor's module?): install it where the workers run, or put its folder on their "
+            "PYTHONPATH (for example ray.init(runtime_env={'env_vars': {'PYTHONPATH': ...}}))"
+        ) from None
+    return job
 
 
 def _data(recordings: Any) -> Any:
@@ -142,7 +176,7 @@ def _run_group(
             job["options"] = {**options, "callback": _DriverCallback(relay)}
         try:
             init = ray.get(ranks[0].address.remote())
-            ref = ray.put(job)
+            ref = ray.put(_packed(job, ray.cloudpickle.dumps))
             refs = [a.run.remote(r, workers, init, ref) for r, a in enumerate(ranks)]
             rank_of = {r: i for i, r in enumerate(refs)}
             outs: dict[int, Any] = {}
@@ -246,8 +280,10 @@ class _Rank:
     def address(self) -> str:
         return _free_address()
 
-    def run(self, rank: int, world: int, init: str, job: dict[str, Any]) -> dict[str, Any]:
-        return _fit_rank(rank, world, init, job)
+    def run(
+        self, rank: int, world: int, init: str, packed: tuple[list[str], bytes]
+    ) -> dict[str, Any]:
+        return _fit_rank(rank, world, init, _unpacked(packed))
 
 
 class _Relay:
