@@ -260,6 +260,11 @@ def test_killed_run_resumes_to_the_identical_bundle(fresh, data, tmp_path, monke
         ),
         ('prior = "system:reaction"', 'prior = "data"', r'\[filter\] prior = "data"'),
         ('prior = "system:reaction"', "", r'\[filter\] prior = "data"'),
+        (
+            'prior = "system:reaction"',
+            "prior = false",
+            r"prior must be 'data', 'system:NAME'.*False",
+        ),
         ("iterations = 6", 'method = "gradient"\niterations = 6', r"\[measurement_only\] method"),
         ("iterations = 6", "window = 50\niterations = 6", r"\['window'\]: not an option of"),
         ("[dataset]", "[transition]\nkernel = 'rbf'\n[dataset]", r"\[transition\] \['kernel'\]"),

@@ -695,6 +695,11 @@ def check_states(r: Recipe) -> None:
     f = r.filter
     prior = str(f.get("prior", "data"))
     if "mean" not in f and "cov_diag" not in f and not prior.startswith("system:"):
+        if prior != "data":
+            raise RecipeError(
+                f"[filter] prior must be 'data', 'system:NAME' or mean/cov_diag, got "
+                f"{f.get('prior')!r}"
+            )
         raise RecipeError(
             f'[filter] prior = "{prior}": the prior "data" is the mean and covariance of the '
             'logged initial states, which states = "none" does not have; give prior = '
