@@ -153,3 +153,18 @@ def test_linear_candidate_starts_exactly_at_the_linear_fit(tmp_path) -> None:
     gappy = linear_em_start(h, recs, dtype=DT, **kw)  # type: ignore[arg-type]
     assert gappy is not None and gappy.record["from"] == "random walk"
     assert math.isfinite(gappy.record["linear_log_likelihood"])
+
+
+def test_the_log_says_why_a_stage_fit_ended() -> None:
+    """A budget, an EM stall (with what to try), and the other stops as they are."""
+    from torchfilt.pipeline.run_stages import _ended
+
+    assert _ended("iterations", 30, "calibrate") == (
+        "stopped at its budget of 30 iterations, not converged (raise [calibrate] iterations "
+        "to go on)"
+    )
+    stall = _ended("no improvement", 2, "measurement_only")
+    assert stall.startswith("no improvement after 2 iterations: no EM step raised")
+    assert 'method = "likelihood" may go further' in stall
+    assert _ended("converged", 1, "measurement_only") == "converged after 1 iteration"
+    assert _ended("early stopping", 15, "calibrate") == "early stopping after 15 iterations"

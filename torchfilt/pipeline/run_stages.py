@@ -291,6 +291,12 @@ def _ended(stopped: str, iterations: int, section: str) -> str:
         return (
             f"stopped at its budget of {its}, not converged (raise [{section}] iterations to go on)"
         )
+    if stopped == "no improvement" and section == "measurement_only":
+        return (
+            f"no improvement after {its}: no EM step raised the filter likelihood (its E-step is "
+            'an approximation), which need not be the maximum; method = "likelihood" may go '
+            "further: compare both on held-out recordings"
+        )
     return f"{stopped} after {its}"
 
 
