@@ -122,10 +122,11 @@ def test_pilot_starts_are_scored_on_held_out_data_and_the_best_kept(tmp_path) ->
     assert log.count("transition: candidate start") == len(PILOT_NOISE_SCALES)
     assert log.count("transition: linear-EM candidate") == 1
     assert f"transition: starting from candidate {best + 1}" in log
-    # the fit used its whole budget (RECIPE: 1 iteration): the log says so, and how to go on
+    # the fit used its whole budget (RECIPE: 1 iteration): the log says so, and how to fit longer
     assert (
-        "transition: stopped at its budget of 1 iteration, not converged (raise "
-        "[measurement_only] iterations to go on)" in log
+        "transition: stopped at its budget of 1 iteration, not converged (a new run with a "
+        "larger [measurement_only] iterations fits longer; --resume keeps the recipe as it is)"
+        in log
     )
 
 
@@ -160,8 +161,8 @@ def test_the_log_says_why_a_stage_fit_ended() -> None:
     from torchfilt.pipeline.run_stages import _ended
 
     assert _ended("iterations", 30, "calibrate") == (
-        "stopped at its budget of 30 iterations, not converged (raise [calibrate] iterations "
-        "to go on)"
+        "stopped at its budget of 30 iterations, not converged (a new run with a larger "
+        "[calibrate] iterations fits longer; --resume keeps the recipe as it is)"
     )
     stall = _ended("no improvement", 2, "measurement_only")
     assert stall.startswith("no improvement after 2 iterations: no EM step raised")

@@ -289,7 +289,8 @@ def _ended(stopped: str, iterations: int, section: str) -> str:
     its = f"{iterations} iteration{'s' if iterations != 1 else ''}"
     if stopped == "iterations":
         return (
-            f"stopped at its budget of {its}, not converged (raise [{section}] iterations to go on)"
+            f"stopped at its budget of {its}, not converged (a new run with a larger "
+            f"[{section}] iterations fits longer; --resume keeps the recipe as it is)"
         )
     if stopped == "no improvement" and section == "measurement_only":
         return (
