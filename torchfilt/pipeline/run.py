@@ -476,7 +476,7 @@ def _train_sides(
             continue
         if "model" in opts:
             learned = (entries.get("transition") or {}).get("fit", {}).get("measurement_R")
-            R = None if stage != "measurement" or learned is None else learned
+            R = learned if stage == "measurement" else None
             entries[stage] = _known_entry(r, ds, stage, R)
             what = "built-in" if entries[stage]["kind"] == "system" else "known (entry point)"
             log(

@@ -554,7 +554,7 @@ def _fit_measurement_only_stage(
     log(
         f"transition: learning from measurements alone ({o['method']}, {model.transition.base.num_inducing} "  # type: ignore[union-attr]
         f"inducing points, known channels {[ds.manifest.names('measurement')[i] for i in known]}"
-        + (", and the sensor's noise R" if o.get("learn_measurement_noise") else "")
+        + (", and the sensor's noise R" if o["learn_measurement_noise"] else "")
         + ")"
     )
     bar = ProgressBar("train transition", iterations, stream, enabled=progress)
@@ -617,7 +617,7 @@ def _fit_measurement_only_stage(
     entry = _measurement_only_entry(fit, o, ds.manifest.names("measurement"))
     if candidates:
         entry["fit"]["candidates"] = candidates
-    R = learned_noise(fit.model.measurement) if learn_R else None
+    R = learned_noise(fit.model.measurement) if o["learn_measurement_noise"] else None
     if R is not None:  # the bundle's measurement entry takes it (run._train_sides)
         entry["fit"]["measurement_R"] = R.tolist()
     log(
