@@ -1,8 +1,13 @@
-"""A tiny dataset, recipe and trained bundle, shared by the CLI, bundle and data-safety tests."""
+"""A tiny dataset, recipe and trained bundle, shared by the CLI, bundle and data-safety tests;
+and the pieces several pipeline tests share: a fit interrupted at an iteration, a user's sensor
+module written for one test."""
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from torchfilt.io.synth import simulate_dataset
 from torchfilt.pipeline import train_recipe
@@ -53,3 +58,34 @@ def total_pressure(x):  # type: ignore[no-untyped-def]
     """A user's own sensor for entry-point recipes whose module every process (Ray actors
     included) can import: PA + PB, states ``(..., 2)`` -> ``(..., 1)``."""
     return x.sum(-1, keepdim=True)
+
+
+def interrupted_at(fit: Callable[..., Any], iteration: int) -> Callable[..., Any]:
+    """``fit`` (a stage's fit, called with a ``callback=``) that raises ``KeyboardInterrupt``, as
+    a Ctrl-C would, once its callback has seen ``iteration``."""
+
+    def interrupted(*args: Any, **kwargs: Any) -> Any:
+        inner = kwargs["callback"]
+
+        def cb(state: Any) -> None:
+            inner(state)
+            if state.iteration == iteration:
+                raise KeyboardInterrupt
+
+        return fit(*args, **{**kwargs, "callback": cb})
+
+    return interrupted
+
+
+_modules = itertools.count()
+
+
+def sensor_module(folder: Path, source: str, prefix: str, monkeypatch: Any) -> tuple[str, Path]:
+    """A fresh module ``source`` in ``folder/sensors`` on ``sys.path`` (a new name per call: no
+    import cache between tests); its name and file."""
+    name = f"{prefix}_{next(_modules)}"
+    (folder / "sensors").mkdir()
+    path = folder / "sensors" / f"{name}.py"
+    path.write_text(source)
+    monkeypatch.syspath_prepend(str(folder / "sensors"))
+    return name, path

@@ -9,12 +9,12 @@ cannot learn it is a RecipeError naming the keys."""
 
 from __future__ import annotations
 
-import itertools
 import math
 from pathlib import Path
 
 import pytest
 import torch
+from run_support import interrupted_at, sensor_module
 
 from torchfilt.cli import main
 from torchfilt.exceptions import RecipeError
@@ -58,8 +58,6 @@ def total_pressure(x):
     return x.sum(-1, keepdim=True)
 '''
 
-_names = itertools.count()
-
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory) -> Path:
@@ -70,12 +68,7 @@ def data(tmp_path_factory) -> Path:
 
 @pytest.fixture
 def module(tmp_path, monkeypatch) -> str:
-    name = f"noisy_sensor_{next(_names)}"
-    folder = tmp_path / "sensors"
-    folder.mkdir()
-    (folder / f"{name}.py").write_text(SENSOR)
-    monkeypatch.syspath_prepend(str(folder))
-    return name
+    return sensor_module(tmp_path, SENSOR, "noisy_sensor", monkeypatch)[0]
 
 
 def _recipe(path: Path, data: Path, module: str, iterations: int = 8) -> Path:
@@ -136,19 +129,8 @@ def test_killed_run_resumes_to_the_same_learned_noise(data, module, tmp_path, mo
     recipe = _recipe(tmp_path / "r.toml", data, module, iterations=4)
     fresh = load_bundle(train_recipe(recipe, tmp_path / "fresh", progress=False))
     real = run_mod.fit_measurement_only
-
-    def killed_at_3(*args, **kwargs):
-        inner = kwargs["callback"]
-
-        def cb(state):
-            inner(state)
-            if state.iteration == 3:
-                raise KeyboardInterrupt
-
-        return real(*args, **{**kwargs, "callback": cb})
-
     run = tmp_path / "killed"
-    monkeypatch.setattr(run_mod, "fit_measurement_only", killed_at_3)
+    monkeypatch.setattr(run_mod, "fit_measurement_only", interrupted_at(real, 3))
     with pytest.raises(KeyboardInterrupt):
         train_recipe(recipe, run, progress=False)
     monkeypatch.setattr(run_mod, "fit_measurement_only", real)

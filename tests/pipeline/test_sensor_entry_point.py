@@ -6,11 +6,11 @@ the entry point and its module file's SHA-256, and a changed file is refused on 
 
 from __future__ import annotations
 
-import itertools
 from pathlib import Path
 
 import pytest
 import torch
+from run_support import sensor_module
 
 from torchfilt.exceptions import BundleError, RecipeError, RunError
 from torchfilt.io.synth import simulate_dataset
@@ -51,8 +51,6 @@ def wrong_shape(x):
 NOT_A_FUNCTION = 3
 '''
 
-_names = itertools.count()
-
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory) -> Path:
@@ -64,12 +62,7 @@ def data(tmp_path_factory) -> Path:
 @pytest.fixture
 def sensor(tmp_path, monkeypatch) -> tuple[str, Path]:
     """A fresh sensor module (a new name per test: no import cache between tests)."""
-    name = f"user_sensor_{next(_names)}"
-    folder = tmp_path / "sensors"
-    folder.mkdir()
-    (folder / f"{name}.py").write_text(SENSOR)
-    monkeypatch.syspath_prepend(str(folder))
-    return name, folder / f"{name}.py"
+    return sensor_module(tmp_path, SENSOR, "user_sensor", monkeypatch)
 
 
 def _recipe(path: Path, data: Path, measurement: str) -> Path:

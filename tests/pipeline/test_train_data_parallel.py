@@ -112,18 +112,9 @@ def test_interrupted_data_parallel_run_resumes_to_the_same_bundle(gp_runs, monke
     recipe, _, dp = gp_runs
     real = dp_mod.calibrate_ray
 
-    def interrupted_at_5(*args, **kwargs):
-        inner = kwargs["callback"]
-
-        def cb(state):
-            inner(state)
-            if state.iteration == 5:  # after the checkpoint at 3
-                raise KeyboardInterrupt
-
-        return real(*args, **{**kwargs, "callback": cb})
-
     run = recipe.parent / "killed"
-    monkeypatch.setattr(dp_mod, "calibrate_ray", interrupted_at_5)
+    # interrupted at iteration 5, after the checkpoint at 3
+    monkeypatch.setattr(dp_mod, "calibrate_ray", run_support.interrupted_at(real, 5))
     with pytest.raises(KeyboardInterrupt):
         train_recipe_data_parallel(recipe, run, workers=2, progress=False)
     monkeypatch.setattr(dp_mod, "calibrate_ray", real)
@@ -269,18 +260,9 @@ def test_interrupted_measurement_only_stage_resumes_to_the_same_bundle(measonly_
     recipe, _, dp = measonly_runs
     real = dp_mod.fit_measurement_only_ray
 
-    def interrupted_at_3(*args, **kwargs):
-        inner = kwargs["callback"]
-
-        def cb(state):
-            inner(state)
-            if state.iteration == 3:  # after the checkpoint at 2
-                raise KeyboardInterrupt
-
-        return real(*args, **{**kwargs, "callback": cb})
-
     run = recipe.parent / "killed"
-    monkeypatch.setattr(dp_mod, "fit_measurement_only_ray", interrupted_at_3)
+    # interrupted at iteration 3, after the checkpoint at 2
+    monkeypatch.setattr(dp_mod, "fit_measurement_only_ray", run_support.interrupted_at(real, 3))
     with pytest.raises(KeyboardInterrupt):
         train_recipe_data_parallel(recipe, run, workers=2, progress=False)
     monkeypatch.setattr(dp_mod, "fit_measurement_only_ray", real)

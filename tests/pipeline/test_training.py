@@ -151,19 +151,9 @@ def test_resume_after_kill_during_calibration_equals_uninterrupted(
     fresh = tmp_path / "fresh"
     train_recipe(recipe, fresh, progress=False)
     real = run_mod.calibrate
-
-    def killed_at_8(*args, **kwargs):
-        inner = kwargs["callback"]
-
-        def cb(state):
-            inner(state)
-            if state.iteration == 8:  # after the checkpoint at 6
-                raise KeyboardInterrupt
-
-        return real(*args, **{**kwargs, "callback": cb})
-
     killed = tmp_path / "killed"
-    monkeypatch.setattr(run_mod, "calibrate", killed_at_8)
+    # interrupted at iteration 8, after the checkpoint at 6
+    monkeypatch.setattr(run_mod, "calibrate", run_support.interrupted_at(real, 8))
     with pytest.raises(KeyboardInterrupt):
         train_recipe(recipe, killed, progress=False)
     assert (killed / "calibrate.ckpt").is_file() and not (killed / "model.pt").exists()

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from run_support import interrupted_at
 
 import torchfilt
 from torchfilt.cli import main as cli_main
@@ -224,19 +225,10 @@ def test_killed_run_resumes_to_the_identical_bundle(fresh, data, tmp_path, monke
 
     real = run_mod.fit_measurement_only
 
-    def killed_at_3(*args, **kwargs):
-        inner = kwargs["callback"]
-
-        def cb(state):
-            inner(state)
-            if state.iteration == 3:  # after the checkpoint at 2
-                raise KeyboardInterrupt
-
-        return real(*args, **{**kwargs, "callback": cb})
-
     recipe = write(tmp_path / "r.toml", data)
     run = tmp_path / "killed"
-    monkeypatch.setattr(run_mod, "fit_measurement_only", killed_at_3)
+    # interrupted at iteration 3, after the checkpoint at 2
+    monkeypatch.setattr(run_mod, "fit_measurement_only", interrupted_at(real, 3))
     with pytest.raises(KeyboardInterrupt):
         train_recipe(recipe, run, progress=False)
     assert (run / "transition.ckpt").is_file() and not (run / "transition.pt").exists()
