@@ -6,6 +6,7 @@ data-parallel hook see every iteration."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -242,12 +243,50 @@ def test_guarded_step_never_leaves_the_finite_region():
             break
     assert res.status == "failed" and not res.loss_finite
     assert torch.equal(x.detach(), before[-2]) and float(x.detach()) >= 0.88
-    # L-BFGS: a non-finite iteration is retried once with its curvature forgotten, then fails
+    # L-BFGS: a non-finite iteration is retried with its curvature forgotten, then with the
+    # learning rate shortened tenfold SHRINKS times, then fails
     y = torch.tensor([1.0], dtype=torch.float64, requires_grad=True)
     lbfgs = GuardedStep([y], OptimizerOptions("lbfgs"))
     inf = lambda: torch.tensor(math.inf, dtype=torch.float64)  # noqa: E731
-    assert [lbfgs(inf).status, lbfgs(inf).status] == ["retry", "failed"]
+    statuses = [lbfgs(inf).status for _ in range(GuardedStep.SHRINKS + 2)]
+    assert statuses == ["retry"] * (GuardedStep.SHRINKS + 1) + ["failed"]
     assert float(y.detach()) == 1.0
+    assert lbfgs.optimizer.param_groups[0]["lr"] == pytest.approx(10.0**-GuardedStep.SHRINKS)
+
+
+def _badly_scaled(x: torch.Tensor, nan_grad: bool) -> Callable[[], torch.Tensor]:
+    """``-log x0 + 1000 x0 + (x1 - 1)^2`` (minimum at ``(1e-3, 1)``), ``+inf`` for ``x0 <= 0``:
+    from ``(0.01, 3)`` L-BFGS's first step (the gradient normalised to one unit) lands far
+    below 0, and its strong-Wolfe search, which interpolates through ``+inf``, finds nothing.
+    ``nan_grad``: the non-finite evaluation leaves a NaN gradient (the search then ends on NaN
+    parameters) rather than none (it then ends where it started)."""
+
+    def closure() -> torch.Tensor:
+        x.grad = None
+        if not bool(x[0].detach() > 0):
+            if nan_grad:
+                x.grad = torch.full_like(x, math.nan)
+            return torch.tensor(math.inf, dtype=torch.float64)
+        f = -torch.log(x[0]) + 1e3 * x[0] + (x[1] - 1) ** 2
+        f.backward()
+        return f.detach()
+
+    return closure
+
+
+@pytest.mark.parametrize("nan_grad", [False, True])
+def test_lbfgs_shortens_its_learning_rate_when_the_search_finds_only_non_finite(nan_grad):
+    # before the shortening, both variants stayed at the start for ever: "ok" without a move
+    # (then "converged" by the loop's rule) or "failed"
+    x = torch.tensor([0.01, 3.0], dtype=torch.float64, requires_grad=True)
+    guarded = GuardedStep([x], OptimizerOptions("lbfgs"))
+    closure = _badly_scaled(x, nan_grad)
+    statuses = [guarded(closure).status for _ in range(12)]
+    assert "failed" not in statuses and statuses.count("retry") <= GuardedStep.SHRINKS + 1
+    # the minimum of -log x0 + 1000 x0 is x0 = 1 / 1000
+    torch.testing.assert_close(
+        x.detach(), torch.tensor([1e-3, 1.0], dtype=torch.float64), rtol=1e-3, atol=1e-6
+    )
 
 
 def test_options_are_checked_and_defaults_differ_where_documented():

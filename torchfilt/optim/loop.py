@@ -24,7 +24,11 @@ iteration does (an optimiser step, an E- and an M-step), returning an :class:`Ou
 
 :class:`GuardedStep` is the optimiser step of the gradient fits: Adam or L-BFGS
 (:func:`make_optimizer`), never leaving the finite region (a non-finite loss or parameter
-restores the last good parameters; L-BFGS then forgets its curvature once and tries again).
+restores the last good parameters; L-BFGS then forgets its curvature once and tries again; an
+L-BFGS line search that ran into the non-finite region and found no lower loss, so that the
+parameters did not move, shortens the learning rate tenfold and tries again, at most
+:attr:`GuardedStep.SHRINKS` times: a badly scaled problem, where one parameter's gradient is many
+orders of magnitude another's, would otherwise end at its start, reported as converged).
 :func:`failed_step` turns a factorisation that failed inside a fit's step (a user's model that
 calls ``torch.linalg.cholesky``) into a :class:`~torchfilt.exceptions.FitError` naming the fit
 and the step.
@@ -196,7 +200,8 @@ class StepResult(NamedTuple):
         good: the parameters ``loss`` scores (before the step) when it is finite; else the last
             parameters scored finite (where a failed step leaves them); each of any shape (its
             parameter's).
-        status: ``"ok"``; ``"retry"`` (L-BFGS left the finite region: the parameters are back at
+        status: ``"ok"``; ``"retry"`` (L-BFGS left the finite region, or its line search met
+            only non-finite or higher losses and did not move: the parameters are back at
             ``good``, its curvature is forgotten, the iteration does not count); ``"failed"``
             (non-finite again: the parameters are back at ``good``).
     """
@@ -215,7 +220,15 @@ class GuardedStep:
         options: the optimiser.
         project: called after every step to project the parameters back onto their feasible set
             in place.
+
+    An L-BFGS step whose line search evaluated a non-finite loss and left the parameters where
+    they were shortens the optimiser's learning rate tenfold (kept for the rest of the fit, and
+    in its checkpoint, as the optimiser's state) and is retried, down to ``10 ** -SHRINKS`` of
+    the learning rate it started with.
     """
+
+    #: tenfold shortenings of the L-BFGS learning rate after a stalled line search
+    SHRINKS = 3
 
     def __init__(
         self,
@@ -244,8 +257,16 @@ class GuardedStep:
                     self.project()
         else:
             self.good = snapshot(self.params)
+            evaluations = [0, 0]  # all, non-finite
+
+            def counted() -> Tensor:
+                value = closure()
+                evaluations[0] += 1
+                evaluations[1] += 0 if bool(torch.isfinite(value)) else 1
+                return value
+
             try:
-                loss_t = opt.step(closure)  # type: ignore[assignment,arg-type]
+                loss_t = opt.step(counted)  # type: ignore[assignment,arg-type]
             except IndexError:
                 # torch's strong-Wolfe search fails when every trial step was non-finite (and
                 # the same on every process of a data-parallel fit: the loss is their sum)
@@ -253,6 +274,10 @@ class GuardedStep:
             if self.project is not None:
                 self.project()
             finite = bool(torch.isfinite(loss_t))
+            if finite and evaluations[1] > 0 and self._stalled() and self._shorten():
+                # the search met only non-finite or higher losses and stayed at the start
+                opt.state.clear()
+                return StepResult(float(loss_t), True, self.good, "retry")
         loss = float(loss_t)
         loss_finite, good = finite, self.good
         finite = finite and all(bool(torch.isfinite(p).all()) for p in self.params)
@@ -260,13 +285,30 @@ class GuardedStep:
             self.retried = False
             return StepResult(loss, loss_finite, good, "ok")
         restore(self.params, good)
-        if self.options.optimizer == "lbfgs" and not self.retried:
+        if self.options.optimizer == "lbfgs" and (not self.retried or self._shorten()):
             # a line search that left the finite region: forget the curvature history and start
-            # again from the last good parameters with a short first step
+            # again from the last good parameters with a short first step (again: a shorter
+            # learning rate)
             self.retried = True
             opt.state.clear()
             return StepResult(loss, loss_finite, good, "retry")
         return StepResult(loss, loss_finite, good, "failed")
+
+    def _stalled(self) -> bool:
+        """Whether the parameters are exactly where the step started (``good``)."""
+        assert self.good is not None
+        return all(torch.equal(p.detach(), g) for p, g in zip(self.params, self.good, strict=True))
+
+    def _shorten(self) -> bool:
+        """Shorten the L-BFGS learning rate tenfold, unless it is already ``10 ** -SHRINKS`` of
+        the options' (then ``False``)."""
+        floor = self.options.learning_rate * 10.0 ** (-self.SHRINKS) * (1 + 1e-9)
+        groups = self.optimizer.param_groups
+        if any(float(g["lr"]) <= floor for g in groups):
+            return False
+        for g in groups:
+            g["lr"] = float(g["lr"]) * 0.1
+        return True
 
 
 class EarlyStopping:
