@@ -209,6 +209,8 @@ def measurement_only_row(
         "iterations": fit.iterations,
         "stopped": fit.stopped,
         "noise_scale": None if fit.noise_scale is None else fit.noise_scale._asdict(),
+        "method": fit.method,
+        "compared": fit.compared,
         "warnings": sorted({str(w.message) for w in caught}),
     }
     return {**evaluate(fit.model, test), "train_s": seconds, "raised": None}, record
@@ -237,7 +239,7 @@ def verdict(rows: dict[str, dict[str, Any]], method: str) -> dict[str, Any]:
 
 
 #: the measurement-only fits of the case
-METHODS = ("em", "likelihood")
+METHODS = ("auto", "em", "likelihood")
 
 
 def check_methods(methods: tuple[str, ...]) -> tuple[str, ...]:
@@ -247,7 +249,7 @@ def check_methods(methods: tuple[str, ...]) -> tuple[str, ...]:
         ValueError: naming ``methods``.
     """
     if not methods or set(methods) - set(METHODS):
-        raise ValueError(f"methods: expected some of 'em', 'likelihood', got {methods!r}")
+        raise ValueError(f"methods: expected some of {', '.join(METHODS)}, got {methods!r}")
     return methods
 
 

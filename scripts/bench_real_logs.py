@@ -41,9 +41,10 @@ Standardisation uses the training part's mean and standard deviation. Every mode
 * ``torchfilt GP (measurement only)``: :meth:`InducingTransition.model_from_linear` on the best
   linear fit (the L-BFGS one where it raised EM's likelihood, else EM's; ``start`` in the JSON),
   ``--inducing`` points on its smoothed training states, then
-  :func:`~torchfilt.training.fit_measurement_only` with its defaults (EM, 30 iterations,
-  ``noise_scale="auto"``: the last fifth of the training log held out to scale the process
-  noise);
+  :func:`~torchfilt.training.fit_measurement_only` with its defaults (``method="auto"``: EM
+  and the likelihood method from the same start, 30 iterations each, the better log-likelihood
+  on the last fifth of the training log kept; ``noise_scale="auto"``: that fifth then scales the
+  process noise; until 2026-12-05 the default was EM alone);
 * ``torchfilt GP (measurement only, accelerate=True)``: the same with SQUAREM cycles over EM's
   gradient M-step (``accelerate=True``; each of the 30 iterations three or four M-steps).
 
@@ -232,6 +233,8 @@ def gp_row(
         "log_likelihood": mo.log_likelihood,
         "e_steps": mo.history[-1].get("e_steps") if mo.history else None,
         "noise_scale": None if mo.noise_scale is None else mo.noise_scale._asdict(),
+        "method": mo.method,
+        "compared": mo.compared,
     }
 
 

@@ -98,7 +98,7 @@ def test_learned_noise_is_the_api_fit_and_the_bundle_keeps_it(data, module, tmp_
     start = _measurement_only_model(r, h, train, 2, 0, m0, P0, torch.float64)
     fit = fit_measurement_only(
         start, [rec.measurements[1:] for rec in train], x0=m0, P0=P0, known_channels=[0],
-        iterations=8, m_step_iterations=5, noise_scale="none",
+        iterations=8, m_step_iterations=5, noise_scale="none", method="em",
     )  # fmt: skip
     assert torch.allclose(learned, fit.model.measurement.noise_cov().detach(), rtol=1e-8)
     # towards the simulator's noise from ten times it

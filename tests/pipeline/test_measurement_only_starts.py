@@ -167,5 +167,6 @@ def test_the_log_says_why_a_stage_fit_ended() -> None:
     stall = _ended("no improvement", 2, "measurement_only")
     assert stall.startswith("no improvement after 2 iterations: no EM step raised")
     assert 'method = "likelihood" may go further' in stall
+    assert 'method = "auto" runs both' in stall
     assert _ended("converged", 1, "measurement_only") == "converged after 1 iteration"
     assert _ended("early stopping", 15, "calibrate") == "early stopping after 15 iterations"

@@ -125,7 +125,7 @@ def test_patience_given_to_em_warns_that_em_has_no_early_stopping():
     assert fit.iterations == 2
     with pytest.warns(ConvergenceWarning, match="fit_em has no early stopping"):
         torchfilt.fit_measurement_only(
-            lg, y, **kw, stopping=StoppingOptions(patience=3), noise_scale="none"
+            lg, y, **kw, stopping=StoppingOptions(patience=3), noise_scale="none", method="em"
         )
     with warnings.catch_warnings():
         warnings.simplefilter("error")

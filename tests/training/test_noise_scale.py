@@ -178,7 +178,7 @@ def test_fit_measurement_only_fits_the_heads_then_scales():
     p = make_problem(8, T=10, missing=0.0)
     y = t64(_simulate(p, 2, 60, seed=9))
     x0, P0 = t64(p["m0"]), t64(p["P0"])
-    kw = dict(x0=x0, P0=P0, known_channels=[0, 1], iterations=3)
+    kw = dict(x0=x0, P0=P0, known_channels=[0, 1], iterations=3, method="em")
     fit = fit_measurement_only(_linear(p, 0.3), y, noise_scale="held-out", holdout=0.25, **kw)
     heads = fit_measurement_only(_linear(p, 0.3), y[:, :45], noise_scale="none", **kw)
     assert fit.noise_scale is not None and heads.noise_scale is None
@@ -204,7 +204,7 @@ def test_auto_scales_when_held_out_data_can_be_scored():
     validation=; else, with a fixed Q, or for a model whose noise cannot be scaled, "none"."""
     p = make_problem(8, T=10, missing=0.0)
     x0, P0 = t64(p["m0"]), t64(p["P0"])
-    kw = dict(x0=x0, P0=P0, known_channels=[0, 1], iterations=3)
+    kw = dict(x0=x0, P0=P0, known_channels=[0, 1], iterations=3, method="em")
     long = t64(_simulate(p, 2, 80, seed=11))  # 2 x 16 held-out steps: 32
     auto = fit_measurement_only(_linear(p, 0.3), long, **kw)
     held = fit_measurement_only(_linear(p, 0.3), long, noise_scale="held-out", **kw)
@@ -267,7 +267,7 @@ def test_five_or_more_recordings_hold_out_whole_ones():
     train, scored, starts = split_held_out(_linear(p), data, 0.2, dtype=DT)
     assert starts is None and len(train.y) == 5 and len(scored.y) == 1
     torch.testing.assert_close(scored.y[0], y[5], rtol=0, atol=0)
-    kw = dict(x0=x0, P0=P0, known_channels=[0, 1], iterations=3)
+    kw = dict(x0=x0, P0=P0, known_channels=[0, 1], iterations=3, method="em")
     fit = fit_measurement_only(_linear(p, 0.3), y, noise_scale="held-out", **kw)
     first = fit_measurement_only(_linear(p, 0.3), y[:5], noise_scale="none", **kw)
     assert fit.log_likelihood == pytest.approx(first.log_likelihood, rel=1e-12)

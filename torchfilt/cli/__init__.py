@@ -217,6 +217,16 @@ def _info(args: argparse.Namespace) -> int:
             f"{float(mo.get('initial_log_likelihood', float('nan'))):.6g} -> "
             f"{float(mo.get('log_likelihood', float('nan'))):.6g})"
         )
+        for c in mo.get("compared") or []:  # method = "auto": both methods' scores
+            score = c.get("score")
+            what = (
+                f"{c.get('basis')} log-likelihood {float(score):.6g}"
+                if score is not None
+                else f"not fitted ({c.get('error') or c.get('skipped')})"
+            )
+            print(
+                f"  method auto:  {c.get('method')}, {what}" + (", kept" if c.get("kept") else "")
+            )
         if mo.get("measurement_R") is not None:
             print(f"  sensor noise: R learned with the transition, {mo['measurement_R']}")
     if spec.info:

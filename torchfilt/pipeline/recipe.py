@@ -251,11 +251,13 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
         Key(
             "method",
             '`"em"`',
-            '`"em"` (expectation-maximisation with the cubature RTS smoother) or `"likelihood"` '
-            "(the filter's innovation likelihood maximised directly); see "
+            '`"em"` (expectation-maximisation with the cubature RTS smoother), `"likelihood"` '
+            '(the filter\'s innovation likelihood maximised directly), or `"auto"`: both from '
+            "the same start, the better log-likelihood on the validation recordings kept (the "
+            "two fits' time; one process only, not `--ray --data-parallel`); see "
             "`torchfilt.fit_measurement_only`",
             kind="choice",
-            choices=("em", "likelihood"),
+            choices=("em", "likelihood", "auto"),
         ),
         _option_key("measurement_only", "iterations", "posint"),
         Key(

@@ -34,7 +34,7 @@ MEASUREMENT_ONLY_DEFAULTS: dict[str, Any] = {
     "accelerate": False,
     "learn_measurement_noise": False,
 }
-#: The keys that only ``method = "em"`` takes.
+#: The keys that only ``method = "em"`` (or ``"auto"``) takes.
 EM_ONLY = ("m_step_iterations", "accelerate")
 
 
@@ -42,10 +42,10 @@ def complete(mo: dict[str, Any]) -> dict[str, Any]:
     """``[measurement_only]`` whose keys and values passed the per-key checks, completed with
     its defaults and checked as a whole; a ``RecipeError`` names the key."""
     out = {**MEASUREMENT_ONLY_DEFAULTS, **mo}
+    keys: tuple[str, ...] = ()  # "auto" runs both methods: it takes the keys of both
     if out["method"] == "em":
-        keys: tuple[str, ...] = ("window", "burn_in", "optimizer", "lr")
-        other = "likelihood"
-    else:
+        keys, other = ("window", "burn_in", "optimizer", "lr"), "likelihood"
+    elif out["method"] == "likelihood":
         keys, other = EM_ONLY, "em"
     wrong = [k for k in keys if out[k] != MEASUREMENT_ONLY_DEFAULTS[k]]
     if wrong:

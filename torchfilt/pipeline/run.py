@@ -60,6 +60,7 @@ from torchfilt.io.atomic import output_dir
 from torchfilt.io.lock import DirectoryLock
 from torchfilt.io.recording import Recording
 from torchfilt.models import StateSpaceModel
+from torchfilt.optim import CheckpointOptions
 from torchfilt.pipeline.bundle import BUNDLE_SCHEMA, apply_calibration, build_side, save_bundle
 from torchfilt.pipeline.entry_point import (
     entry_point_digest,
@@ -69,15 +70,8 @@ from torchfilt.pipeline.entry_point import (
 )
 from torchfilt.pipeline.recipe import Recipe, check_calibrate, check_states, load_recipe
 from torchfilt.pipeline.run_checks import STAGES, _check_against_dataset
-from torchfilt.pipeline.run_stages import (
-    CALIBRATE_CHECKPOINT,
-    LOCAL_FITTERS,
-    MEASUREMENT_ONLY_CHECKPOINT,
-    StageFitters,
-    _calibrate_stage,
+from torchfilt.pipeline.run_files import (
     _checkpoint_iteration,
-    _fit_measurement_only_stage,
-    _fit_stage,
     _fmt,
     _load_checkpoint,
     _load_stage,
@@ -86,7 +80,17 @@ from torchfilt.pipeline.run_stages import (
     _remove,
     _save,
 )
+from torchfilt.pipeline.run_stages import (
+    CALIBRATE_CHECKPOINT,
+    LOCAL_FITTERS,
+    MEASUREMENT_ONLY_CHECKPOINT,
+    StageFitters,
+    _calibrate_stage,
+    _fit_measurement_only_stage,
+    _fit_stage,
+)
 from torchfilt.training.calibrate import consistency
+from torchfilt.training.method_choice import method_checkpoint
 from torchfilt.training.validation import one_step_metrics
 
 __all__ = [
@@ -179,6 +183,12 @@ def train_recipe(
         ds = load_dataset(r.dataset)
     prior = _check_against_dataset(r, ds)
     n_train = len(ds.split("train"))
+    if fitters.measurement_only is not None and r.states == "none":
+        if r.measurement_only["method"] == "auto":
+            raise InputError(
+                f'{fitters.name}: [measurement_only] method = "auto" runs both methods in one '
+                'process; with these fitters choose method = "em" or "likelihood"'
+            )
     if fitters.shards > n_train:
         raise InputError(
             f"{fitters.name}: the fits deal the training recordings to {fitters.shards} "
@@ -472,7 +482,8 @@ def _train_sides(
                 fitters,
             )  # fmt: skip
             _save(done, entries[stage])
-            _remove(out / MEASUREMENT_ONLY_CHECKPOINT)
+            for ck in _transition_checkpoints(out).values():
+                _remove(ck)
             continue
         if "model" in opts:
             learned = (entries.get("transition") or {}).get("fit", {}).get("measurement_R")
@@ -573,6 +584,17 @@ def _validate(
     return validation
 
 
+def _transition_checkpoints(out: Path) -> dict[str, Path]:
+    """The ``states = "none"`` transition fit's checkpoints in run directory ``out``, by the
+    method the metrics lines name (``""``: one method; ``"em"``, ``"likelihood"``: those of
+    ``method = "auto"``, :func:`~torchfilt.training.method_choice.method_checkpoint`)."""
+    ckpt = out / MEASUREMENT_ONLY_CHECKPOINT
+    files = {"": ckpt}
+    for m in ("em", "likelihood"):
+        files[m] = Path(str(method_checkpoint(CheckpointOptions(ckpt), m).path))
+    return files
+
+
 def _trim_metrics(path: Path, ckpt: dict[str, Any] | None, fresh: bool) -> None:
     """Drop metric lines logged after the checkpoint a run resumes from (they will be redone)."""
     if fresh or not path.is_file():
@@ -583,10 +605,13 @@ def _trim_metrics(path: Path, ckpt: dict[str, Any] | None, fresh: bool) -> None:
     cal_done = (path.parent / "calibration.pt").is_file()
     cal_ckpt = path.parent / CALIBRATE_CHECKPOINT
     cal_it = _checkpoint_iteration(cal_ckpt) if cal_ckpt.exists() else 0
-    # a states = "none" transition fit keeps its own checkpoint (fit_measurement_only's)
-    mo_ckpt = path.parent / MEASUREMENT_ONLY_CHECKPOINT
-    mo_open = mo_ckpt.exists() and not (path.parent / "transition.pt").is_file()
-    mo_it = _checkpoint_iteration(mo_ckpt) if mo_open else 0
+    # a states = "none" transition fit keeps its own checkpoint (fit_measurement_only's; one
+    # per method under method = "auto", whose metrics lines name their method)
+    mo_open = not (path.parent / "transition.pt").is_file()
+    mo_its = {
+        m: _checkpoint_iteration(ck) if ck.exists() else 0
+        for m, ck in _transition_checkpoints(path.parent).items()
+    }
     lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
     for i, line in enumerate(lines):
         try:
@@ -604,8 +629,8 @@ def _trim_metrics(path: Path, ckpt: dict[str, Any] | None, fresh: bool) -> None:
             if cal_done or rec["iteration"] <= cal_it:
                 keep.append(line)
             continue
-        if mo_open and rec.get("stage") == "transition":
-            if rec["iteration"] <= mo_it:
+        if mo_open and rec.get("stage") == "transition" and any(mo_its.values()):
+            if rec["iteration"] <= mo_its.get(str(rec.get("method", "")), 0):
                 keep.append(line)
             continue
         if ckpt is None:

@@ -4,11 +4,8 @@ transition fit, the calibration; their checkpoints, metrics lines and log, and t
 
 from __future__ import annotations
 
-import datetime as _dt
-import io
 import json
 import math
-import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -19,7 +16,7 @@ from torch import Tensor
 
 from torchfilt.exceptions import RunError
 from torchfilt.filters import CKF
-from torchfilt.io import Dataset, atomic_write_bytes
+from torchfilt.io import Dataset
 from torchfilt.io.atomic import output_error
 from torchfilt.io.progress import ProgressBar
 from torchfilt.io.recording import Recording
@@ -31,10 +28,21 @@ from torchfilt.pipeline.linear_start import linear_em_start
 from torchfilt.pipeline.recipe import OPTION_KEYS, Recipe, fit_options
 from torchfilt.pipeline.recipe_options import option_default
 from torchfilt.pipeline.run_checks import STAGES, _feature_indices, _known_channels
+from torchfilt.pipeline.run_files import (
+    _checkpoint_iteration,
+    _ended,
+    _fmt,
+    _Log,
+    _remove,
+    _save,
+    _StageClock,
+    _tensor_list,
+)
 from torchfilt.training.calibrate import CalibrationResult, calibrate
 from torchfilt.training.data import FitData
 from torchfilt.training.likelihood import LikelihoodState
 from torchfilt.training.measurement_only import EMState, MeasurementOnlyFit, fit_measurement_only
+from torchfilt.training.method_choice import method_checkpoint
 
 __all__ = [
     "CALIBRATE_CHECKPOINT",
@@ -104,7 +112,7 @@ class MeasurementOnlyFitter(Protocol):
         x0: Tensor,
         P0: Tensor,
         known_channels: Sequence[int] | None,
-        method: Literal["em", "likelihood"],
+        method: Literal["auto", "em", "likelihood"],
         learn_measurement_noise: bool,
         m_step_iterations: int,
         compile: bool,
@@ -118,6 +126,7 @@ class MeasurementOnlyFitter(Protocol):
         windows: WindowOptions | None = ...,
         stopping: StoppingOptions | None = ...,
         accelerate: bool | None = ...,
+        validation: FitData | None = ...,
     ) -> MeasurementOnlyFit: ...
 
 
@@ -165,140 +174,6 @@ _LOCAL_CONTRACTS: tuple[CalibrateFitter, MeasurementOnlyFitter] = (calibrate, fi
 def _given(r: Recipe, section: str) -> frozenset[str] | None:
     """The keys section ``section`` of the recipe file wrote (``None``: a recipe built in code)."""
     return None if r.given is None else r.given.get(section, frozenset())
-
-
-def _now() -> str:
-    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
-
-
-def _tensor_list(v: Tensor) -> Any:
-    v = v.detach().cpu()
-    return v.item() if v.numel() == 1 else v.tolist()
-
-
-#: Iterations after which a stage logs its estimated remaining time.
-ESTIMATE_AFTER = 5
-
-
-class _StageClock:
-    """Logs, once, a stage's estimated remaining time: after :data:`ESTIMATE_AFTER` iterations
-    of this process (a resumed stage counts from where it resumed), at their mean rate."""
-
-    def __init__(self, stage: str, total: int, log: _Log) -> None:
-        self.stage, self.total, self.log = stage, int(total), log
-        self.first: tuple[int, float] | None = None
-        self.done = False
-
-    def tick(self, iteration: int, elapsed: float) -> None:
-        """Record iteration ``iteration`` ending ``elapsed`` seconds into the fit."""
-        if self.done:
-            return
-        if self.first is None:
-            self.first = (iteration, elapsed)
-            return
-        it0, t0 = self.first
-        if iteration - it0 < ESTIMATE_AFTER or iteration >= self.total:
-            return
-        self.done = True
-        rate = (elapsed - t0) / (iteration - it0)
-        left = rate * (self.total - iteration)
-        self.log(
-            f"{self.stage}: about {left:.0f} s left at most ({rate:.2g} s per iteration, "
-            f"{self.total - iteration} iterations to the budget; it stops earlier when it "
-            "converges)"
-        )
-
-
-class _Log:
-    """Plain lines to ``train.log`` (always) and to the console when progress is off."""
-
-    def __init__(self, path: Path, echo: TextIO | None) -> None:
-        self.path = path
-        try:
-            self.fh = open(path, "a", encoding="utf-8")
-        except OSError as e:
-            raise output_error(path, e) from None
-        self.echo = echo
-
-    def __call__(self, msg: str) -> None:
-        line = f"{_now()} {msg}\n"
-        try:
-            self.fh.write(line)
-            self.fh.flush()
-        except OSError as e:
-            raise output_error(self.path, e) from None
-        if self.echo is not None:
-            self.echo.write(msg + "\n")
-            self.echo.flush()
-
-    def close(self) -> None:
-        self.fh.close()
-
-
-def _remove(path: Path) -> None:
-    """Remove a run file, or a stage checkpoint folder (of a data-parallel fit), if present."""
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path)
-    elif path.is_file():
-        path.unlink()
-
-
-def _load_checkpoint(path: Path) -> dict[str, Any]:
-    """Read a checkpoint written by this module (plain data only), with a clear error if unusable."""
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:
-        raise RunError(
-            f"{path}: unreadable checkpoint ({type(e).__name__}); delete it to restart the stage "
-            "it belongs to"
-        ) from None
-    if not isinstance(ckpt, dict) or ckpt.get("stage") not in STAGES or "fit" not in ckpt:
-        raise RunError(
-            f"{path}: not a torchfilt training checkpoint; delete it to restart the stage"
-        )
-    return ckpt
-
-
-def _load_stage(path: Path) -> dict[str, Any]:
-    """A finished stage's entry (plain data only), with a clear error if unusable."""
-    try:
-        entry = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:
-        raise RunError(
-            f"{path}: unreadable stage file ({type(e).__name__}); delete it to retrain the stage"
-        ) from None
-    if not isinstance(entry, dict) or "kind" not in entry:
-        raise RunError(f"{path}: not a torchfilt stage file; delete it to retrain the stage")
-    return entry
-
-
-def _save(path: Path, obj: dict[str, Any]) -> None:
-    """``torch.save`` into memory, then one atomic write (temporary file + rename)."""
-    buf = io.BytesIO()
-    torch.save(obj, buf)
-    atomic_write_bytes(path, buf.getvalue())
-
-
-def _fmt(v: list[float]) -> str:
-    return "[" + ", ".join(f"{x:.4g}" for x in v) + "]"
-
-
-def _ended(stopped: str, iterations: int, section: str) -> str:
-    """Why a stage's fit ended, for the log: a fit that used its whole budget says so and how to
-    give it more (``stopped`` is the fit's own ``"iterations"``, ``"converged"``, ...)."""
-    its = f"{iterations} iteration{'s' if iterations != 1 else ''}"
-    if stopped == "iterations":
-        return (
-            f"stopped at its budget of {its}, not converged (a new run with a larger "
-            f"[{section}] iterations fits longer; --resume keeps the recipe as it is)"
-        )
-    if stopped == "no improvement" and section == "measurement_only":
-        return (
-            f"no improvement after {its}: no EM step raised the filter likelihood (its E-step is "
-            'an approximation), which need not be the maximum; method = "likelihood" may go '
-            "further: compare both on held-out recordings"
-        )
-    return f"{stopped} after {its}"
 
 
 def _fit_stage(
@@ -518,6 +393,53 @@ def _start(
     return models[best], records
 
 
+class _TransitionLog:
+    """The ``states = "none"`` transition fit's callback: a ``metrics.jsonl`` line, the progress
+    bar, the estimated time and a log line at every checkpoint, per iteration; under
+    ``method = "auto"`` each labelled with the method that runs (each has its own iterations,
+    estimate and checkpoint)."""
+
+    def __init__(
+        self, out: Path, counted: int, iterations: int, every: int, auto: bool,
+        progress: bool, stream: TextIO, log: _Log,
+    ) -> None:  # fmt: skip
+        self.counted, self.iterations, self.every, self.auto = counted, iterations, every, auto
+        self.log = log
+        self.clocks: dict[str, _StageClock] = {}
+        self.bar = ProgressBar("train transition", iterations, stream, enabled=progress)
+        try:
+            self.metrics = open(out / "metrics.jsonl", "a", encoding="utf-8")
+        except OSError as e:
+            raise output_error(out / "metrics.jsonl", e) from None
+
+    def __call__(self, state: Any) -> None:
+        ll = float(state.log_likelihood)
+        loss = float(getattr(state, "loss", -ll / self.counted))
+        rec = {
+            "stage": "transition",
+            "iteration": state.iteration,
+            "loss": loss,
+            "log_likelihood": ll,
+            "elapsed": state.elapsed,
+        }
+        method = "em" if isinstance(state, EMState) else "likelihood"
+        label = f"transition ({method})" if self.auto else "transition"
+        if self.auto:
+            rec["method"] = method
+        self.metrics.write(json.dumps(rec) + "\n")
+        self.metrics.flush()
+        self.bar.update(state.iteration, f"loss {loss:.4g}")
+        clock = self.clocks.setdefault(label, _StageClock(label, self.iterations, self.log))
+        clock.tick(state.iteration, state.elapsed)
+        if state.iteration % self.every == 0 or state.iteration == state.iterations:
+            self.log(
+                f"{label}: iteration {state.iteration}/{state.iterations} loss {loss:.6g} (checkpoint)"
+            )
+
+    def close(self) -> None:
+        self.metrics.close()
+
+
 def _fit_measurement_only_stage(
     r: Recipe,
     ds: Dataset,
@@ -549,45 +471,26 @@ def _fit_measurement_only_stage(
     if o.get("accelerate"):  # passed only when set: a fitter of before need not know it
         options["accelerate"] = True
     ckpt = out / MEASUREMENT_ONLY_CHECKPOINT
-    if resume and ckpt.exists():
-        log(f"transition: resuming from iteration {_checkpoint_iteration(ckpt)}")
+    auto = o["method"] == "auto"
+    for m in ("em", "likelihood") if auto else ("",):
+        path = method_checkpoint(CheckpointOptions(ckpt), m).path if m else ckpt
+        if resume and path is not None and Path(path).exists():
+            label = f" ({m})" if m else ""
+            log(f"transition{label}: resuming from iteration {_checkpoint_iteration(Path(path))}")
     log(
         f"transition: learning from measurements alone ({o['method']}, {model.transition.base.num_inducing} "  # type: ignore[union-attr]
         f"inducing points, known channels {[ds.manifest.names('measurement')[i] for i in known]}"
         + (", and the sensor's noise R" if o["learn_measurement_noise"] else "")
         + ")"
     )
-    bar = ProgressBar("train transition", iterations, stream, enabled=progress)
-    clock = _StageClock("transition", iterations, log)
-    every = r.checkpoint_every
-    try:
-        metrics = open(out / "metrics.jsonl", "a", encoding="utf-8")
-    except OSError as e:
-        raise output_error(out / "metrics.jsonl", e) from None
-
-    def callback(state: Any) -> None:
-        ll = float(state.log_likelihood)
-        loss = float(getattr(state, "loss", -ll / counted))
-        metrics.write(
-            json.dumps(
-                {
-                    "stage": "transition",
-                    "iteration": state.iteration,
-                    "loss": loss,
-                    "log_likelihood": ll,
-                    "elapsed": state.elapsed,
-                }
-            )
-            + "\n"
+    if auto:  # the methods are compared on the validation recordings (the training ones without)
+        options["validation"] = val or None
+        log(
+            "transition: method auto: EM, then the likelihood method, from the same start; the "
+            f"better {'validation' if val else 'training'} log-likelihood is kept"
         )
-        metrics.flush()
-        bar.update(state.iteration, f"loss {loss:.4g}")
-        clock.tick(state.iteration, state.elapsed)
-        if state.iteration % every == 0 or state.iteration == state.iterations:
-            log(
-                f"transition: iteration {state.iteration}/{state.iterations} loss {loss:.6g} (checkpoint)"
-            )
-
+    every = r.checkpoint_every
+    callback = _TransitionLog(out, counted, iterations, every, auto, progress, stream, log)
     learn_R = any(p.requires_grad for p in model.measurement.parameters())
     fitter = fitters.measurement_only or fit_measurement_only  # looked up now: patchable
     try:
@@ -613,7 +516,18 @@ def _fit_measurement_only_stage(
             **options,
         )
     finally:
-        metrics.close()
+        callback.close()
+    if auto:
+        for rec in fit.compared:
+            what = (
+                f"{rec['basis']} log-likelihood {rec['score']:.6g}"
+                if "error" not in rec and "skipped" not in rec
+                else f"not fitted: {rec.get('error', rec.get('skipped'))}"
+            )
+            log(
+                f"transition: method auto: {rec['method']}: {what}"
+                + (", kept" if rec["kept"] else "")
+            )
     entry = _measurement_only_entry(fit, o, ds.manifest.names("measurement"))
     if candidates:
         entry["fit"]["candidates"] = candidates
@@ -642,26 +556,22 @@ def _measurement_only_entry(
         "per_measurement": fit.per_measurement,
         "options": dict(o),
     }
+    if fit.compared:  # method = "auto": both methods' records (a score of -inf: None; no
+        # seconds: a resumed run writes the identical record)
+        info["compared"] = [
+            {
+                k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                for k, v in c.items()
+                if k != "elapsed"
+            }
+            for c in fit.compared
+        ]
     return {
         "kind": "inducing",
         "nominal": o["nominal"],
         "state": inducing_state(fit.model.transition),
         "fit": info,
     }
-
-
-def _checkpoint_iteration(path: Path) -> int:
-    """The iteration a stage checkpoint resumes from: that of its file, or the lowest of the files
-    in its folder (a data-parallel fit's processes agree on the latest iteration all of them
-    saved); 0 where unreadable."""
-    if path.is_dir():
-        its = [_checkpoint_iteration(p) for p in sorted(path.glob("*.ckpt"))]
-        return min(its, default=0)
-    try:
-        ck = torch.load(path, map_location="cpu", weights_only=True)
-        return int(ck["iteration"])
-    except Exception:
-        return 0
 
 
 def _calibrate_stage(

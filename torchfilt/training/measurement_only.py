@@ -1,6 +1,7 @@
 """Learning a state-space model from measurements alone (no logged states).
 
-Two methods, chosen by ``method`` of :func:`fit_measurement_only`:
+Two methods, chosen by ``method`` of :func:`fit_measurement_only` (its default ``"auto"`` runs
+both and keeps the better by held-out likelihood: :mod:`torchfilt.training.method_choice`):
 
 ``"em"`` (:func:`fit_em`): expectation-maximisation with the cubature RTS smoother.
     *E-step*: the CKF and the RTS smoother give the smoothed moments of every state and of every
@@ -55,7 +56,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Collection, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 from typing import Any, Literal, NamedTuple
@@ -85,7 +86,7 @@ from torchfilt.optim import (
     free_parameters,
     resolve_options,
 )
-from torchfilt.training.data import FitData, Sequences, as_sequences
+from torchfilt.training.data import FitData, as_sequences
 from torchfilt.training.em_accel import Squarem
 from torchfilt.training.em_steps import (
     SmoothedPairs,
@@ -104,15 +105,8 @@ from torchfilt.training.likelihood import (
     _fit_likelihood,
     _recordings,
 )
-from torchfilt.training.noise_scale import (
-    INFLATE_SCALES,
-    NoiseScale,
-    check_holdout,
-    held_out_noise_scale,
-    scales_by_default,
-    split_held_out,
-    with_process_noise_scale,
-)
+from torchfilt.training.method_choice import fit_both_methods, held_out_scaled, method_checkpoint
+from torchfilt.training.noise_scale import NoiseScale, check_holdout, scales_by_default
 
 __all__ = [
     "EMFit",
@@ -200,6 +194,11 @@ class MeasurementOnlyFit:
             transition variance (:class:`~torchfilt.training.noise_scale.NoiseScale`), which
             ``model`` carries; the record above is the fit's on the data it saw (before the
             scale). ``None`` otherwise.
+        compared: with ``method="auto"``, one record per method (``method``, ``score``: the
+            log-likelihood it was compared by, ``basis``: ``"held-out"``, ``"validation"`` or
+            ``"training"``, ``kept``, and its fit's ``log_likelihood``, ``iterations``,
+            ``stopped``, ``elapsed``, or the ``error`` it failed with, or why it was
+            ``skipped``); empty otherwise.
     """
 
     model: StateSpaceModel
@@ -215,6 +214,7 @@ class MeasurementOnlyFit:
     initial_log_likelihood: float = math.nan
     candidates: list[dict[str, Any]] = field(default_factory=list)
     noise_scale: NoiseScale | None = None
+    compared: list[dict[str, Any]] = field(default_factory=list)
 
 
 # ----------------------------------------------------------------------------------- EM
@@ -552,7 +552,7 @@ def fit_measurement_only(
     callback: Callable[[EMState | LikelihoodState], bool | None] | None = None,
     dtype: torch.dtype = torch.float64,
     rule: CubatureRule | None = None,
-    method: Literal["em", "likelihood"] = "em",
+    method: Literal["auto", "em", "likelihood"] = "auto",
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
     accelerate: bool | None = None,
@@ -585,8 +585,8 @@ def fit_measurement_only(
         known_channels: the gauge (see :func:`check_gauge`).
         fixed: the parameters held fixed (see :func:`fit_em` and
             :func:`~torchfilt.training.fit_likelihood`).
-        validation: held-out data for early stopping (``"likelihood"`` only), of any kind ``y``
-            accepts.
+        validation: held-out data, of any kind ``y`` accepts: for the likelihood method's
+            early stopping, the choice of ``"auto"`` and the noise scale.
         iterations: EM iterations, or optimiser iterations (default 30).
         optimizer: of :func:`~torchfilt.training.fit_likelihood` (``"likelihood"`` only;
             default L-BFGS).
@@ -604,8 +604,12 @@ def fit_measurement_only(
             :class:`~torchfilt.training.LikelihoodState`); return ``True`` to stop.
         dtype: floating dtype.
         rule: cubature rule.
-        method: ``"em"`` (:func:`fit_em`) or ``"likelihood"``
-            (:func:`~torchfilt.training.fit_likelihood`).
+        method: ``"em"`` (:func:`fit_em`), ``"likelihood"``
+            (:func:`~torchfilt.training.fit_likelihood`), or ``"auto"`` (the default): both,
+            each from its own copy of ``model`` (left as given), the higher held-out
+            log-likelihood kept (:mod:`~torchfilt.training.method_choice`; the result's
+            ``compared``); a ``checkpoint`` file ``run.pt`` becomes ``run.em.pt`` and
+            ``run.likelihood.pt``.
         learn_measurement_noise: of :func:`fit_em` (``"em"`` only).
         m_step_iterations: of :func:`fit_em` (``"em"`` only).
         accelerate: of :func:`fit_em` (``"em"`` only): ``True`` runs SQUAREM cycles over the
@@ -650,8 +654,8 @@ def fit_measurement_only(
             failed factorisation) is scored ``+inf``, so the line search shortens the step, and
             a step that ends non-finite is undone (:class:`~torchfilt.optim.GuardedStep`).
     """
-    if method not in ("em", "likelihood"):
-        raise InputError(f"method must be 'em' or 'likelihood', got {method!r}")
+    if method not in ("auto", "em", "likelihood"):
+        raise InputError(f"method must be 'auto', 'em' or 'likelihood', got {method!r}")
     if method == "likelihood" and accelerate is not None:
         raise InputError("accelerate: of method='em' only (SQUAREM cycles of EM's M-steps)")
     if noise_scale not in ("auto", "none", "held-out"):
@@ -665,6 +669,23 @@ def fit_measurement_only(
         "measurement_only", iterations=iterations, optimizer=optimizer, windows=windows,
         stopping=stopping, checkpoint=checkpoint, hooks=hooks,
     )  # fmt: skip
+    if method == "auto":
+
+        def one(m: str, start: StateSpaceModel, fy: FitData) -> MeasurementOnlyFit:
+            return fit_measurement_only(
+                start, fy, None, x0=x0, P0=P0, known_channels=known, fixed=fixed,
+                validation=validation, iterations=iterations, optimizer=optimizer,
+                windows=windows, stopping=stopping, checkpoint=method_checkpoint(o.checkpoint, m),
+                hooks=hooks, progress=progress, callback=callback, dtype=dtype, rule=rule,
+                method=m, learn_measurement_noise=learn_measurement_noise,  # type: ignore[arg-type]
+                m_step_iterations=m_step_iterations, accelerate=accelerate if m == "em" else None,
+                compile=compile, noise_scale="none",
+            )  # fmt: skip
+
+        return fit_both_methods(
+            one, model, as_sequences(y, u, x0=x0, P0=P0), validation, holdout, noise_scale,
+            fixed=tuple(fixed), dtype=dtype, rule=rule, all_reduce=o.hooks.all_reduce,
+        )  # fmt: skip
     if noise_scale != "none":
         data = as_sequences(y, u, x0=x0, P0=P0)
         if noise_scale == "held-out" or scales_by_default(
@@ -683,7 +704,7 @@ def fit_measurement_only(
                     noise_scale="none",
                 )  # fmt: skip
 
-            return _held_out_scaled(
+            return held_out_scaled(
                 fit, model, data, validation, holdout,
                 dtype=dtype, rule=rule, all_reduce=o.hooks.all_reduce,
             )  # fmt: skip
@@ -729,45 +750,6 @@ def fit_measurement_only(
         detail=lf,
         initial_log_likelihood=lf.initial_log_likelihood,
     )
-
-
-def _held_out_scaled(
-    fit: Callable[[FitData], MeasurementOnlyFit],
-    model: StateSpaceModel,
-    data: Sequences,
-    validation: FitData | None,
-    holdout: float,
-    *,
-    dtype: torch.dtype,
-    rule: CubatureRule | None,
-    all_reduce: Callable[[Tensor], None] | None,
-) -> MeasurementOnlyFit:
-    """``fit`` on the kept part of ``data`` (:func:`split_held_out`: whole recordings or the
-    heads; all of it, with ``validation``), its process noise then scaled by the held-out part
-    (or ``validation``), from :data:`INFLATE_SCALES`. A data-parallel fit sums the held-out
-    scores over its processes (each splits its own recordings); ``validation`` is every
-    process's own copy of the same data (as for the likelihood fit's early stopping), scored
-    without a sum."""
-    if validation is None:
-        kept, scored, starts = split_held_out(model, data, holdout, dtype=dtype)
-        result = fit(kept)
-        choice = held_out_noise_scale(
-            result.model, scored, starts, dtype=dtype, rule=rule, all_reduce=all_reduce,
-            scales=INFLATE_SCALES,
-        )  # fmt: skip
-    else:
-        result = fit(data)
-        x0, P0 = data.x0, data.P0
-        assert x0 is not None and P0 is not None  # as_sequences with the fit's prior
-        n = model.state_dim
-        val = as_sequences(
-            validation, x0=x0.reshape(-1, n)[0], P0=P0.reshape(-1, n, n)[0], name="validation"
-        )
-        choice = held_out_noise_scale(
-            result.model, val, None, dtype=dtype, rule=rule, scales=INFLATE_SCALES
-        )
-    scaled = with_process_noise_scale(result.model, choice.scale, dtype=dtype)
-    return replace(result, model=scaled, noise_scale=choice)
 
 
 def _check_likelihood_fit(lf: LikelihoodFit, name: str) -> None:

@@ -220,8 +220,24 @@ def scales_by_default(
         return False
     if any(name == "Q" or name.startswith("transition.") for name in fixed):
         return False
-    if validation:
-        return True
+    return validation or enough_held_out(data, holdout, all_reduce=all_reduce)
+
+
+def enough_held_out(
+    data: Sequences, holdout: float, *, all_reduce: Callable[[Tensor], None] | None = None
+) -> bool:
+    """Whether holding out ``holdout`` of ``data`` (:func:`split_held_out`) leaves at least
+    :data:`AUTO_MIN_HELD_OUT` held-out steps in all (over the processes of a data-parallel fit,
+    with ``all_reduce``).
+
+    Args:
+        data: the training recordings.
+        holdout: the fraction held out.
+        all_reduce: sums a flat tensor across the processes of a data-parallel fit.
+
+    Returns:
+        Whether the held-out part is long enough to score.
+    """
     lengths = _lengths(data.y)
     k = _whole_held_out(len(lengths), holdout)
     steps = sum(lengths[-k:]) if k else sum(math.floor(holdout * T) for T in lengths)

@@ -210,7 +210,10 @@ def fit_measurement_only_ray(
         WorkerError: an actor was lost.
     """
     if method not in ("em", "likelihood"):
-        raise InputError(f"method must be 'em' or 'likelihood', got {method!r}")
+        raise InputError(
+            f"method must be 'em' or 'likelihood', got {method!r} ('auto', which runs both, "
+            "is fit_measurement_only's, in one process)"
+        )
     ckpt = _checkpoint("measurement_only", checkpoint)
     options: dict[str, Any] = {
         "x0": x0,

@@ -1,0 +1,141 @@
+"""A ``states = "none"`` recipe with ``[measurement_only] method = "auto"``: EM, then the
+likelihood method, from the same start, the better validation log-likelihood kept; the train log
+and the bundle say which and why; a run killed in the second fit resumes to the identical
+bundle. The data and recipe are those of test_training_measurement_only.py (the 2A -> B
+reaction, its states removed), whose ``fresh`` run (method = "em") is the reference for EM's
+part."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+from test_training_measurement_only import _assert_same_learned_model, data, fresh, write
+
+import torchfilt
+from torchfilt.cli import main as cli_main
+from torchfilt.exceptions import InputError
+from torchfilt.pipeline import load_bundle, train_recipe
+from torchfilt.pipeline.run_stages import StageFitters
+from torchfilt.systems import get_system
+from torchfilt.training import LikelihoodState
+
+__all__ = ["data", "fresh"]  # the fixtures, shared
+
+#: the recipe with method = "auto" (both methods take their own keys)
+AUTO = 'method = "auto"\nlr = 0.5\niterations = 6'
+
+
+def _auto(path: Path, data: Path) -> Path:
+    recipe = write(path, data)
+    recipe.write_text(recipe.read_text().replace("iterations = 6", AUTO, 1))
+    return recipe
+
+
+@pytest.fixture(scope="module")
+def auto_run(tmp_path_factory, data) -> Path:
+    root = tmp_path_factory.mktemp("auto_run")
+    return train_recipe(_auto(root / "r.toml", data), root / "run", progress=False)
+
+
+def _score(bundle: dict[str, Any], data: Path) -> float:
+    """The validation log-likelihood of the bundle's uncalibrated transition, independently:
+    the CKF over the validation recordings from the system's prior."""
+    from torchfilt.pipeline.bundle import build_side
+
+    spec = get_system("reaction")
+    model = torchfilt.StateSpaceModel(
+        build_side(bundle["transition"], "transition"), spec.model().measurement
+    )
+    ds = torchfilt.load_dataset(data, require_finite=("input",), optional=("state",))
+    ckf = torchfilt.CKF(model)
+    with torch.no_grad():
+        return sum(
+            float(
+                ckf.filter(
+                    r.measurements[1:], x0=spec.prior_mean(), P0=spec.prior_cov()
+                ).log_likelihood
+            )
+            for r in ds.split("validation")
+        )
+
+
+def test_auto_keeps_the_better_method_and_says_so(auto_run, fresh, data, capsys):
+    b = load_bundle(auto_run)
+    fit = b["transition"]["fit"]
+    compared = fit["compared"]
+    assert [c["method"] for c in compared] == ["em", "likelihood"]
+    assert all(c["basis"] == "validation" for c in compared)
+    kept = [c for c in compared if c["kept"]]
+    assert len(kept) == 1 and fit["method"] == kept[0]["method"]
+    assert kept[0]["score"] == max(c["score"] for c in compared)
+    # EM's part is the method = "em" run's fit (EM does not use the validation recordings)
+    em = load_bundle(fresh)["transition"]["fit"]
+    assert compared[0]["log_likelihood"] == pytest.approx(em["log_likelihood"], rel=1e-10)
+    # the kept score is the validation log-likelihood of the bundle's learned transition
+    assert kept[0]["score"] == pytest.approx(_score(b, data), rel=1e-9)
+    log = (auto_run.parent / "train.log").read_text()
+    assert "method auto: EM, then the likelihood method" in log
+    assert "transition: method auto: em: validation log-likelihood" in log
+    assert f"transition: method auto: {fit['method']}: validation log-likelihood" in log
+    assert ", kept" in log and "transition (likelihood): iteration" in log
+    lines = [json.loads(x) for x in (auto_run.parent / "metrics.jsonl").read_text().splitlines()]
+    for m in ("em", "likelihood"):
+        its = [r["iteration"] for r in lines if r.get("method") == m]
+        assert its == list(
+            range(1, next(c for c in compared if c["method"] == m)["iterations"] + 1)
+        )
+    assert not list(auto_run.parent.glob("transition*.ckpt"))
+    assert cli_main(["info", str(auto_run)]) == 0
+    info = capsys.readouterr().out
+    assert f"learned from: measurements alone (method {fit['method']}," in info
+    assert "method auto:  em, validation log-likelihood" in info
+    assert "method auto:  likelihood, validation log-likelihood" in info and ", kept" in info
+
+
+def test_auto_killed_in_the_likelihood_fit_resumes_to_the_identical_bundle(
+    auto_run, data, tmp_path, monkeypatch
+):
+    import torchfilt.pipeline.run_stages as run_mod
+
+    real = run_mod.fit_measurement_only
+
+    def killed(*args: Any, **kwargs: Any) -> Any:
+        inner = kwargs["callback"]
+
+        def cb(state: Any) -> None:
+            inner(state)
+            if isinstance(state, LikelihoodState) and state.iteration == 3:
+                raise KeyboardInterrupt
+
+        return real(*args, **{**kwargs, "callback": cb})
+
+    recipe = _auto(tmp_path / "r.toml", data)
+    run = tmp_path / "killed"
+    monkeypatch.setattr(run_mod, "fit_measurement_only", killed)
+    with pytest.raises(KeyboardInterrupt):
+        train_recipe(recipe, run, progress=False)
+    assert (run / "transition.em.ckpt").is_file() and (run / "transition.likelihood.ckpt").is_file()
+    monkeypatch.setattr(run_mod, "fit_measurement_only", real)
+    train_recipe(recipe, run, resume=True, progress=False)
+    _assert_same_learned_model(load_bundle(run / "model.pt"), load_bundle(auto_run))
+    lines = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    fit = load_bundle(auto_run)["transition"]["fit"]
+    for c in fit["compared"]:
+        its = [r["iteration"] for r in lines if r.get("method") == c["method"]]
+        assert its == list(range(1, c["iterations"] + 1))
+    assert "transition (likelihood): resuming from iteration" in (run / "train.log").read_text()
+    assert math.isfinite(fit["log_likelihood"])
+
+
+def test_auto_is_refused_with_other_fitters(data, tmp_path):
+    fitters = StageFitters(measurement_only=lambda *a, **k: None, name="ray")  # type: ignore[arg-type]
+    with pytest.raises(InputError, match='method = "auto" runs both methods in one process'):
+        train_recipe(
+            _auto(tmp_path / "r.toml", data), tmp_path / "run", progress=False, fitters=fitters
+        )
+    assert not (tmp_path / "run").exists()
