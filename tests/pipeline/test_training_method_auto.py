@@ -1,7 +1,8 @@
-"""A ``states = "none"`` recipe with ``[measurement_only] method = "auto"``: EM, then the
+"""A ``states = "none"`` recipe with ``[measurement_only] method = "both"``: EM, then the
 likelihood method, from the same start, the better validation log-likelihood kept; the train log
 and the bundle say which and why; a run killed in the second fit resumes to the identical
-bundle. The data and recipe are those of test_training_measurement_only.py (the 2A -> B
+bundle. ``method = "auto"`` runs the second only where EM stalls: here EM ends at its budget, and
+its run is the ``method = "em"`` run with the comparison's record. The data and recipe are those of test_training_measurement_only.py (the 2A -> B
 reaction, its states removed), whose ``fresh`` run (method = "em") is the reference for EM's
 part."""
 
@@ -26,13 +27,14 @@ from torchfilt.training import LikelihoodState
 
 __all__ = ["data", "fresh"]  # the fixtures, shared
 
-#: the recipe with method = "auto" (both methods take their own keys)
-AUTO = 'method = "auto"\nlr = 0.5\niterations = 6'
+#: the recipe with method = "both" (both methods take their own keys)
+AUTO = 'method = "both"\nlr = 0.5\niterations = 6'
 
 
-def _auto(path: Path, data: Path) -> Path:
+def _auto(path: Path, data: Path, method: str = "both") -> Path:
     recipe = write(path, data)
-    recipe.write_text(recipe.read_text().replace("iterations = 6", AUTO, 1))
+    text = AUTO.replace('"both"', f'"{method}"')
+    recipe.write_text(recipe.read_text().replace("iterations = 6", text, 1))
     return recipe
 
 
@@ -79,9 +81,9 @@ def test_auto_keeps_the_better_method_and_says_so(auto_run, fresh, data, capsys)
     # the kept score is the validation log-likelihood of the bundle's learned transition
     assert kept[0]["score"] == pytest.approx(_score(b, data), rel=1e-9)
     log = (auto_run.parent / "train.log").read_text()
-    assert "method auto: EM, then the likelihood method" in log
-    assert "transition: method auto: em: validation log-likelihood" in log
-    assert f"transition: method auto: {fit['method']}: validation log-likelihood" in log
+    assert "method both: EM, then the likelihood method, from the same start" in log
+    assert "transition: method both: em: validation log-likelihood" in log
+    assert f"transition: method both: {fit['method']}: validation log-likelihood" in log
     assert ", kept" in log and "transition (likelihood): iteration" in log
     lines = [json.loads(x) for x in (auto_run.parent / "metrics.jsonl").read_text().splitlines()]
     for m in ("em", "likelihood"):
@@ -93,8 +95,8 @@ def test_auto_keeps_the_better_method_and_says_so(auto_run, fresh, data, capsys)
     assert cli_main(["info", str(auto_run)]) == 0
     info = capsys.readouterr().out
     assert f"learned from: measurements alone (method {fit['method']}," in info
-    assert "method auto:  em, validation log-likelihood" in info
-    assert "method auto:  likelihood, validation log-likelihood" in info and ", kept" in info
+    assert "compared:     em, validation log-likelihood" in info
+    assert "compared:     likelihood, validation log-likelihood" in info and ", kept" in info
 
 
 def test_auto_killed_in_the_likelihood_fit_resumes_to_the_identical_bundle(
@@ -134,8 +136,23 @@ def test_auto_killed_in_the_likelihood_fit_resumes_to_the_identical_bundle(
 
 def test_auto_is_refused_with_other_fitters(data, tmp_path):
     fitters = StageFitters(measurement_only=lambda *a, **k: None, name="ray")  # type: ignore[arg-type]
-    with pytest.raises(InputError, match='method = "auto" runs both methods in one process'):
+    with pytest.raises(InputError, match='method = "both" runs both methods in one process'):
         train_recipe(
             _auto(tmp_path / "r.toml", data), tmp_path / "run", progress=False, fitters=fitters
         )
     assert not (tmp_path / "run").exists()
+
+
+def test_auto_keeps_an_em_that_did_not_stall(fresh, data, tmp_path):
+    b = load_bundle(
+        train_recipe(_auto(tmp_path / "r.toml", data, "auto"), tmp_path / "run", progress=False)
+    )
+    fit = b["transition"]["fit"]
+    em = load_bundle(fresh)["transition"]
+    assert fit["method"] == "em" and fit["log_likelihood"] == em["fit"]["log_likelihood"]
+    for k, v in em["state"].items():
+        assert torch.equal(b["transition"]["state"][k], v) if isinstance(v, torch.Tensor) else True
+    assert "not stalled" in fit["compared"][1]["skipped"] and fit["compared"][1]["score"] is None
+    log = (tmp_path / "run" / "train.log").read_text()
+    assert 'method auto: EM, then the likelihood method if EM stops with "no improvement"' in log
+    assert "transition: method auto: likelihood: not fitted: EM ended 'iterations'" in log

@@ -88,7 +88,9 @@ def check_fits(data: st.DataObject) -> None:
     options: dict = {"iterations": data.draw(st.integers(1, 2), label="iterations")}
     em = fit == "fit_em"
     if fit == "fit_measurement_only":
-        options["method"] = data.draw(st.sampled_from(["em", "likelihood", "auto"]), "method")
+        options["method"] = data.draw(
+            st.sampled_from(["em", "likelihood", "auto", "both"]), "method"
+        )
         em = options["method"] == "em"
         scale = data.draw(st.sampled_from(["auto", "none", "held-out"]), label="noise scale")
         if scale == "held-out":

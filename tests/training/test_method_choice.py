@@ -1,7 +1,8 @@
-"""fit_measurement_only(method="auto"): both methods from the same start, the better kept by
+"""fit_measurement_only(method="both"): both methods from the same start, the better kept by
 the held-out innovation likelihood, scored here by the textbook Kalman filter of
-tests/reference.py (the model is linear-Gaussian: a GP transition without inducing points),
-float64, seeded."""
+tests/reference.py (the model is linear-Gaussian: a GP transition without inducing points);
+method="auto" (the default): the likelihood method only after an EM that stalls or fails
+(a small re-entry radar case, where EM stalls). Float64, seeded."""
 
 from __future__ import annotations
 
@@ -71,7 +72,7 @@ def test_auto_keeps_the_method_with_the_better_held_out_likelihood():
     y = _data()
     start = _start()
     before = {k: v.clone() for k, v in start.state_dict().items()}
-    fit = fit_measurement_only(start, y, **KW)  # type: ignore[arg-type]
+    fit = fit_measurement_only(start, y, **KW, method="both")  # type: ignore[arg-type]
     # the given model is left as given
     assert all(torch.equal(v, before[k]) for k, v in start.state_dict().items())
     assert [r["method"] for r in fit.compared] == ["em", "likelihood"]
@@ -100,7 +101,7 @@ def test_auto_keeps_the_method_with_the_better_held_out_likelihood():
 
 def test_auto_without_held_out_data_compares_the_training_likelihood():
     y = _data()
-    fit = fit_measurement_only(_start(), y, **KW, noise_scale="none")  # type: ignore[arg-type]
+    fit = fit_measurement_only(_start(), y, **KW, method="both", noise_scale="none")  # type: ignore[arg-type]
     assert fit.noise_scale is None and {r["basis"] for r in fit.compared} == {"training"}
     for record in fit.compared:
         alone = fit_measurement_only(_start(), y, **KW, method=record["method"], noise_scale="none")  # type: ignore[arg-type]
@@ -156,7 +157,7 @@ class _Killed(Exception):
 
 def test_each_method_checkpoints_to_its_own_file_and_a_killed_run_resumes(tmp_path):
     y = _data()
-    whole = fit_measurement_only(_start(), y, **KW)  # type: ignore[arg-type]
+    whole = fit_measurement_only(_start(), y, **KW, method="both")  # type: ignore[arg-type]
     path = tmp_path / "run.pt"
 
     def killed(state):  # type: ignore[no-untyped-def]
@@ -164,11 +165,11 @@ def test_each_method_checkpoints_to_its_own_file_and_a_killed_run_resumes(tmp_pa
             raise _Killed  # killed in the likelihood fit, after EM finished
 
     with pytest.raises(_Killed):
-        fit_measurement_only(_start(), y, **KW, checkpoint=path, callback=killed)  # type: ignore[arg-type]
+        fit_measurement_only(_start(), y, **KW, method="both", checkpoint=path, callback=killed)  # type: ignore[arg-type]
     assert (tmp_path / "run.em.pt").exists() and (tmp_path / "run.likelihood.pt").exists()
     assert not path.exists()
     resumed = fit_measurement_only(
-        _start(), y, **KW, checkpoint=CheckpointOptions(path, resume=True)
+        _start(), y, **KW, method="both", checkpoint=CheckpointOptions(path, resume=True)
     )  # type: ignore[arg-type]
     assert resumed.method == whole.method
     assert [r["score"] for r in resumed.compared] == [r["score"] for r in whole.compared]
@@ -178,7 +179,7 @@ def test_each_method_checkpoints_to_its_own_file_and_a_killed_run_resumes(tmp_pa
 
 def test_validation_recordings_decide_and_both_fit_all_the_data():
     y, val = _data(), _data(seed=4)
-    fit = fit_measurement_only(_start(), y, **KW, validation=val, noise_scale="none")  # type: ignore[arg-type]
+    fit = fit_measurement_only(_start(), y, **KW, method="both", validation=val, noise_scale="none")  # type: ignore[arg-type]
     assert {r["basis"] for r in fit.compared} == {"validation"} and fit.noise_scale is None
     for record in fit.compared:
         alone = fit_measurement_only(
@@ -187,3 +188,53 @@ def test_validation_recordings_decide_and_both_fit_all_the_data():
         assert record["score"] == pytest.approx(_reference_score(alone.model, val, 0), rel=1e-9)
         assert record["log_likelihood"] == pytest.approx(alone.log_likelihood, rel=1e-12)
     assert fit.method == max(fit.compared, key=lambda r: r["score"])["method"]
+
+
+def test_auto_keeps_an_em_that_did_not_stall_as_em_alone():
+    y = _data()
+    auto = fit_measurement_only(_start(), y, **KW)  # type: ignore[arg-type]
+    em = fit_measurement_only(_start(), y, **KW, method="em")  # type: ignore[arg-type]
+    assert auto.method == "em" and auto.stopped == "iterations"
+    assert "EM ended 'iterations', not stalled" in auto.compared[1]["skipped"]
+    assert auto.log_likelihood == em.log_likelihood and auto.noise_scale == em.noise_scale
+    for a, b in zip(auto.model.parameters(), em.model.parameters(), strict=True):
+        assert torch.equal(a, b)
+
+
+def _radar() -> StateSpaceModel:
+    """Re-entry from radar range (torchfilt.systems.reentry): the drag law's log air-density
+    decay learned from 3e-5 (true 5e-5), the radar's gain and offset from 1.005 and 500 ft."""
+    from torch import nn
+
+    from torchfilt.models import AffineSensor, DiagonalCovariance, FunctionModel, ScalarCovariance
+    from torchfilt.systems import reentry
+
+    class Drag(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.log_gamma = nn.Parameter(torch.tensor(math.log(3e-5), dtype=DT))
+
+        def forward(self, x: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
+            return reentry.transition(x, gamma=self.log_gamma.exp())
+
+    q = DiagonalCovariance(torch.tensor([1e2, 1e2, 1e-10], dtype=DT))
+    h = AffineSensor(reentry.measurement, out_dim=1, scale=1.005, bias=500.0)
+    return StateSpaceModel(
+        FunctionModel(Drag(), q, name="transition"),
+        h,
+        R=ScalarCovariance(torch.tensor(4e4, dtype=DT), 1),
+    )
+
+
+def test_auto_fits_the_likelihood_method_after_an_em_that_stalls():
+    from torchfilt.systems import reentry
+
+    y = reentry.simulate_truth(2, steps=60, seed=11).measurements
+    x0, P0 = torch.tensor(reentry.PRIOR_MEAN, dtype=DT), reentry.prior_cov()
+    kw = dict(x0=x0, P0=P0, known_channels=[0], iterations=2, noise_scale="none")
+    auto = fit_measurement_only(_radar(), y, **kw)  # type: ignore[arg-type]
+    em, lik = auto.compared
+    assert em["stopped"] == "no improvement" and "skipped" not in lik
+    both = fit_measurement_only(_radar(), y, **kw, method="both")  # type: ignore[arg-type]
+    assert [c["score"] for c in auto.compared] == [c["score"] for c in both.compared]
+    assert auto.method == both.method == max(auto.compared, key=lambda c: c["score"])["method"]

@@ -217,7 +217,7 @@ def _info(args: argparse.Namespace) -> int:
             f"{float(mo.get('initial_log_likelihood', float('nan'))):.6g} -> "
             f"{float(mo.get('log_likelihood', float('nan'))):.6g})"
         )
-        for c in mo.get("compared") or []:  # method = "auto": both methods' scores
+        for c in mo.get("compared") or []:  # method = "auto" or "both": both methods' scores
             score = c.get("score")
             what = (
                 f"{c.get('basis')} log-likelihood {float(score):.6g}"
@@ -225,7 +225,7 @@ def _info(args: argparse.Namespace) -> int:
                 else f"not fitted ({c.get('error') or c.get('skipped')})"
             )
             print(
-                f"  method auto:  {c.get('method')}, {what}" + (", kept" if c.get("kept") else "")
+                f"  compared:     {c.get('method')}, {what}" + (", kept" if c.get("kept") else "")
             )
         if mo.get("measurement_R") is not None:
             print(f"  sensor noise: R learned with the transition, {mo['measurement_R']}")

@@ -34,7 +34,7 @@ MEASUREMENT_ONLY_DEFAULTS: dict[str, Any] = {
     "accelerate": False,
     "learn_measurement_noise": False,
 }
-#: The keys that only ``method = "em"`` (or ``"auto"``) takes.
+#: The keys that only ``method = "em"`` (or ``"auto"``, ``"both"``) takes.
 EM_ONLY = ("m_step_iterations", "accelerate")
 
 
@@ -42,7 +42,7 @@ def complete(mo: dict[str, Any]) -> dict[str, Any]:
     """``[measurement_only]`` whose keys and values passed the per-key checks, completed with
     its defaults and checked as a whole; a ``RecipeError`` names the key."""
     out = {**MEASUREMENT_ONLY_DEFAULTS, **mo}
-    keys: tuple[str, ...] = ()  # "auto" runs both methods: it takes the keys of both
+    keys: tuple[str, ...] = ()  # "auto", "both" run both methods: they take the keys of both
     if out["method"] == "em":
         keys, other = ("window", "burn_in", "optimizer", "lr"), "likelihood"
     elif out["method"] == "likelihood":

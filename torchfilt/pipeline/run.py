@@ -184,10 +184,11 @@ def train_recipe(
     prior = _check_against_dataset(r, ds)
     n_train = len(ds.split("train"))
     if fitters.measurement_only is not None and r.states == "none":
-        if r.measurement_only["method"] == "auto":
+        if r.measurement_only["method"] in ("auto", "both"):
             raise InputError(
-                f'{fitters.name}: [measurement_only] method = "auto" runs both methods in one '
-                'process; with these fitters choose method = "em" or "likelihood"'
+                f'{fitters.name}: [measurement_only] method = "{r.measurement_only["method"]}" '
+                'runs both methods in one process; with these fitters choose method = "em" or '
+                '"likelihood"'
             )
     if fitters.shards > n_train:
         raise InputError(
@@ -587,7 +588,8 @@ def _validate(
 def _transition_checkpoints(out: Path) -> dict[str, Path]:
     """The ``states = "none"`` transition fit's checkpoints in run directory ``out``, by the
     method the metrics lines name (``""``: one method; ``"em"``, ``"likelihood"``: those of
-    ``method = "auto"``, :func:`~torchfilt.training.method_choice.method_checkpoint`)."""
+    ``method = "auto"`` or ``"both"``,
+    :func:`~torchfilt.training.method_choice.method_checkpoint`)."""
     ckpt = out / MEASUREMENT_ONLY_CHECKPOINT
     files = {"": ckpt}
     for m in ("em", "likelihood"):
@@ -606,7 +608,7 @@ def _trim_metrics(path: Path, ckpt: dict[str, Any] | None, fresh: bool) -> None:
     cal_ckpt = path.parent / CALIBRATE_CHECKPOINT
     cal_it = _checkpoint_iteration(cal_ckpt) if cal_ckpt.exists() else 0
     # a states = "none" transition fit keeps its own checkpoint (fit_measurement_only's; one
-    # per method under method = "auto", whose metrics lines name their method)
+    # per method under method = "auto" or "both", whose metrics lines name their method)
     mo_open = not (path.parent / "transition.pt").is_file()
     mo_its = {
         m: _checkpoint_iteration(ck) if ck.exists() else 0

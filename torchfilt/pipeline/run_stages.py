@@ -112,7 +112,7 @@ class MeasurementOnlyFitter(Protocol):
         x0: Tensor,
         P0: Tensor,
         known_channels: Sequence[int] | None,
-        method: Literal["auto", "em", "likelihood"],
+        method: Literal["auto", "both", "em", "likelihood"],
         learn_measurement_noise: bool,
         m_step_iterations: int,
         compile: bool,
@@ -396,7 +396,7 @@ def _start(
 class _TransitionLog:
     """The ``states = "none"`` transition fit's callback: a ``metrics.jsonl`` line, the progress
     bar, the estimated time and a log line at every checkpoint, per iteration; under
-    ``method = "auto"`` each labelled with the method that runs (each has its own iterations,
+    ``method = "auto"`` or ``"both"`` each labelled with the method that runs (each has its own iterations,
     estimate and checkpoint)."""
 
     def __init__(
@@ -471,7 +471,7 @@ def _fit_measurement_only_stage(
     if o.get("accelerate"):  # passed only when set: a fitter of before need not know it
         options["accelerate"] = True
     ckpt = out / MEASUREMENT_ONLY_CHECKPOINT
-    auto = o["method"] == "auto"
+    auto = o["method"] in ("auto", "both")
     for m in ("em", "likelihood") if auto else ("",):
         path = method_checkpoint(CheckpointOptions(ckpt), m).path if m else ckpt
         if resume and path is not None and Path(path).exists():
@@ -485,9 +485,10 @@ def _fit_measurement_only_stage(
     )
     if auto:  # the methods are compared on the validation recordings (the training ones without)
         options["validation"] = val or None
+        when = "" if o["method"] == "both" else ' if EM stops with "no improvement"'
         log(
-            "transition: method auto: EM, then the likelihood method, from the same start; the "
-            f"better {'validation' if val else 'training'} log-likelihood is kept"
+            f"transition: method {o['method']}: EM, then the likelihood method{when}, from the "
+            f"same start; the better {'validation' if val else 'training'} log-likelihood is kept"
         )
     every = r.checkpoint_every
     callback = _TransitionLog(out, counted, iterations, every, auto, progress, stream, log)
@@ -525,7 +526,7 @@ def _fit_measurement_only_stage(
                 else f"not fitted: {rec.get('error', rec.get('skipped'))}"
             )
             log(
-                f"transition: method auto: {rec['method']}: {what}"
+                f"transition: method {o['method']}: {rec['method']}: {what}"
                 + (", kept" if rec["kept"] else "")
             )
     entry = _measurement_only_entry(fit, o, ds.manifest.names("measurement"))
@@ -556,7 +557,7 @@ def _measurement_only_entry(
         "per_measurement": fit.per_measurement,
         "options": dict(o),
     }
-    if fit.compared:  # method = "auto": both methods' records (a score of -inf: None; no
+    if fit.compared:  # method = "auto" or "both": both methods' records (a score of -inf: None; no
         # seconds: a resumed run writes the identical record)
         info["compared"] = [
             {

@@ -1,7 +1,8 @@
 """Learning a state-space model from measurements alone (no logged states).
 
-Two methods, chosen by ``method`` of :func:`fit_measurement_only` (its default ``"auto"`` runs
-both and keeps the better by held-out likelihood: :mod:`torchfilt.training.method_choice`):
+Two methods, chosen by ``method`` of :func:`fit_measurement_only` (``"both"`` runs both and
+keeps the better by held-out likelihood; the default ``"auto"`` runs the second only where EM
+stalls: :mod:`torchfilt.training.method_choice`):
 
 ``"em"`` (:func:`fit_em`): expectation-maximisation with the cubature RTS smoother.
     *E-step*: the CKF and the RTS smoother give the smoothed moments of every state and of every
@@ -194,7 +195,7 @@ class MeasurementOnlyFit:
             transition variance (:class:`~torchfilt.training.noise_scale.NoiseScale`), which
             ``model`` carries; the record above is the fit's on the data it saw (before the
             scale). ``None`` otherwise.
-        compared: with ``method="auto"``, one record per method (``method``, ``score``: the
+        compared: with ``method="auto"`` or ``"both"``, one record per method (``method``, ``score``: the
             log-likelihood it was compared by, ``basis``: ``"held-out"``, ``"validation"`` or
             ``"training"``, ``kept``, and its fit's ``log_likelihood``, ``iterations``,
             ``stopped``, ``elapsed``, or the ``error`` it failed with, or why it was
@@ -552,7 +553,7 @@ def fit_measurement_only(
     callback: Callable[[EMState | LikelihoodState], bool | None] | None = None,
     dtype: torch.dtype = torch.float64,
     rule: CubatureRule | None = None,
-    method: Literal["auto", "em", "likelihood"] = "auto",
+    method: Literal["auto", "both", "em", "likelihood"] = "auto",
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
     accelerate: bool | None = None,
@@ -605,11 +606,13 @@ def fit_measurement_only(
         dtype: floating dtype.
         rule: cubature rule.
         method: ``"em"`` (:func:`fit_em`), ``"likelihood"``
-            (:func:`~torchfilt.training.fit_likelihood`), or ``"auto"`` (the default): both,
-            each from its own copy of ``model`` (left as given), the higher held-out
-            log-likelihood kept (:mod:`~torchfilt.training.method_choice`; the result's
-            ``compared``); a ``checkpoint`` file ``run.pt`` becomes ``run.em.pt`` and
-            ``run.likelihood.pt``.
+            (:func:`~torchfilt.training.fit_likelihood`), ``"both"``: both, each from its own
+            copy of ``model`` (left as given), the higher held-out log-likelihood kept, or
+            ``"auto"`` (the default): EM, and the likelihood method too (the better kept as
+            with ``"both"``) where EM stopped with ``"no improvement"`` or failed
+            (:mod:`~torchfilt.training.method_choice`; the result's ``compared``). With
+            ``"auto"`` and ``"both"`` a ``checkpoint`` file ``run.pt`` becomes ``run.em.pt``
+            and ``run.likelihood.pt``.
         learn_measurement_noise: of :func:`fit_em` (``"em"`` only).
         m_step_iterations: of :func:`fit_em` (``"em"`` only).
         accelerate: of :func:`fit_em` (``"em"`` only): ``True`` runs SQUAREM cycles over the
@@ -654,8 +657,8 @@ def fit_measurement_only(
             failed factorisation) is scored ``+inf``, so the line search shortens the step, and
             a step that ends non-finite is undone (:class:`~torchfilt.optim.GuardedStep`).
     """
-    if method not in ("auto", "em", "likelihood"):
-        raise InputError(f"method must be 'auto', 'em' or 'likelihood', got {method!r}")
+    if method not in ("auto", "both", "em", "likelihood"):
+        raise InputError(f"method must be 'auto', 'both', 'em' or 'likelihood', got {method!r}")
     if method == "likelihood" and accelerate is not None:
         raise InputError("accelerate: of method='em' only (SQUAREM cycles of EM's M-steps)")
     if noise_scale not in ("auto", "none", "held-out"):
@@ -669,7 +672,7 @@ def fit_measurement_only(
         "measurement_only", iterations=iterations, optimizer=optimizer, windows=windows,
         stopping=stopping, checkpoint=checkpoint, hooks=hooks,
     )  # fmt: skip
-    if method == "auto":
+    if method in ("auto", "both"):
 
         def one(m: str, start: StateSpaceModel, fy: FitData) -> MeasurementOnlyFit:
             return fit_measurement_only(
@@ -684,7 +687,8 @@ def fit_measurement_only(
 
         return fit_both_methods(
             one, model, as_sequences(y, u, x0=x0, P0=P0), validation, holdout, noise_scale,
-            fixed=tuple(fixed), dtype=dtype, rule=rule, all_reduce=o.hooks.all_reduce,
+            always=method == "both", fixed=tuple(fixed), dtype=dtype, rule=rule,
+            all_reduce=o.hooks.all_reduce,
         )  # fmt: skip
     if noise_scale != "none":
         data = as_sequences(y, u, x0=x0, P0=P0)
