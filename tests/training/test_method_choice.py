@@ -129,7 +129,7 @@ def test_a_method_that_fails_is_recorded_and_the_other_kept():
     def both_break(state):  # type: ignore[no-untyped-def]
         raise _Broken(f"{type(state).__name__} broke", fit="fit", step="iteration 1")
 
-    with pytest.raises(FitError, match="no method fitted") as err:
+    with pytest.raises(FitError, match='method="auto"\\): no method fitted') as err:
         fit_measurement_only(_start(), y, **KW, callback=both_break)  # type: ignore[arg-type]
     assert "em: EMState broke" in str(err.value)
     assert "likelihood: LikelihoodState broke" in str(err.value)

@@ -181,10 +181,11 @@ def fit_both_methods(
     rule: CubatureRule | None,
     all_reduce: Callable[[Tensor], None] | None,
 ) -> _R:
-    """``method="auto"`` (see the module docstring): ``fit(method, copy, data)`` for each of
-    :data:`METHODS` (a fit of one method with ``noise_scale="none"``), the better kept by the
-    innovation log-likelihood of the held-out steps, then its process noise scaled as
-    ``noise_scale`` says.
+    """``method="both"`` and ``"auto"`` (see the module docstring): ``fit(method, copy, data)``
+    for each of :data:`METHODS` (a fit of one method with ``noise_scale="none"``; with
+    ``always=False`` the likelihood method only after an EM that stalled or failed), the better
+    kept by the innovation log-likelihood of the held-out steps, then its process noise scaled
+    as ``noise_scale`` says.
 
     Args:
         fit: one method's fit of a model on recordings.
@@ -205,7 +206,7 @@ def fit_both_methods(
         the whole comparison's, its ``compared`` one record per method.
 
     Raises:
-        FitError: both methods failed (the message names both failures).
+        FitError: no method fitted (the message names each failure, or why it was skipped).
     """
     t0 = time.perf_counter()
     kept, scored, starts = data, data, None
@@ -249,10 +250,11 @@ def fit_both_methods(
             }
         )  # fmt: skip
     if not results:
+        name = f'fit_measurement_only(method="{"both" if always else "auto"}")'
         raise FitError(
-            'fit_measurement_only(method="auto"): no method fitted: '
+            f"{name}: no method fitted: "
             + "; ".join(f"{r['method']}: {r.get('error', r.get('skipped'))}" for r in records),
-            fit='fit_measurement_only(method="auto")',
+            fit=name,
             step="both methods",
         )
     best = max(results, key=lambda m: next(r["score"] for r in records if r["method"] == m))
