@@ -151,7 +151,8 @@ def test_auto_keeps_an_em_that_did_not_stall(fresh, data, tmp_path):
     em = load_bundle(fresh)["transition"]
     assert fit["method"] == "em" and fit["log_likelihood"] == em["fit"]["log_likelihood"]
     for k, v in em["state"].items():
-        assert torch.equal(b["transition"]["state"][k], v) if isinstance(v, torch.Tensor) else True
+        got = b["transition"]["state"][k]
+        assert torch.equal(got, v) if isinstance(v, torch.Tensor) else got == v, k
     assert "not stalled" in fit["compared"][1]["skipped"] and fit["compared"][1]["score"] is None
     log = (tmp_path / "run" / "train.log").read_text()
     assert 'method auto: EM, then the likelihood method if EM stops with "no improvement"' in log

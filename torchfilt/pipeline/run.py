@@ -60,7 +60,6 @@ from torchfilt.io.atomic import output_dir
 from torchfilt.io.lock import DirectoryLock
 from torchfilt.io.recording import Recording
 from torchfilt.models import StateSpaceModel
-from torchfilt.optim import CheckpointOptions
 from torchfilt.pipeline.bundle import BUNDLE_SCHEMA, apply_calibration, build_side, save_bundle
 from torchfilt.pipeline.entry_point import (
     entry_point_digest,
@@ -88,9 +87,9 @@ from torchfilt.pipeline.run_stages import (
     _calibrate_stage,
     _fit_measurement_only_stage,
     _fit_stage,
+    _transition_checkpoints,
 )
 from torchfilt.training.calibrate import consistency
-from torchfilt.training.method_choice import method_checkpoint
 from torchfilt.training.validation import one_step_metrics
 
 __all__ = [
@@ -583,18 +582,6 @@ def _validate(
             f"{_fmt(validation['transition']['coverage95'])}, measurement {_fmt(validation['measurement']['coverage95'])}"
         )
     return validation
-
-
-def _transition_checkpoints(out: Path) -> dict[str, Path]:
-    """The ``states = "none"`` transition fit's checkpoints in run directory ``out``, by the
-    method the metrics lines name (``""``: one method; ``"em"``, ``"likelihood"``: those of
-    ``method = "auto"`` or ``"both"``,
-    :func:`~torchfilt.training.method_choice.method_checkpoint`)."""
-    ckpt = out / MEASUREMENT_ONLY_CHECKPOINT
-    files = {"": ckpt}
-    for m in ("em", "likelihood"):
-        files[m] = Path(str(method_checkpoint(CheckpointOptions(ckpt), m).path))
-    return files
 
 
 def _trim_metrics(path: Path, ckpt: dict[str, Any] | None, fresh: bool) -> None:

@@ -393,11 +393,23 @@ def _start(
     return models[best], records
 
 
+def _transition_checkpoints(out: Path) -> dict[str, Path]:
+    """The ``states = "none"`` transition fit's checkpoints in run directory ``out``, by the
+    method the metrics lines name (``""``: one method; ``"em"``, ``"likelihood"``: those of
+    ``method = "auto"`` or ``"both"``,
+    :func:`~torchfilt.training.method_choice.method_checkpoint`)."""
+    ckpt = out / MEASUREMENT_ONLY_CHECKPOINT
+    files = {"": ckpt}
+    for m in ("em", "likelihood"):
+        files[m] = Path(str(method_checkpoint(CheckpointOptions(ckpt), m).path))
+    return files
+
+
 class _TransitionLog:
     """The ``states = "none"`` transition fit's callback: a ``metrics.jsonl`` line, the progress
     bar, the estimated time and a log line at every checkpoint, per iteration; under
-    ``method = "auto"`` or ``"both"`` each labelled with the method that runs (each has its own iterations,
-    estimate and checkpoint)."""
+    ``method = "auto"`` or ``"both"`` each labelled with the method that runs (each has its own
+    iterations, estimate and checkpoint)."""
 
     def __init__(
         self, out: Path, counted: int, iterations: int, every: int, auto: bool,
@@ -472,11 +484,11 @@ def _fit_measurement_only_stage(
         options["accelerate"] = True
     ckpt = out / MEASUREMENT_ONLY_CHECKPOINT
     auto = o["method"] in ("auto", "both")
+    files = _transition_checkpoints(out)
     for m in ("em", "likelihood") if auto else ("",):
-        path = method_checkpoint(CheckpointOptions(ckpt), m).path if m else ckpt
-        if resume and path is not None and Path(path).exists():
+        if resume and files[m].exists():
             label = f" ({m})" if m else ""
-            log(f"transition{label}: resuming from iteration {_checkpoint_iteration(Path(path))}")
+            log(f"transition{label}: resuming from iteration {_checkpoint_iteration(files[m])}")
     log(
         f"transition: learning from measurements alone ({o['method']}, {model.transition.base.num_inducing} "  # type: ignore[union-attr]
         f"inducing points, known channels {[ds.manifest.names('measurement')[i] for i in known]}"

@@ -219,6 +219,7 @@ def fit_both_methods(
         kept, scored, starts = split_held_out(model, data, holdout, dtype=dtype)
         basis = "held-out"
     results: dict[str, _R] = {}
+    scores: dict[str, float] = {}
     records: list[dict[str, Any]] = []
     for method in METHODS:
         record: dict[str, Any] = {"method": method, "basis": basis}
@@ -242,7 +243,7 @@ def fit_both_methods(
         except FitError as e:
             records.append({**record, "score": -math.inf, "error": str(e)})
             continue
-        results[method] = res
+        results[method], scores[method] = res, score
         records.append(
             {
                 **record, "score": score, "log_likelihood": res.log_likelihood,
@@ -257,7 +258,7 @@ def fit_both_methods(
             fit=name,
             step="both methods",
         )
-    best = max(results, key=lambda m: next(r["score"] for r in records if r["method"] == m))
+    best = max(results, key=scores.__getitem__)
     for r in records:
         r["kept"] = r["method"] == best
     chosen = results[best]
