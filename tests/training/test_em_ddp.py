@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import ddp_support
 import torch
-import torch.multiprocessing as mp
 
 import torchfilt
 
@@ -22,7 +21,8 @@ def close(a: torch.Tensor, b: torch.Tensor) -> bool:
 def test_two_processes_em_like_one(tmp_path):
     world = 2
     init = f"file://{tmp_path / 'rendezvous'}"
-    mp.spawn(ddp_support.em_worker, args=(world, init, str(tmp_path)), nprocs=world, join=True)
+    files = [tmp_path / f"em_rank{r}.pt" for r in range(world)]
+    ddp_support.spawn(ddp_support.em_worker, (world, init, str(tmp_path)), world, files)
     ranks = [torch.load(tmp_path / f"em_rank{r}.pt", weights_only=True) for r in range(world)]
 
     y = ddp_support.em_data(ddp_support.EM_LENGTHS)

@@ -5,6 +5,7 @@ as one process with all of them."""
 from __future__ import annotations
 
 import ddp_support
+import pytest
 import torch
 import torch.multiprocessing as mp
 
@@ -14,7 +15,8 @@ import torchfilt
 def test_two_processes_fit_like_one(tmp_path):
     world = 2
     init = f"file://{tmp_path / 'rendezvous'}"
-    mp.spawn(ddp_support.worker, args=(world, init, str(tmp_path)), nprocs=world, join=True)
+    files = [tmp_path / f"rank{r}.pt" for r in range(world)]
+    ddp_support.spawn(ddp_support.worker, (world, init, str(tmp_path)), world, files)
     ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in range(world)]
 
     model, y, (Q, R) = ddp_support.problem()
@@ -46,7 +48,8 @@ def test_measurement_only_likelihood_fit_in_two_processes(tmp_path):
     evaluates several times per iteration, stays in step across the processes."""
     world = 2
     init = f"file://{tmp_path / 'rendezvous'}"
-    mp.spawn(ddp_support.worker, args=(world, init, str(tmp_path), True), nprocs=world, join=True)
+    files = [tmp_path / f"rank{r}.pt" for r in range(world)]
+    ddp_support.spawn(ddp_support.worker, (world, init, str(tmp_path), True), world, files)
     ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in range(world)]
     model, y, (Q, R) = ddp_support.problem()
     kw = dict(x0=torch.zeros(1, dtype=torch.float64), P0=torch.eye(1, dtype=torch.float64))
@@ -58,3 +61,16 @@ def test_measurement_only_likelihood_fit_in_two_processes(tmp_path):
     for r in ranks:
         assert torch.allclose(r["values"], want, rtol=1e-8, atol=0), (r["values"], want)
     assert not torch.allclose(want, torch.ones(2, dtype=torch.float64), rtol=1e-2)
+
+
+def test_spawn_lets_pass_only_a_crash_after_every_result_is_saved(tmp_path):
+    """The tests' ``spawn`` forgives a process killed after every process saved its results
+    (gloo's teardown), and raises for one killed before."""
+    files = [tmp_path / f"abort{r}.pt" for r in range(2)]
+    ddp_support.spawn(ddp_support.abort_worker, (str(tmp_path), True), 2, files)
+    assert [torch.load(f, weights_only=True)["rank"] for f in files] == [0, 1]
+    other = tmp_path / "before"
+    other.mkdir()
+    files = [other / f"abort{r}.pt" for r in range(2)]
+    with pytest.raises(mp.ProcessExitedException, match="SIGABRT"):
+        ddp_support.spawn(ddp_support.abort_worker, (str(other), False), 2, files)
