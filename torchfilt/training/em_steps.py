@@ -15,7 +15,7 @@ from torch import Tensor, nn
 
 from torchfilt.cubature import CubatureRule, sigma_points
 from torchfilt.exceptions import GaugeError, InputError, ModelError, RunError
-from torchfilt.filters import CKF, FilterResult, SmootherResult, kalman_smoother, rts_smooth
+from torchfilt.filters import CKF, FilterResult, SmootherResult, rts_smooth
 from torchfilt.models import (
     CovarianceParameter,
     LinearGaussianModel,
@@ -24,6 +24,7 @@ from torchfilt.models import (
 )
 from torchfilt.numerics import gaussian_log_prob, psd_solve, safe_cholesky, symmetrize
 from torchfilt.optim import DEFAULTS, make_optimizer
+from torchfilt.training.em_exact import exact_smoother
 from torchfilt.training.em_noise import closed_form_noise
 
 __all__ = ["SmoothedPairs", "smoothed_pairs"]
@@ -713,7 +714,8 @@ class _EMProblem:
             with torch.no_grad():
                 # the exact Kalman filter and RTS smoother (batched over the recordings: no
                 # cubature points, and one backward recursion of the shared covariances)
-                sm = kalman_smoother(self.current(), self.Y, self.U, x0=self.X0, P0=self.C0)
+                # (the square-root form where rounding broke the standard one: em_exact)
+                sm = exact_smoother(self.current(), self.Y, self.U, self.X0, self.C0)
                 total = _summed(self.reduce, sm.filtered.log_likelihood.sum())[0]
                 return float(total), _pairs(sm, self.X0, self.C0)
         ll, res = self.filtered()
