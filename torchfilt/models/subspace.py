@@ -39,7 +39,14 @@ from torchfilt.exceptions import InputError, InputTypeError, ModelError, ShapeEr
 from torchfilt.models.functional import StateSpaceModel
 from torchfilt.models.linear import LinearGaussianModel, linear_system
 
-__all__ = ["SubspaceFit", "SubspaceOrder", "subspace_identify", "subspace_order", "subspace_start"]
+__all__ = [
+    "SubspaceFit",
+    "SubspaceOrder",
+    "default_block_rows",
+    "subspace_identify",
+    "subspace_order",
+    "subspace_start",
+]
 
 f64 = torch.float64
 
@@ -142,8 +149,10 @@ def _projection(ys: list[Tensor], us: list[Tensor], i: int) -> Tensor:
     return O_i
 
 
-def _default_rows(order: int | None, m: int) -> int:
-    return 10 if order is None else max(2 * math.ceil(order / m) + 2, order + 1, 5)
+def default_block_rows(order: int | None, outputs: int) -> int:
+    """The block rows ``i`` :func:`subspace_identify` uses when none are given: 10 without an
+    order, else ``max(2 ceil(order / outputs) + 2, order + 1, 5)``."""
+    return 10 if order is None else max(2 * math.ceil(order / outputs) + 2, order + 1, 5)
 
 
 def subspace_order(
@@ -333,7 +342,7 @@ def subspace_identify(
     ys0 = _series(y, "y")
     assert ys0 is not None
     m = ys0[0].shape[1]
-    i = _default_rows(order, m) if block_rows is None else block_rows
+    i = default_block_rows(order, m) if block_rows is None else block_rows
     ys, us = _data(ys0, u, i)
     p = us[0].shape[1]
     if not 1 <= order <= i * m - 1:
