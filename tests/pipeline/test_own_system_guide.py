@@ -37,7 +37,7 @@ def test_the_own_system_page_runs_as_written(tmp_path, monkeypatch, capsys) -> N
         assert cli_main(argv[1:]) == 0, line
     log = (tmp_path / "run" / "train.log").read_text()
     assert (
-        "transition: learning from measurements alone (em, 4 inducing points, known channels "
+        "transition: learning from measurements alone (auto, 4 inducing points, known channels "
         "['pressure'])" in log
     )
     assert re.search(r"validation filter \(\w+\): NIS [\d.]+ per 1 dof", log)

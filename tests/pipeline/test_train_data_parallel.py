@@ -190,6 +190,9 @@ model = "system:reaction"
 [filter]
 prior = "system:reaction"
 [measurement_only]
+# EM on both sides: the default "auto" runs EM alone on the actors, but locally it would add the
+# comparison's record to the bundle
+method = "em"
 iterations = 4
 inducing = 6
 m_step_iterations = 4

@@ -53,6 +53,8 @@ model = "system:reaction"
 [filter]
 prior = "system:reaction"
 [measurement_only]
+# the EM route (the default, "auto": tests/pipeline/test_training_method_auto.py)
+method = "em"
 iterations = {ITERATIONS}
 inducing = {INDUCING}
 m_step_iterations = {M_STEP}
@@ -257,7 +259,7 @@ def test_killed_run_resumes_to_the_identical_bundle(fresh, data, tmp_path, monke
             "prior = false",
             r"prior must be 'data', 'system:NAME'.*False",
         ),
-        ("iterations = 6", 'method = "gradient"\niterations = 6', r"\[measurement_only\] method"),
+        ('method = "em"', 'method = "gradient"', r"\[measurement_only\] method"),
         ("iterations = 6", "window = 50\niterations = 6", r"\['window'\]: not an option of"),
         ("[dataset]", "[transition]\nkernel = 'rbf'\n[dataset]", r"\[transition\] \['kernel'\]"),
         ("iterations = 4", 'iterations = 4\ngp = "noise"', r'\[calibrate\] gp = "noise"'),
@@ -371,7 +373,9 @@ def test_likelihood_method_with_inputs(tmp_path, data):
     _strip_states(with_u, "validation")
     text = (
         RECIPE.replace("m_step_iterations = 5\n", "")
-        .replace("iterations = 6", 'method = "likelihood"\noptimizer = "adam"\nlr = 0.002')
+        .replace(
+            'method = "em"\niterations = 6', 'method = "likelihood"\noptimizer = "adam"\nlr = 0.002'
+        )
         .replace("inducing = 6", "inducing = 4\nwindow = 50\nburn_in = 5\niterations = 4")
         .replace("iterations = 4\n", 'iterations = 4\nknown_channels = ["pressure"]\n', 1)
         .replace("[calibrate]\niterations = 4", "[calibrate]\nenabled = false")
@@ -505,7 +509,7 @@ def test_recipe_accelerate_reaches_the_transition_fit(tmp_path, data):
     lik = (
         text.replace("[train]", "accelerate = true\n[train]")
         .replace(f"m_step_iterations = {M_STEP}\n", "")
-        .replace(f"iterations = {ITERATIONS}", f'method = "likelihood"\niterations = {ITERATIONS}')
+        .replace('method = "em"', 'method = "likelihood"')
     )
     bad = write(tmp_path / "lik.toml", data, lik)
     with pytest.raises(RecipeError, match=r"\['accelerate'\]: not an option of method"):

@@ -34,7 +34,7 @@ AUTO = 'method = "both"\nlr = 0.5\niterations = 6'
 def _auto(path: Path, data: Path, method: str = "both") -> Path:
     recipe = write(path, data)
     text = AUTO.replace('"both"', f'"{method}"')
-    recipe.write_text(recipe.read_text().replace("iterations = 6", text, 1))
+    recipe.write_text(recipe.read_text().replace('method = "em"\niterations = 6', text, 1))
     return recipe
 
 
@@ -134,13 +134,34 @@ def test_auto_killed_in_the_likelihood_fit_resumes_to_the_identical_bundle(
     assert math.isfinite(fit["log_likelihood"])
 
 
-def test_auto_is_refused_with_other_fitters(data, tmp_path):
+def test_both_is_refused_with_other_fitters(data, tmp_path):
     fitters = StageFitters(measurement_only=lambda *a, **k: None, name="ray")  # type: ignore[arg-type]
     with pytest.raises(InputError, match='method = "both" runs both methods in one process'):
         train_recipe(
             _auto(tmp_path / "r.toml", data), tmp_path / "run", progress=False, fitters=fitters
         )
     assert not (tmp_path / "run").exists()
+
+
+def test_auto_with_other_fitters_runs_em_alone_and_says_so(fresh, data, tmp_path):
+    """``"auto"`` (the default) with fitters of their own (Ray data-parallel): the stage asks
+    them for EM alone, logs why, and ends with the bundle of ``method = "em"``."""
+    asked: list[str] = []
+
+    def fitter(*args: Any, **kwargs: Any) -> Any:
+        asked.append(kwargs["method"])
+        return torchfilt.fit_measurement_only(*args, **kwargs)
+
+    fitters = StageFitters(measurement_only=fitter, name="ray")
+    recipe = _auto(tmp_path / "r.toml", data, "auto")
+    b = load_bundle(train_recipe(recipe, tmp_path / "run", progress=False, fitters=fitters))
+    assert asked == ["em"]
+    log = (tmp_path / "run" / "train.log").read_text()
+    assert 'transition: method "auto" with the ray fitters: EM alone' in log
+    assert "learning from measurements alone (em," in log
+    em = load_bundle(fresh)["transition"]
+    assert b["transition"]["fit"]["log_likelihood"] == em["fit"]["log_likelihood"]
+    assert "compared" not in b["transition"]["fit"]
 
 
 def test_auto_keeps_an_em_that_did_not_stall(fresh, data, tmp_path):

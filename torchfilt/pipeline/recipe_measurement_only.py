@@ -20,7 +20,7 @@ __all__ = ["EM_ONLY", "MEASUREMENT_ONLY_DEFAULTS", "check_learned_noise", "compl
 #: ``process_noise``: 1e-2 x the prior variances; ``window``: whole recordings; ``lr``: the
 #: optimiser's default).
 MEASUREMENT_ONLY_DEFAULTS: dict[str, Any] = {
-    "method": "em",
+    "method": "auto",
     **{
         k: option_default("measurement_only", k)
         for k in ("iterations", "optimizer", "lr", "window", "burn_in")

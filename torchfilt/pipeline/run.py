@@ -183,11 +183,11 @@ def train_recipe(
     prior = _check_against_dataset(r, ds)
     n_train = len(ds.split("train"))
     if fitters.measurement_only is not None and r.states == "none":
-        if r.measurement_only["method"] in ("auto", "both"):
+        if r.measurement_only["method"] == "both":  # "auto" runs EM alone with these fitters
             raise InputError(
-                f'{fitters.name}: [measurement_only] method = "{r.measurement_only["method"]}" '
-                'runs both methods in one process; with these fitters choose method = "em" or '
-                '"likelihood"'
+                f'{fitters.name}: [measurement_only] method = "both" runs both methods in one '
+                'process; with these fitters choose method = "em", "likelihood" or "auto" (EM '
+                "alone)"
             )
     if fitters.shards > n_train:
         raise InputError(

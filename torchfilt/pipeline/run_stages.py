@@ -495,23 +495,30 @@ def _fit_measurement_only_stage(
     if o.get("accelerate"):  # passed only when set: a fitter of before need not know it
         options["accelerate"] = True
     ckpt = out / MEASUREMENT_ONLY_CHECKPOINT
-    auto = o["method"] in ("auto", "both")
+    method = o["method"]
+    if method == "auto" and fitters.measurement_only is not None:
+        method = "em"  # the comparison needs one process: "both" is refused before the run
+        log(
+            f'transition: method "auto" with the {fitters.name} fitters: EM alone (the '
+            "likelihood method after a stalled EM runs in one process only)"
+        )
+    auto = method in ("auto", "both")
     files = _transition_checkpoints(out)
     for m in ("em", "likelihood") if auto else ("",):
         if resume and files[m].exists():
             label = f" ({m})" if m else ""
             log(f"transition{label}: resuming from iteration {_checkpoint_iteration(files[m])}")
     log(
-        f"transition: learning from measurements alone ({o['method']}, {model.transition.base.num_inducing} "  # type: ignore[union-attr]
+        f"transition: learning from measurements alone ({method}, {model.transition.base.num_inducing} "  # type: ignore[union-attr]
         f"inducing points, known channels {[ds.manifest.names('measurement')[i] for i in known]}"
         + (", and the sensor's noise R" if o["learn_measurement_noise"] else "")
         + ")"
     )
     if auto:  # the methods are compared on the validation recordings (the training ones without)
         options["validation"] = val or None
-        when = "" if o["method"] == "both" else ' if EM stops with "no improvement"'
+        when = "" if method == "both" else ' if EM stops with "no improvement"'
         log(
-            f"transition: method {o['method']}: EM, then the likelihood method{when}, from the "
+            f"transition: method {method}: EM, then the likelihood method{when}, from the "
             f"same start; the better {'validation' if val else 'training'} log-likelihood is kept"
         )
     every = r.checkpoint_every
@@ -526,7 +533,7 @@ def _fit_measurement_only_stage(
             x0=m0.to(dtype),
             P0=P0.to(dtype),
             known_channels=known,
-            method=o["method"],
+            method=method,
             learn_measurement_noise=learn_R,
             m_step_iterations=int(o["m_step_iterations"]),
             compile=bool(o["compile"]),
@@ -550,7 +557,7 @@ def _fit_measurement_only_stage(
                 else f"not fitted: {rec.get('error', rec.get('skipped'))}"
             )
             log(
-                f"transition: method {o['method']}: {rec['method']}: {what}"
+                f"transition: method {method}: {rec['method']}: {what}"
                 + (", kept" if rec["kept"] else "")
             )
     entry = _measurement_only_entry(fit, o, ds.manifest.names("measurement"))
