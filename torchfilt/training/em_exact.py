@@ -8,9 +8,11 @@ covariance indefinite and then grow without bound: on the robot-arm log of
 steps) the smallest eigenvalue of the filtered covariance reached -6e50, the log-likelihood read
 -12555 where the square-root form gives 42.4, and the smoothed moments were NaN. The next
 M-step then produced a non-finite ``A``. The filter says so with a
-:class:`~torchfilt.exceptions.PrecisionWarning`; :func:`exact_smoother` takes that warning (or a
-non-finite result) as the signal to run the square-root form (``sqrt=True``), which keeps the
-covariance definite, and returns that. Where the standard form is sound nothing else runs.
+:class:`~torchfilt.exceptions.PrecisionWarning`; :func:`exact_smoother` makes the same check
+(:func:`~torchfilt.filters.kalman_checks.precision_problems`) and, where the covariance lost
+definiteness or the result is not finite, runs the square-root form (``sqrt=True``), which keeps
+the covariance definite, and returns that. Where the standard form is sound nothing else runs (its
+definiteness is checked again: batched Choleskys over the steps).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from torch import Tensor
 
 from torchfilt.exceptions import PrecisionWarning
 from torchfilt.filters import SmootherResult, kalman_smoother
+from torchfilt.filters.kalman_checks import precision_problems, warn_precision
 from torchfilt.models import StateSpaceModel
 
 __all__ = ["exact_smoother", "replay"]
@@ -49,15 +52,15 @@ def exact_smoother(
 
     Returns:
         The :class:`~torchfilt.filters.SmootherResult` (means ``(..., T, n)``, covariances
-        ``(..., T, n, n)``); the warnings of the form kept are emitted.
+        ``(..., T, n, n)``). The standard form's other warnings pass as they come; its
+        ``PrecisionWarning`` only where it is kept (the means' rounding, which the square-root
+        form does not help).
     """
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
+    with warnings.catch_warnings():  # its definiteness is checked below; the rest passes
+        warnings.filterwarnings("ignore", category=PrecisionWarning)
         sm = kalman_smoother(model, y, u, x0=x0, P0=P0)
-    sound = not any(issubclass(w.category, PrecisionWarning) for w in caught) and bool(
-        torch.isfinite(sm.filtered.log_likelihood).all() & torch.isfinite(sm.mean).all()
-    )
-    if sound:
-        replay(caught)
+    finite = bool(torch.isfinite(sm.filtered.log_likelihood).all() & torch.isfinite(sm.mean).all())
+    if finite and precision_problems(sm.filtered)[0] == 0.0:
+        warn_precision(sm.filtered, sqrt=False, stacklevel=2)  # the means' rounding, if any
         return sm
     return kalman_smoother(model, y, u, x0=x0, P0=P0, sqrt=True)
