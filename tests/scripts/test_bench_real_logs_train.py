@@ -7,10 +7,10 @@ from __future__ import annotations
 import json
 import math
 
-import numpy as np
 import pytest
 import torch
 from script_support import load_script
+from test_bench_real_logs import _simulate  # the simulated stable log of its sibling
 
 from torchfilt.io import load_dataset
 
@@ -18,19 +18,6 @@ from torchfilt.io import load_dataset
 @pytest.fixture(scope="module")
 def brt():
     return load_script("bench_real_logs_train")
-
-
-def _simulate(T: int, seed: int, noise: float) -> tuple[np.ndarray, np.ndarray]:
-    """A stable second-order system driven by a random input: ``(u, y)``."""
-    rng = np.random.default_rng(seed)
-    A = np.array([[1.6, -0.72], [1.0, 0.0]])  # poles 0.8 +- 0.28i
-    B, C = np.array([1.0, 0.0]), np.array([0.5, 0.3])
-    u = rng.standard_normal(T)
-    x, y = np.zeros(2), np.empty(T)
-    for k in range(T):
-        y[k] = C @ x + noise * rng.standard_normal()
-        x = A @ x + B * u[k]
-    return u, y
 
 
 def test_the_dataset_reads_back_as_the_stage_fits_it(brt, tmp_path):
