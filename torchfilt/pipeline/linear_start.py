@@ -40,9 +40,9 @@ __all__ = ["BLOCK_ROWS_FACTORS", "LINEAR_EM_ITERATIONS", "LinearStart", "linear_
 
 #: Multiples of :func:`~torchfilt.models.subspace.default_block_rows` whose N4SID starts the
 #: linear EM tries (the recordings allowing); the higher log-likelihood after the EM is kept. On
-#: the robot-arm log of ``scripts/bench_real_logs_train.py`` (4 states, 546 training steps) the
-#: default 10 rows gave a pole at 1.46 and an EM fit at 1.41 whose free run diverged; 20 rows
-#: gave 0.997, a log-likelihood 168 nats higher and a free run at 0.41 of N4SID's error.
+#: the robot-arm log of ``scripts/bench_real_logs_train.py`` (4 states, 546 training steps,
+#: ``R`` 1e-2) the default 10 rows gave a pole at 1.46 and an EM fit at -99.3 nats whose free
+#: run diverged (RMSE 2e43); 20 rows gave 285.1 nats and a free run at 0.66 of N4SID's error.
 BLOCK_ROWS_FACTORS = (1, 2)
 #: EM iterations of the linear candidate, each a SQUAREM cycle (three E-steps or more): its cost
 #: stays a small part of the stage (under a second on 12 x 300 steps), and on nearly noise-free
