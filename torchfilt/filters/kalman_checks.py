@@ -67,15 +67,22 @@ def precision_problems(res: FilterResult) -> tuple[float, float]:
     return float(shares[0]), float(shares[1])
 
 
-def warn_precision(res: FilterResult, *, sqrt: bool, stacklevel: int) -> None:
+def warn_precision(
+    res: FilterResult,
+    *,
+    sqrt: bool,
+    stacklevel: int,
+    problems: tuple[float, float] | None = None,
+) -> None:
     """Emit a :class:`~torchfilt.exceptions.PrecisionWarning` if the results of the exact filter
     ``res`` are over-confident because of the working precision (see
-    :func:`precision_problems`); nothing where a host synchronisation is not allowed.
+    :func:`precision_problems`; ``problems``: its result, where the caller has it already);
+    nothing where a host synchronisation is not allowed.
 
     ``stacklevel`` counts from this function (as in :func:`warnings.warn`)."""
     if no_host_sync():
         return
-    indefinite, resolution = precision_problems(res)
+    indefinite, resolution = precision_problems(res) if problems is None else problems
     dt = res.mean.dtype
     dtype, digits = str(dt).replace("torch.", ""), round(-math.log10(torch.finfo(dt).eps))
     if indefinite > 0:

@@ -43,7 +43,6 @@ import torch
 from torch import Tensor
 
 from torchfilt.numerics import symmetrize
-from torchfilt.training.em_exact import replay
 from torchfilt.training.em_steps import SmoothedPairs, _EMProblem
 
 __all__ = ["Squarem"]
@@ -128,7 +127,7 @@ class Squarem:
                 warnings.simplefilter("always")
                 ll_x, res_x = em.trial()
             if res_x is not None and math.isfinite(ll_x) and ll_x >= ll2:
-                replay(caught)  # the kept point's own warnings
+                _replay(caught)  # the kept point's own warnings
                 ll_s, sp_s, stalled = em.m_step(ll_x, em.smoothed(res_x))
                 self.e_steps += 1
                 return ll_s, sp_s, False
@@ -178,7 +177,7 @@ class Squarem:
                     except torch.linalg.LinAlgError:
                         ll_x, sp_x = -math.inf, None
                 if sp_x is not None and math.isfinite(ll_x) and ll_x >= ll0:
-                    replay(caught)  # the kept point's own warnings
+                    _replay(caught)  # the kept point's own warnings
                     return ll_x, sp_x
         em.load(theta2)
         return self._e_step(em)
@@ -202,6 +201,12 @@ def _point(theta0: list[Tensor], r: list[Tensor], v: list[Tensor], alpha: float)
     return [
         t + (-2.0 * alpha) * a + alpha * alpha * b for t, a, b in zip(theta0, r, v, strict=True)
     ]
+
+
+def _replay(caught: list[warnings.WarningMessage]) -> None:
+    """Emit the warnings recorded while a kept point was evaluated."""
+    for w in caught:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
 
 def _norm(xs: list[Tensor]) -> float:

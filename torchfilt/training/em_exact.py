@@ -12,7 +12,7 @@ M-step then produced a non-finite ``A``. The filter says so with a
 (:func:`~torchfilt.filters.kalman_checks.precision_problems`) and, where the covariance lost
 definiteness or the result is not finite, runs the square-root form (``sqrt=True``), which keeps
 the covariance definite, and returns that. Where the standard form is sound nothing else runs (its
-definiteness is checked again: batched Choleskys over the steps).
+definiteness is checked again: one batched Cholesky over the steps).
 """
 
 from __future__ import annotations
@@ -27,13 +27,7 @@ from torchfilt.filters import SmootherResult, kalman_smoother
 from torchfilt.filters.kalman_checks import precision_problems, warn_precision
 from torchfilt.models import StateSpaceModel
 
-__all__ = ["exact_smoother", "replay"]
-
-
-def replay(caught: list[warnings.WarningMessage]) -> None:
-    """Emit warnings recorded by ``warnings.catch_warnings(record=True)``."""
-    for w in caught:
-        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+__all__ = ["exact_smoother"]
 
 
 @torch.no_grad()
@@ -60,7 +54,8 @@ def exact_smoother(
         warnings.filterwarnings("ignore", category=PrecisionWarning)
         sm = kalman_smoother(model, y, u, x0=x0, P0=P0)
     finite = bool(torch.isfinite(sm.filtered.log_likelihood).all() & torch.isfinite(sm.mean).all())
-    if finite and precision_problems(sm.filtered)[0] == 0.0:
-        warn_precision(sm.filtered, sqrt=False, stacklevel=2)  # the means' rounding, if any
+    problems = precision_problems(sm.filtered)
+    if finite and problems[0] == 0.0:  # the means' rounding, if any, is still said
+        warn_precision(sm.filtered, sqrt=False, stacklevel=2, problems=problems)
         return sm
     return kalman_smoother(model, y, u, x0=x0, P0=P0, sqrt=True)
