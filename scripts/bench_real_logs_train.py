@@ -123,8 +123,8 @@ def train_row(
         "iterations": fit["iterations"],
         "budget": fit["options"]["iterations"],
         "method": fit["method"],
-        "start": [c for c in fit.get("candidates", [])],
-        "calibration": b.get("calibration", {}).get("fit") if b.get("calibration") else None,
+        "start": list(fit.get("candidates", [])),
+        "calibration": (b.get("calibration") or {}).get("fit"),
         "log": (run / "train.log").read_text().splitlines(),
     }
     return row
