@@ -257,12 +257,11 @@ class GuardedStep:
                     self.project()
         else:
             self.good = snapshot(self.params)
-            evaluations = [0, 0]  # all, non-finite
+            met_non_finite = [False]  # by an evaluation of this step's line search
 
             def counted() -> Tensor:
                 value = closure()
-                evaluations[0] += 1
-                evaluations[1] += 0 if bool(torch.isfinite(value)) else 1
+                met_non_finite[0] |= not bool(torch.isfinite(value))
                 return value
 
             try:
@@ -274,7 +273,7 @@ class GuardedStep:
             if self.project is not None:
                 self.project()
             finite = bool(torch.isfinite(loss_t))
-            if finite and evaluations[1] > 0 and self._stalled() and self._shorten():
+            if finite and met_non_finite[0] and self._stalled() and self._shorten():
                 # the search met only non-finite or higher losses and stayed at the start
                 opt.state.clear()
                 return StepResult(float(loss_t), True, self.good, "retry")
