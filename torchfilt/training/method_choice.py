@@ -152,17 +152,29 @@ def held_out_scaled(
     without a sum."""
     if validation is None:
         kept, scored, starts = split_held_out(model, data, holdout, dtype=dtype)
-        result = fit(kept)
-        choice = held_out_noise_scale(
-            result.model, scored, starts, dtype=dtype, rule=rule, all_reduce=all_reduce,
-            scales=INFLATE_SCALES,
-        )  # fmt: skip
-    else:
-        result = fit(data)
-        val = _validation(data, validation, model.state_dim)
-        choice = held_out_noise_scale(
-            result.model, val, None, dtype=dtype, rule=rule, scales=INFLATE_SCALES
+        return _noise_scaled(
+            fit(kept), scored, starts, dtype=dtype, rule=rule, all_reduce=all_reduce
         )
+    val = _validation(data, validation, model.state_dim)
+    return _noise_scaled(fit(data), val, None, dtype=dtype, rule=rule, all_reduce=None)
+
+
+def _noise_scaled(
+    result: _R,
+    scored: Sequences,
+    starts: list[int] | None,
+    *,
+    dtype: torch.dtype,
+    rule: CubatureRule | None,
+    all_reduce: Callable[[Tensor], None] | None,
+) -> _R:
+    """``result`` with its model's process noise scaled by the held-out steps of ``scored``
+    (from ``starts``; ``None``: every step), chosen from :data:`INFLATE_SCALES`, and the choice
+    recorded as its ``noise_scale``."""
+    choice = held_out_noise_scale(
+        result.model, scored, starts, dtype=dtype, rule=rule, all_reduce=all_reduce,
+        scales=INFLATE_SCALES,
+    )  # fmt: skip
     scaled = with_process_noise_scale(result.model, choice.scale, dtype=dtype)
     return replace(result, model=scaled, noise_scale=choice)
 
@@ -269,9 +281,7 @@ def fit_both_methods(
     )  # fmt: skip
     if noise_scale == "none" or basis == "training" or not scale:
         return out
-    choice = held_out_noise_scale(
-        chosen.model, scored, starts, dtype=dtype, rule=rule, scales=INFLATE_SCALES,
+    return _noise_scaled(
+        out, scored, starts, dtype=dtype, rule=rule,
         all_reduce=None if basis == "validation" else all_reduce,
     )  # fmt: skip
-    scaled = with_process_noise_scale(chosen.model, choice.scale, dtype=dtype)
-    return replace(out, model=scaled, noise_scale=choice)
