@@ -103,9 +103,8 @@ def train_row(
     if not (data / "manifest.json").exists():
         write_dataset(data, n, parts)  # type: ignore[arg-type]
     recipe = work / f"{tag}.toml"
-    recipe.write_text(
-        RECIPE.format(name=tag, data=data.as_posix(), R=R, mean=[0.0] * n, cov=[1.0] * n)
-    )
+    text = RECIPE.format(name=tag, data=data.as_posix(), R=R, mean=[0.0] * n, cov=[1.0] * n)
+    recipe.write_text(text + ("\n[measurement_only]\nstable = true\n" if args.stable else ""))
     run = work / f"run_{tag}"
     t0 = time.perf_counter()
     with (work / f"{tag}.stderr").open("w") as stream:
@@ -139,6 +138,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--order", type=int, default=4)
     ap.add_argument("--block-rows", type=int, default=20)
     ap.add_argument("--burn-in", type=int, default=20)
+    ap.add_argument(
+        "--stable",
+        action="store_true",
+        help="[measurement_only] stable = true (the plants said to be stable)",
+    )
     args = ap.parse_args(argv)
     names = [s.strip() for s in args.logs.split(",") if s.strip()]
     if unknown := sorted(set(names) - set(LOGS)):

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 import torchfilt
-from torchfilt.filters import kalman_smoother
+from torchfilt.filters import kalman_filter, kalman_smoother
 from torchfilt.io.synth import simulate_dataset
 from torchfilt.models import (
     CholeskyCovariance,
@@ -82,11 +82,14 @@ def _linear_candidate_score(train: list, val: list) -> float:
     crude = LinearGaussianModel(torch.eye(2, dtype=DT), J, torch.diag(1e-2 * P0.diagonal()), R)
     fits = []
     for rows in (6, 12):  # the default block rows for 2 states and 1 output, and twice that
-        sub = subspace_start(crude, ys, known_channels=[0], block_rows=rows).model
-        start = LinearGaussianModel(sub.A, J, sub.transition.noise_cov(), R)
-        fits.append(
-            fit_em(start, ys, x0=m0, P0=P0, known_channels=[0], fixed=("H", "R"), iterations=20)
-        )
+        for stable in (False, True):  # as estimated, and stabilised where it has to be
+            sub = subspace_start(crude, ys, known_channels=[0], block_rows=rows, stable=stable)
+            start = LinearGaussianModel(sub.model.A, J, sub.model.transition.noise_cov(), R)
+            fits.append(
+                fit_em(start, ys, x0=m0, P0=P0, known_channels=[0], fixed=("H", "R"), iterations=20)
+            )
+            if float(torch.linalg.eigvals(sub.model.A).abs().max()) < 1:
+                break
     lin = max(fits, key=lambda f: f.log_likelihood)  # the higher likelihood after the EM
     X = torch.cat([kalman_smoother(lin.model, y, x0=m0, P0=P0).mean for y in ys])
     f = InducingTransition.from_linear(
@@ -145,9 +148,20 @@ def test_linear_candidate_starts_exactly_at_the_linear_fit(tmp_path) -> None:
     kw = dict(n=2, nu=0, m0=m0, P0=P0, q0=1e-2 * P0.diagonal(), inducing=INDUCING, known=[0])
     lin = linear_em_start(h, train, dtype=DT, **kw)  # type: ignore[arg-type]
     assert lin is not None and lin.record["from"] == "N4SID"
-    # N4SID with the default block rows (6) and twice that, the higher likelihood after EM kept
+    # N4SID with the default block rows (6) and twice that, each stabilised too where its
+    # estimate has a pole on or outside the unit circle; the higher likelihood after EM kept
     tried = lin.record["block_rows_tried"]
-    assert [t["block_rows"] for t in tried] == [6, 12]
+    J = torch.tensor([[1.0, 0.0]], dtype=DT)  # the reaction sensor's first state, linearised
+    ys = [r.measurements[1:] for r in train]
+    crude = LinearGaussianModel(torch.eye(2, dtype=DT), J, torch.eye(2, dtype=DT), h.noise_cov())
+    expected = []
+    for rows in (6, 12):
+        A = subspace_start(crude, ys, known_channels=[0], block_rows=rows).model.A
+        expected.append((rows, False))
+        if float(torch.linalg.eigvals(A).abs().max()) >= 1:
+            expected.append((rows, True))
+    assert [(t["block_rows"], t["stabilised"]) for t in tried] == expected
+    assert len(expected) == 3  # this data: the 6-row estimate is unstable, the 12-row one not
     kept = max(tried, key=lambda t: t["log_likelihood"])
     assert lin.record["block_rows"] == kept["block_rows"]
     assert lin.record["linear_log_likelihood"] == kept["log_likelihood"]
@@ -165,6 +179,97 @@ def test_linear_candidate_starts_exactly_at_the_linear_fit(tmp_path) -> None:
     assert math.isfinite(gappy.record["linear_log_likelihood"])
 
 
+def _unstable_plant(seed: int) -> tuple[list[SimpleNamespace], LinearGaussianModel]:
+    """Two recordings of 150 steps of a 2-state plant with a pole at 1.02 (and 0.6), its first
+    state measured with noise variance 1e-2 (row 0: the prior's time, no measurement)."""
+    g = torch.Generator().manual_seed(seed)
+    A = torch.tensor([[1.02, 0.1], [0.0, 0.6]], dtype=DT)
+    H = torch.tensor([[1.0, 0.0]], dtype=DT)
+    true = LinearGaussianModel(A, H, 1e-2 * torch.eye(2, dtype=DT), 1e-2 * torch.eye(1, dtype=DT))
+    recs = []
+    for _ in range(2):
+        x, ys = torch.zeros(2, dtype=DT), [torch.full((1,), math.nan, dtype=DT)]
+        for _ in range(150):
+            x = A @ x + 0.1 * torch.randn(2, generator=g, dtype=DT)
+            ys.append(H @ x + 0.1 * torch.randn(1, generator=g, dtype=DT))
+        recs.append(SimpleNamespace(measurements=torch.stack(ys), inputs=None))
+    return recs, true
+
+
+def _kalman_ll(model: LinearGaussianModel, recs: list, m0, P0) -> float:
+    with torch.no_grad():
+        return sum(
+            float(kalman_filter(model, r.measurements[1:], x0=m0, P0=P0).log_likelihood.sum())
+            for r in recs
+        )
+
+
+def test_linear_start_tries_the_stabilised_n4sid_and_keeps_the_likelier() -> None:
+    """On a plant with a pole outside the unit circle N4SID's estimate is unstable: the start
+    tries it as estimated and stabilised, at both block rows, and keeps the higher likelihood
+    after the EM (the likelihood decides, not a rule). With ``stable``
+    (a plant said to be stable) only the stabilised starts are tried, and one whose EM leaves
+    the unit circle is kept as it was before the EM: its recorded likelihood is the start's own
+    (an independent Kalman filter of the stabilised N4SID model)."""
+    recs, true = _unstable_plant(seed=5)
+    m0, P0 = torch.zeros(2, dtype=DT), torch.eye(2, dtype=DT)
+    kw = dict(n=2, nu=0, m0=m0, P0=P0, q0=1e-2 * P0.diagonal(), inducing=INDUCING, known=[0])
+    lin = linear_em_start(true.measurement, recs, dtype=DT, **kw)  # type: ignore[arg-type]
+    assert lin is not None
+    tried = lin.record["block_rows_tried"]
+    assert [(t["block_rows"], t["stabilised"]) for t in tried] == [
+        (6, False), (6, True), (12, False), (12, True)
+    ]  # fmt: skip
+    kept = max(tried, key=lambda t: t["log_likelihood"])
+    assert lin.record["linear_log_likelihood"] == kept["log_likelihood"]
+    assert lin.record["stabilised"] is kept["stabilised"]
+    assert not any("unstable_after_em" in t for t in tried)  # without stable: EM goes where it may
+    # a plant said to be stable: the stabilised starts alone
+    st = linear_em_start(true.measurement, recs, dtype=DT, stable=True, **kw)  # type: ignore[arg-type]
+    assert st is not None
+    tried = st.record["block_rows_tried"]
+    assert [(t["block_rows"], t["stabilised"]) for t in tried] == [(6, True), (12, True)]
+    assert all("unstable_after_em" in t for t in tried)  # the data pull A outside: kept as started
+    assert all(t["unstable_after_em"] >= 1 for t in tried)
+    assert st.record["em_iterations"] == 0
+    ys = [r.measurements[1:] for r in recs]
+    H, R = true.H, true.measurement.noise_cov()
+    crude = LinearGaussianModel(torch.eye(2, dtype=DT), H, 1e-2 * torch.eye(2, dtype=DT), R)
+    for t in tried:
+        sub = subspace_start(crude, ys, known_channels=[0], block_rows=t["block_rows"], stable=True)
+        A = sub.model.A
+        assert float(torch.linalg.eigvals(A).abs().max()) < 1
+        start = LinearGaussianModel(A, H, sub.model.transition.noise_cov(), R)
+        assert t["log_likelihood"] == pytest.approx(_kalman_ll(start, recs, m0, P0), rel=1e-9)
+    # the GP model starts exactly at the kept linear model (CKF of the GP, Kalman of the linear)
+    with torch.no_grad():
+        ll = sum(
+            float(torchfilt.CKF(st.model).filter(r.measurements[1:], x0=m0, P0=P0).log_likelihood)
+            for r in recs
+        )
+    assert ll == pytest.approx(st.record["linear_log_likelihood"], rel=1e-8)
+
+
+def test_the_log_names_the_stabilised_start() -> None:
+    """The log line of the linear-EM candidate names the kept start and every one tried."""
+    from torchfilt.pipeline.run_stages import _linear_source
+
+    record = {
+        "from": "N4SID", "block_rows": 10, "stabilised": True,
+        "block_rows_tried": [
+            {"block_rows": 10, "stabilised": False, "log_likelihood": -99.2589},
+            {"block_rows": 10, "stabilised": True, "log_likelihood": 403.334},
+            {"block_rows": 20, "stabilised": True, "log_likelihood": 54.2419,
+             "unstable_after_em": 1.00445},
+        ],
+    }  # fmt: skip
+    assert _linear_source(record) == (
+        "N4SID (10 block rows, stabilised; after the EM from 10: -99.2589, 10 stabilised: "
+        "403.334, 20 stabilised: 54.2419 (kept as started: the EM's spectral radius 1.004))"
+    )
+    assert _linear_source({"from": "random walk"}) == "random walk"
+
+
 def test_the_log_says_why_a_stage_fit_ended() -> None:
     """A budget, an EM stall (with what to try), and the other stops as they are."""
     from torchfilt.pipeline.run_stages import _ended
@@ -179,3 +284,41 @@ def test_the_log_says_why_a_stage_fit_ended() -> None:
     assert 'method = "auto" runs both' in stall
     assert _ended("converged", 1, "measurement_only") == "converged after 1 iteration"
     assert _ended("early stopping", 15, "calibrate") == "early stopping after 15 iterations"
+
+
+def test_recipe_stable_reaches_the_linear_start(tmp_path, monkeypatch) -> None:
+    """``[measurement_only] stable = true`` is passed to the linear-EM start (default
+    ``False``), leaves the digest of a recipe without it unchanged at ``false``, and is a
+    RecipeError naming the key beside a given ``process_noise`` or a nominal model (which
+    replace the linear-EM start)."""
+    import torchfilt.pipeline.run_stages as stages
+    from torchfilt.exceptions import RecipeError
+    from torchfilt.pipeline import load_recipe
+
+    seen: list[bool] = []
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs["stable"])
+        return linear_em_start(*args, **kwargs)
+
+    monkeypatch.setattr(stages, "linear_em_start", spy)
+    data = tmp_path / "data"
+    simulate_dataset("reaction", data, recordings=4, steps=40, seed=3)
+    base = RECIPE.format(data=data.as_posix())
+    texts = {flag: base.replace("[calibrate]", f"{flag}[calibrate]") for flag in ("", "stable = true\n", "stable = false\n")}  # fmt: skip
+    paths = {}
+    for flag, text in texts.items():
+        paths[flag] = tmp_path / f"r{len(paths)}.toml"
+        paths[flag].write_text(text)
+    for flag in ("", "stable = true\n"):
+        b = load_bundle(train_recipe(paths[flag], tmp_path / f"run{len(seen)}", progress=False))
+        lin = [c for c in b["transition"]["fit"]["candidates"] if c["start"] == "linear EM"]
+        assert len(lin) == 1 and "stabilised" in lin[0]
+    assert seen == [False, True]
+    digests = [load_recipe(paths[f]).digest() for f in texts]
+    assert digests[0] == digests[2] != digests[1]
+    for extra in ("process_noise = 0.01\n", 'nominal = {system = "reaction"}\n'):
+        bad = tmp_path / "bad.toml"
+        bad.write_text(base.replace("[calibrate]", f"stable = true\n{extra}[calibrate]"))
+        with pytest.raises(RecipeError, match=r"\[measurement_only\] stable = true acts on"):
+            load_recipe(bad)

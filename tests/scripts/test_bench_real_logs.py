@@ -98,3 +98,27 @@ def test_main_on_a_simulated_log(brl, tmp_path):
         if name.startswith("torchfilt"):
             # the likelihood fits' noise covers the output (the subspace start's need not)
             assert 0.8 <= row["coverage95"] <= 1.0, (name, row)
+
+
+def test_free_run_row_against_a_random_walk_in_closed_form(brl):
+    """``torchfilt_row`` on a scalar random walk with no burn-in: the output's free-run variance
+    at step ``t`` is ``P0 + (t + 1) q + r``, so the RMSE, the 95% coverage and the mean squared
+    error over the variance follow in closed form."""
+    import torch
+
+    from torchfilt.models import LinearGaussianModel
+
+    D = torch.float64
+    q, r, p0, T = 0.3, 0.1, 2.0, 60
+    one = torch.ones(1, 1, dtype=D)
+    model = LinearGaussianModel(one, one, q * one, r * one, torch.zeros(1, 1, dtype=D))
+    g = torch.Generator().manual_seed(4)
+    y = torch.randn(1, T, 1, generator=g, dtype=D) * 2.0
+    u = torch.randn(1, T, 1, generator=g, dtype=D)  # B = 0: the inputs do nothing
+    row = brl.torchfilt_row(model, y, u, p0 * one, 0)
+    var = p0 + (torch.arange(T, dtype=D) + 1) * q + r
+    e = y[0, :, 0]
+    assert row["rmse"] == pytest.approx(float(e.pow(2).mean().sqrt()), rel=1e-12)
+    assert row["error_over_variance"] == pytest.approx(float((e**2 / var).mean()), rel=1e-12)
+    inside = (e.abs() <= 1.959963984540054 * var.sqrt()).to(D).mean()
+    assert row["coverage95"] == pytest.approx(float(inside), abs=1e-12)

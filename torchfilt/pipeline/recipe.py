@@ -317,6 +317,15 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
         Key("compile", "`false`", "`torchfilt.fit_measurement_only(compile=...)`", kind="bool"),
         Key("accelerate", "`false`", 'SQUAREM cycles of the M-steps (`"em"` only)', kind="bool"),
         Key(
+            "stable",
+            "`false`",
+            "the plant is known to be stable: the linear-EM start keeps only N4SID estimates "
+            "with every pole inside the unit circle (an unstable one stabilised), and a start "
+            "whose linear EM leaves the unit circle as it was before the EM (without it, the "
+            "estimates as they come and stabilised compete by log-likelihood)",
+            kind="bool",
+        ),
+        Key(
             "learn_measurement_noise",
             "`false`",
             "learn your own sensor's noise `R` with the transition, from its start `[measurement] "
@@ -414,7 +423,7 @@ CALIBRATE_DEFAULTS: dict[str, Any] = {
 #: recipe sets them to something else than the default (:func:`~.recipe_keys.digested`).
 _LATER_KEYS = {
     "calibrate": ("atol", "per_iteration"),
-    "measurement_only": ("compile", "accelerate", "learn_measurement_noise"),
+    "measurement_only": ("compile", "accelerate", "learn_measurement_noise", "stable"),
 }
 
 

@@ -33,6 +33,7 @@ MEASUREMENT_ONLY_DEFAULTS: dict[str, Any] = {
     "compile": False,
     "accelerate": False,
     "learn_measurement_noise": False,
+    "stable": False,
 }
 #: The keys that only ``method = "em"`` (or ``"auto"``, ``"both"``) takes.
 EM_ONLY = ("m_step_iterations", "accelerate")
@@ -81,6 +82,12 @@ def complete(mo: dict[str, Any]) -> dict[str, Any]:
                 "[measurement_only] process_noise must be a number > 0 or a list of them (one "
                 f"per state), got {pn!r}"
             )
+    if out["stable"] and (nom is not None or pn is not None):
+        raise RecipeError(
+            "[measurement_only] stable = true acts on the linear-EM start, which "
+            + ("a nominal model" if nom is not None else "a given process_noise")
+            + " replaces (it is the start): remove one of them"
+        )
     if out["window"] is not None and not 0 <= out["burn_in"] < out["window"]:
         raise RecipeError(
             f"[measurement_only] burn_in must be an integer in [0, window), got {out['burn_in']!r}"

@@ -374,6 +374,7 @@ def _start(
             h, train, n=n, nu=nu, m0=m0, P0=P0, q0=1e-2 * P0.diagonal().to(dtype),
             inducing=int(r.measurement_only["inducing"]),
             known=list(range(h.out_dim)) if known is None else known, dtype=dtype,
+            stable=bool(r.measurement_only["stable"]),
         )  # fmt: skip
         if lin is None:
             log(f"transition: no linear-EM candidate {k} (the sensor or the fit did not allow it)")
@@ -394,15 +395,28 @@ def _start(
 
 
 def _linear_source(record: dict[str, Any]) -> str:
-    """Where the linear-EM candidate started, in words: ``random walk``, or ``N4SID (20 block
-    rows; after the EM from 10: 257.5, 20: 425.4)`` (the kept rows, and each tried with its
-    training log-likelihood after the EM)."""
+    """Where the linear-EM candidate started, in words: ``random walk``, or ``N4SID (10 block
+    rows, stabilised; after the EM from 10: -99.26, 10 stabilised: 403.3, 20: 285.1)`` (the
+    kept start, and each tried with its training log-likelihood after the EM; ``kept as
+    started`` where ``stable`` kept a start whose EM left the unit circle)."""
     if "block_rows" not in record:
         return str(record["from"])
+
+    def name(t: dict[str, Any]) -> str:
+        return f"{t['block_rows']}" + (" stabilised" if t.get("stabilised") else "")
+
+    def kept(t: dict[str, Any]) -> str:
+        if "unstable_after_em" not in t:
+            return ""
+        return f" (kept as started: the EM's spectral radius {t['unstable_after_em']:.4g})"
+
     tried = ", ".join(
-        f"{t['block_rows']}: {t['log_likelihood']:.6g}" for t in record["block_rows_tried"]
+        f"{name(t)}: {t['log_likelihood']:.6g}{kept(t)}" for t in record["block_rows_tried"]
     )
-    return f"{record['from']} ({record['block_rows']} block rows; after the EM from {tried})"
+    rows = f"{record['block_rows']} block rows" + (
+        ", stabilised" if record.get("stabilised") else ""
+    )
+    return f"{record['from']} ({rows}; after the EM from {tried})"
 
 
 def _transition_checkpoints(out: Path) -> dict[str, Path]:
