@@ -170,3 +170,25 @@ def test_precision_check_resolution_in_units_of_the_standard_deviation() -> None
     cov = torch.eye(2).expand(1, 1, 2, 2)
     _, resolution = precision_problems(_result(mean, cov))
     assert resolution == pytest.approx(2.0**20 * eps)
+
+
+def test_the_advice_fits_the_dtype() -> None:
+    """A float64 result is not told to run in float64: the indefinite case names the
+    square-root form and a jitter floor, the rounded-means case a divergent transition; a
+    float32 result is told to run in float64 in both."""
+    bad = torch.tensor([[1.0, 2.0], [2.0, 1.0]])  # eigenvalues 3 and -1
+    for dtype in (torch.float64, torch.float32):
+        indefinite = _result(torch.zeros(1, 2, 2, dtype=dtype), bad.to(dtype).expand(1, 2, 2, 2))
+        rounded = _result(
+            torch.tensor([[[1e30, 1.0]]], dtype=dtype), torch.eye(2, dtype=dtype).expand(1, 1, 2, 2)
+        )
+        for res, words in ((indefinite, "Use the square-root form"), (rounded, "Re-centre")):
+            with pytest.warns(PrecisionWarning) as record:
+                warn_precision(res, sqrt=False, stacklevel=1)
+            message = str(record[0].message)
+            if dtype == torch.float64:
+                assert "Run in float64" not in message and words in message, message
+            else:
+                assert "Run in float64 (the model and the data .double())" in message, message
+        if dtype == torch.float64:
+            assert "a transition that diverges" in message

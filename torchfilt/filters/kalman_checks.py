@@ -85,27 +85,38 @@ def warn_precision(
     indefinite, resolution = precision_problems(res) if problems is None else problems
     dt = res.mean.dtype
     dtype, digits = str(dt).replace("torch.", ""), round(-math.log10(torch.finfo(dt).eps))
+    # in float64 already, there is no wider dtype to advise
+    wider = "" if dt == torch.float64 else "Run in float64 (the model and the data .double()), or "
     if indefinite > 0:
         form = (
             "the square-root form (sqrt=True) only helps where the factor stays definite"
             if sqrt
             else "use the square-root form (sqrt=True), which keeps the covariance definite"
         )
+        fixes = (
+            f"{wider}{form}, or put a jitter floor on Q (Q + eps I with eps about 1e-6 of its "
+            "scale)"
+        )
         warnings.warn(
             f"the exact Kalman filter in {dtype}: the filtered covariance lost positive "
             f"definiteness at {indefinite:.1%} of the steps, so the estimates are over-confident. "
-            f"Run in float64 (the model and the data .double()), or {form}, or put a jitter "
-            "floor on Q (Q + eps I with eps about 1e-6 of its scale)",
+            + fixes[0].upper()
+            + fixes[1:],
             PrecisionWarning,
             stacklevel=stacklevel + 1,
         )
     if resolution > _RESOLUTION:
+        fixes = (
+            f"{wider}re-centre or rescale the state so that its magnitude is closer to its "
+            "uncertainty"
+        )
+        if dt == torch.float64:
+            fixes += " (means this far beyond it often come from a transition that diverges)"
         warnings.warn(
             f"the exact Kalman filter in {dtype}: the means are rounded by up to "
             f"{resolution:.3g} of their standard deviation ({dtype} keeps about {digits} "
             "significant digits), so the estimates are over-confident; the square-root form does "
-            "not help. Run in float64 (the model and the data .double()), or re-centre or rescale "
-            "the state so that its magnitude is closer to its uncertainty",
+            "not help. " + fixes[0].upper() + fixes[1:],
             PrecisionWarning,
             stacklevel=stacklevel + 1,
         )
