@@ -249,3 +249,29 @@ def test_held_out_noise_scale_on_two_actors_equals_one_process(ray_local):
     assert res.noise_scale.held_out == local.noise_scale.held_out == 4 * 15
     for (s, a), (_, b) in zip(res.noise_scale.scores, local.noise_scale.scores, strict=True):
         assert a == pytest.approx(b, rel=1e-8), s
+
+
+@pytest.mark.parametrize("method", ["both", "auto"])
+def test_both_methods_on_two_actors_equal_one_process(ray_local, method):
+    """``method="both"`` and ``"auto"`` on two actors: each runs EM and (``"both"``) the
+    likelihood method from the same start, the held-out scores summed over the actors, and
+    keeps what one process on all recordings keeps (the held-out split: the tails of every
+    recording in both)."""
+    y = _scalar_recordings(1, 50)
+    model = _scalar_model
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    kw = dict(
+        x0=torch.zeros(1, dtype=DT), P0=torch.eye(1, dtype=DT), known_channels=[0], iterations=3,
+        method=method,
+    )  # fmt: skip
+    local = torchfilt.fit_measurement_only(model(), y, **kw)
+    res = fit_measurement_only_ray(model(), Sequences(y), workers=2, **kw)
+    assert [c["method"] for c in local.compared] == ["em", "likelihood"]
+    fitted = [c for c in local.compared if "score" in c and "skipped" not in c]
+    assert len(fitted) == (2 if method == "both" else 1)
+    for a, b in zip(res.compared, local.compared, strict=True):
+        assert a["method"] == b["method"] and a["kept"] == b["kept"]
+        assert a["score"] == pytest.approx(b["score"], rel=1e-8)
+    assert res.method == local.method
+    for a, b in zip(res.model.parameters(), local.model.parameters(), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-7, atol=0)

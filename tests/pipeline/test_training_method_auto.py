@@ -19,7 +19,6 @@ from test_training_measurement_only import _assert_same_learned_model, data, fre
 
 import torchfilt
 from torchfilt.cli import main as cli_main
-from torchfilt.exceptions import InputError
 from torchfilt.pipeline import load_bundle, train_recipe
 from torchfilt.pipeline.run_stages import StageFitters
 from torchfilt.systems import get_system
@@ -134,34 +133,54 @@ def test_auto_killed_in_the_likelihood_fit_resumes_to_the_identical_bundle(
     assert math.isfinite(fit["log_likelihood"])
 
 
-def test_both_is_refused_with_other_fitters(data, tmp_path):
-    fitters = StageFitters(measurement_only=lambda *a, **k: None, name="ray")  # type: ignore[arg-type]
-    with pytest.raises(InputError, match='method = "both" runs both methods in one process'):
-        train_recipe(
-            _auto(tmp_path / "r.toml", data), tmp_path / "run", progress=False, fitters=fitters
-        )
-    assert not (tmp_path / "run").exists()
-
-
-def test_auto_with_other_fitters_runs_em_alone_and_says_so(fresh, data, tmp_path):
-    """``"auto"`` (the default) with fitters of their own (Ray data-parallel): the stage asks
-    them for EM alone, logs why, and ends with the bundle of ``method = "em"``."""
-    asked: list[str] = []
+@pytest.mark.parametrize("method", ["both", "auto"])
+def test_other_fitters_are_asked_for_the_recipes_method(auto_run, fresh, data, tmp_path, method):
+    """Fitters of their own (Ray data-parallel's) are asked for ``"both"`` and ``"auto"`` as the
+    recipe says, with the validation recordings the methods are compared on; the run ends with
+    the bundle of a local run (``"both"``: ``auto_run``; ``"auto"``: EM's, with the record)."""
+    asked: list[tuple[str, int]] = []
 
     def fitter(*args: Any, **kwargs: Any) -> Any:
-        asked.append(kwargs["method"])
+        asked.append((kwargs["method"], len(kwargs["validation"])))
         return torchfilt.fit_measurement_only(*args, **kwargs)
 
     fitters = StageFitters(measurement_only=fitter, name="ray")
-    recipe = _auto(tmp_path / "r.toml", data, "auto")
+    recipe = _auto(tmp_path / "r.toml", data, method)
     b = load_bundle(train_recipe(recipe, tmp_path / "run", progress=False, fitters=fitters))
-    assert asked == ["em"]
+    n_val = len(torchfilt.load_dataset(data, require_finite=("input",), optional=("state",)).split("validation"))  # fmt: skip
+    assert asked == [(method, n_val)] and n_val > 0
     log = (tmp_path / "run" / "train.log").read_text()
-    assert 'transition: method "auto" with the ray fitters: EM alone' in log
-    assert "learning from measurements alone (em," in log
-    em = load_bundle(fresh)["transition"]
-    assert b["transition"]["fit"]["log_likelihood"] == em["fit"]["log_likelihood"]
-    assert "compared" not in b["transition"]["fit"]
+    assert f"learning from measurements alone ({method}," in log
+    assert "EM alone" not in log
+    want = load_bundle(auto_run if method == "both" else fresh)
+    if method == "both":
+        _assert_same_learned_model(b, want)
+        assert b["transition"]["fit"]["compared"] == want["transition"]["fit"]["compared"]
+    else:
+        assert (
+            b["transition"]["fit"]["log_likelihood"] == want["transition"]["fit"]["log_likelihood"]
+        )
+        assert [c["method"] for c in b["transition"]["fit"]["compared"]] == ["em", "likelihood"]
+
+
+def test_checkpoint_iterations_of_a_data_parallel_comparison(tmp_path):
+    """A data-parallel ``"auto"``/``"both"`` fit keeps one file per process and method in
+    ``transition.ckpt``: each method resumes from the lowest iteration its processes saved,
+    and neither is read as the other's (nor as a one-method fit's)."""
+    from torchfilt.pipeline.run_stages import _transition_iterations
+
+    folder = tmp_path / "transition.ckpt"
+    folder.mkdir()
+    for name, it in {"rank0.em": 3, "rank1.em": 2, "rank0.likelihood": 5, "rank1.likelihood": 7}.items():  # fmt: skip
+        torch.save({"iteration": it}, folder / f"{name}.ckpt")
+    assert _transition_iterations(tmp_path) == {"": 0, "em": 2, "likelihood": 5}
+    for r, it in ((0, 4), (1, 6)):  # a one-method data-parallel fit
+        torch.save({"iteration": it}, folder / f"rank{r}.ckpt")
+    assert _transition_iterations(tmp_path) == {"": 4, "em": 2, "likelihood": 5}
+    local = tmp_path / "local"
+    local.mkdir()
+    torch.save({"iteration": 9}, local / "transition.likelihood.ckpt")
+    assert _transition_iterations(local) == {"": 0, "em": 0, "likelihood": 9}
 
 
 def test_auto_keeps_an_em_that_did_not_stall(fresh, data, tmp_path):

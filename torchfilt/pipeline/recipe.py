@@ -252,11 +252,11 @@ RECIPE_SCHEMA: dict[str, tuple[Key, ...]] = {
             "method",
             '`"auto"`',
             '`"auto"`: EM, and the likelihood method too where EM stops with "no improvement", '
-            "the better log-likelihood on the validation recordings kept (with `--ray "
-            '--data-parallel`: EM alone); `"em"` (expectation-maximisation with the cubature RTS '
-            'smoother); `"likelihood"` (the filter\'s innovation likelihood maximised directly); '
-            '`"both"`: both from the same start, the better kept (the two fits\' time; one '
-            "process only, not `--ray --data-parallel`); see `torchfilt.fit_measurement_only`",
+            'the better log-likelihood on the validation recordings kept; `"em"` '
+            '(expectation-maximisation with the cubature RTS smoother); `"likelihood"` (the '
+            'filter\'s innovation likelihood maximised directly); `"both"`: both from the same '
+            "start, the better kept (the two fits' time); with `--ray --data-parallel` each "
+            "method runs on the actors; see `torchfilt.fit_measurement_only`",
             kind="choice",
             choices=("em", "likelihood", "auto", "both"),
         ),

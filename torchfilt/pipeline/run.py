@@ -88,6 +88,7 @@ from torchfilt.pipeline.run_stages import (
     _fit_measurement_only_stage,
     _fit_stage,
     _transition_checkpoints,
+    _transition_iterations,
 )
 from torchfilt.training.calibrate import consistency
 from torchfilt.training.validation import one_step_metrics
@@ -182,13 +183,6 @@ def train_recipe(
         ds = load_dataset(r.dataset)
     prior = _check_against_dataset(r, ds)
     n_train = len(ds.split("train"))
-    if fitters.measurement_only is not None and r.states == "none":
-        if r.measurement_only["method"] == "both":  # "auto" runs EM alone with these fitters
-            raise InputError(
-                f'{fitters.name}: [measurement_only] method = "both" runs both methods in one '
-                'process; with these fitters choose method = "em", "likelihood" or "auto" (EM '
-                "alone)"
-            )
     if fitters.shards > n_train:
         raise InputError(
             f"{fitters.name}: the fits deal the training recordings to {fitters.shards} "
@@ -597,10 +591,7 @@ def _trim_metrics(path: Path, ckpt: dict[str, Any] | None, fresh: bool) -> None:
     # a states = "none" transition fit keeps its own checkpoint (fit_measurement_only's; one
     # per method under method = "auto" or "both", whose metrics lines name their method)
     mo_open = not (path.parent / "transition.pt").is_file()
-    mo_its = {
-        m: _checkpoint_iteration(ck) if ck.exists() else 0
-        for m, ck in _transition_checkpoints(path.parent).items()
-    }
+    mo_its = _transition_iterations(path.parent)
     lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
     for i, line in enumerate(lines):
         try:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import io
+import re
 import shutil
 from pathlib import Path
 from typing import Any, TextIO
@@ -156,13 +157,15 @@ def _ended(stopped: str, iterations: int, section: str) -> str:
     return f"{stopped} after {its}"
 
 
-def _checkpoint_iteration(path: Path) -> int:
+def _checkpoint_iteration(path: Path, method: str = "") -> int:
     """The iteration a stage checkpoint resumes from: that of its file, or the lowest of the files
     in its folder (a data-parallel fit's processes agree on the latest iteration all of them
-    saved); 0 where unreadable."""
+    saved: ``rank{r}.ckpt``, or ``rank{r}.{method}.ckpt`` for one method of ``method = "auto"``
+    or ``"both"``); 0 where unreadable."""
     if path.is_dir():
-        its = [_checkpoint_iteration(p) for p in sorted(path.glob("*.ckpt"))]
-        return min(its, default=0)
+        name = re.compile(rf"rank\d+{re.escape('.' + method) if method else ''}\.ckpt")
+        files = [p for p in sorted(path.glob("*.ckpt")) if name.fullmatch(p.name)]
+        return min((_checkpoint_iteration(p) for p in files), default=0)
     try:
         ck = torch.load(path, map_location="cpu", weights_only=True)
         return int(ck["iteration"])

@@ -419,6 +419,20 @@ def _linear_source(record: dict[str, Any]) -> str:
     return f"{record['from']} ({rows}; after the EM from {tried})"
 
 
+def _transition_iterations(out: Path) -> dict[str, int]:
+    """The iterations the ``states = "none"`` transition fit's checkpoints in run directory
+    ``out`` resume from, by method as :func:`_transition_checkpoints` names them (0: none); a
+    data-parallel fit's are in the folder ``transition.ckpt``, one file per process (and per
+    method: ``rank{r}.{method}.ckpt``)."""
+    folder = out / MEASUREMENT_ONLY_CHECKPOINT
+    return {
+        m: _checkpoint_iteration(folder, m)
+        if folder.is_dir()
+        else (_checkpoint_iteration(ck) if ck.exists() else 0)
+        for m, ck in _transition_checkpoints(out).items()
+    }
+
+
 def _transition_checkpoints(out: Path) -> dict[str, Path]:
     """The ``states = "none"`` transition fit's checkpoints in run directory ``out``, by the
     method the metrics lines name (``""``: one method; ``"em"``, ``"likelihood"``: those of
@@ -510,18 +524,12 @@ def _fit_measurement_only_stage(
         options["accelerate"] = True
     ckpt = out / MEASUREMENT_ONLY_CHECKPOINT
     method = o["method"]
-    if method == "auto" and fitters.measurement_only is not None:
-        method = "em"  # the comparison needs one process: "both" is refused before the run
-        log(
-            f'transition: method "auto" with the {fitters.name} fitters: EM alone (the '
-            "likelihood method after a stalled EM runs in one process only)"
-        )
     auto = method in ("auto", "both")
-    files = _transition_checkpoints(out)
+    done = _transition_iterations(out)
     for m in ("em", "likelihood") if auto else ("",):
-        if resume and files[m].exists():
+        if resume and done[m]:
             label = f" ({m})" if m else ""
-            log(f"transition{label}: resuming from iteration {_checkpoint_iteration(files[m])}")
+            log(f"transition{label}: resuming from iteration {done[m]}")
     log(
         f"transition: learning from measurements alone ({method}, {model.transition.base.num_inducing} "  # type: ignore[union-attr]
         f"inducing points, known channels {[ds.manifest.names('measurement')[i] for i in known]}"

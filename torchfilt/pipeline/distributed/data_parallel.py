@@ -31,7 +31,8 @@ def _measurement_only_stage_ray(
     x0: torch.Tensor,
     P0: torch.Tensor,
     known_channels: Sequence[int] | None,
-    method: Literal["em", "likelihood"] = "em",
+    method: Literal["auto", "both", "em", "likelihood"] = "em",
+    validation: Any = None,
     iterations: int | None = None,
     optimizer: OptimizerOptions | Literal["adam", "lbfgs"] | None = None,
     windows: WindowOptions | None = None,
@@ -48,7 +49,8 @@ def _measurement_only_stage_ray(
     """:func:`fit_measurement_only_ray` called as :func:`~torchfilt.training.fit_measurement_only`
     (``y`` and ``u`` lists of ``(T_i, m)`` / ``(T_i, nu)``), the callback on the driver:
     the ``measurement_only`` fitter of :func:`train_recipe_data_parallel`. ``progress`` is
-    ignored (the stage draws its own from the callback)."""
+    ignored (the stage draws its own from the callback). ``validation`` (``method = "auto"``
+    or ``"both"``: the recordings the methods are compared on) goes whole to every actor."""
     from torchfilt.training.data import as_sequences
 
     return fit_measurement_only_ray(
@@ -58,6 +60,7 @@ def _measurement_only_stage_ray(
         P0=P0,
         known_channels=known_channels,
         method=method,
+        validation=validation,
         workers=workers,
         iterations=iterations,
         optimizer=optimizer,

@@ -206,14 +206,12 @@ def fit_measurement_only_ray(
 
     Raises:
         MissingDependencyError: Ray is not installed.
-        InputError: ``method`` not ``"em"`` or ``"likelihood"``, or as in :func:`calibrate_ray`.
+        InputError: ``method`` not ``"auto"``, ``"both"``, ``"em"`` or ``"likelihood"``, or as
+            in :func:`calibrate_ray`.
         WorkerError: an actor was lost.
     """
-    if method not in ("em", "likelihood"):
-        raise InputError(
-            f"method must be 'em' or 'likelihood', got {method!r} ('auto', which runs both, "
-            "is fit_measurement_only's, in one process)"
-        )
+    if method not in ("auto", "both", "em", "likelihood"):
+        raise InputError(f"method must be 'auto', 'both', 'em' or 'likelihood', got {method!r}")
     ckpt = _checkpoint("measurement_only", checkpoint)
     options: dict[str, Any] = {
         "x0": x0,
