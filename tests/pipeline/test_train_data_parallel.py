@@ -259,29 +259,82 @@ def test_data_parallel_measurement_only_stage_gives_the_local_bundle(measonly_ru
     assert "learned from: measurements alone (method em" in capsys.readouterr().out
 
 
-def test_data_parallel_compares_both_methods_like_a_local_run(ray_local, tmp_path):
+@pytest.fixture(scope="module")
+def both_runs(ray_local, tmp_path_factory):
+    """The ``states = "none"`` recipe with ``method = "both"`` trained locally and with
+    ``workers=2``."""
+    root = tmp_path_factory.mktemp("dp_both")
+    simulate_dataset("reaction", root / "data", recordings=4, steps=60, seed=0)
+    text = MEASONLY.format(data=(root / "data").as_posix()).replace(
+        'method = "em"', 'method = "both"\nlr = 0.5'
+    )
+    recipe = root / "r.toml"
+    recipe.write_text(text)
+    local = train_recipe(recipe, root / "local", progress=False)
+    dp = train_recipe_data_parallel(recipe, root / "dp", workers=2, progress=False)
+    return recipe, local, dp
+
+
+def _method_iterations(run: Path, method: str) -> list[int]:
+    lines = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    return [r["iteration"] for r in lines if r.get("method") == method]
+
+
+def test_data_parallel_compares_both_methods_like_a_local_run(both_runs):
     """``method = "both"`` on two actors: EM and the likelihood method each data-parallel, the
     two compared on the validation recordings (whole on every actor), the same one kept as in a
     local run, with the same record, metrics and learned transition (summation order apart)."""
-    simulate_dataset("reaction", tmp_path / "data", recordings=4, steps=60, seed=0)
-    text = MEASONLY.format(data=(tmp_path / "data").as_posix()).replace(
-        'method = "em"', 'method = "both"\nlr = 0.5'
-    )
-    recipe = tmp_path / "r.toml"
-    recipe.write_text(text)
-    a = load_bundle(train_recipe(recipe, tmp_path / "local", progress=False))
-    b = load_bundle(train_recipe_data_parallel(recipe, tmp_path / "dp", workers=2, progress=False))
+    _, local, dp = both_runs
+    a, b = load_bundle(local), load_bundle(dp)
     # the likelihood method's L-BFGS line searches carry the order of the sums further (to
     # about 4e-9 relative here) than EM's closed steps
     _close(a["transition"], b["transition"], "transition", rtol=LBFGS_ORDER_RTOL)
     compared = b["transition"]["fit"]["compared"]
     assert [c["method"] for c in compared] == ["em", "likelihood"]
     assert all(c["basis"] == "validation" and c["score"] is not None for c in compared)
-    lines = [json.loads(x) for x in (tmp_path / "dp" / "metrics.jsonl").read_text().splitlines()]
     for c in compared:
-        its = [r["iteration"] for r in lines if r.get("method") == c["method"]]
-        assert its == list(range(1, c["iterations"] + 1)), c["method"]
-    assert not (tmp_path / "dp" / "transition.ckpt").exists()
+        assert _method_iterations(dp.parent, c["method"]) == list(range(1, c["iterations"] + 1))
+    assert not (dp.parent / "transition.ckpt").exists()
+
+
+@pytest.mark.slow
+def test_interrupted_comparison_resumes_to_the_same_bundle(both_runs, monkeypatch):
+    """A data-parallel ``method = "both"`` run killed in its second method (the likelihood
+    method's iteration 3, after its checkpoint at 2; EM done) resumes each method from its own
+    files to the bundle and metrics of the uninterrupted run."""
+    from torchfilt.training import LikelihoodState
+
+    recipe, _, dp = both_runs
+    real = dp_mod.fit_measurement_only_ray
+
+    def killed(*args, **kwargs):
+        inner = kwargs["callback"]
+
+        def cb(state):
+            inner(state)
+            if isinstance(state, LikelihoodState) and state.iteration == 3:
+                raise KeyboardInterrupt
+
+        return real(*args, **{**kwargs, "callback": cb})
+
+    run = recipe.parent / "killed"
+    monkeypatch.setattr(dp_mod, "fit_measurement_only_ray", killed)
+    with pytest.raises(KeyboardInterrupt):
+        train_recipe_data_parallel(recipe, run, workers=2, progress=False)
+    monkeypatch.setattr(dp_mod, "fit_measurement_only_ray", real)
+    ck = run / "transition.ckpt"
+    saved = {
+        m: [torch.load(ck / f"rank{r}.{m}.ckpt")["iteration"] for r in (0, 1)]
+        for m in ("em", "likelihood")
+    }
+    assert saved == {"em": [4, 4], "likelihood": [2, 2]}
+    train_recipe_data_parallel(recipe, run, workers=2, resume=True, progress=False)
+    a, b = load_bundle(run / "model.pt"), load_bundle(dp)
+    _close(a["transition"], b["transition"], "transition")
+    for m in ("em", "likelihood"):
+        assert _method_iterations(run, m) == [1, 2, 3, 4], m
+    assert "transition (likelihood): resuming from iteration 2" in (run / "train.log").read_text()
+    assert not ck.exists()
 
 
 @pytest.mark.slow
