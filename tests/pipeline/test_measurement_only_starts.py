@@ -6,6 +6,8 @@ subspace_start, fit_em, CKF on the validation recordings)."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import math
 from types import SimpleNamespace
 
@@ -13,6 +15,7 @@ import pytest
 import torch
 
 import torchfilt
+from torchfilt.cli import main as cli_main
 from torchfilt.filters import kalman_filter, kalman_smoother
 from torchfilt.io.synth import simulate_dataset
 from torchfilt.models import (
@@ -128,6 +131,20 @@ def test_pilot_starts_are_scored_on_held_out_data_and_the_best_kept(tmp_path) ->
     assert log.count("transition: candidate start") == len(PILOT_NOISE_SCALES)
     assert log.count("transition: linear-EM candidate") == 1
     assert f"transition: starting from candidate {best + 1}" in log
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert cli_main(["info", str(tmp_path / "run" / "model.pt")]) == 0
+    kept = cands[best]
+    words = (
+        f"pilot (process noise {kept['process_noise_scale']} x the default)"
+        if kept["start"] == "pilot"
+        else f"linear EM from N4SID ({kept['block_rows']} block rows"
+        + (", stabilised)" if kept["stabilised"] else ")")
+    )
+    assert (
+        f"  start:        candidate {best + 1} of {len(cands)}, {words}, held-out "
+        f"log-likelihood {ref[best]:.6g}" in out.getvalue()
+    )
     # the fit used its whole budget (RECIPE: 1 iteration): the log says so, and how to fit longer
     assert (
         "transition: stopped at its budget of 1 iteration, not converged (a new run with a "

@@ -217,6 +217,13 @@ def _info(args: argparse.Namespace) -> int:
             f"{float(mo.get('initial_log_likelihood', float('nan'))):.6g} -> "
             f"{float(mo.get('log_likelihood', float('nan'))):.6g})"
         )
+        chosen = [c for c in mo.get("candidates") or [] if c.get("chosen")]
+        if chosen:  # the start the fit kept, of the candidates scored
+            c = chosen[0]
+            print(
+                f"  start:        candidate {c.get('candidate')} of {len(mo['candidates'])}, "
+                f"{_start_words(c)}, {c.get('on')} log-likelihood {float(c['score']):.6g}"
+            )
         for c in mo.get("compared") or []:  # method = "auto" or "both": both methods' scores
             score = c.get("score")
             what = (
@@ -232,6 +239,20 @@ def _info(args: argparse.Namespace) -> int:
     if spec.info:
         print(json.dumps(spec.info, indent=2, default=str))
     return 0
+
+
+def _start_words(c: dict[str, Any]) -> str:
+    """A ``states = "none"`` candidate start for a reader: ``pilot (process noise 10 x the
+    default)`` or ``linear EM from N4SID (10 block rows, stabilised)``."""
+    if c.get("start") == "pilot":
+        return f"pilot (process noise {c.get('process_noise_scale')} x the default)"
+    rows = c.get("block_rows")
+    how = (
+        ""
+        if rows is None
+        else f" ({rows} block rows" + (", stabilised)" if c.get("stabilised") else ")")
+    )
+    return f"{c.get('start')} from {c.get('from')}{how}"
 
 
 def _stop_words(stopped: Any) -> str:

@@ -275,7 +275,7 @@ def linear_em_start(
         "from": best.source,
         "em_iterations": best.iterations,
         "linear_log_likelihood": best.log_likelihood,
-        **best.note,
+        **{k: v for k, v in best.note.items() if k != "log_likelihood"},
     }
     if best.rows is not None:
         record |= {"block_rows": best.rows, "block_rows_tried": tried}
