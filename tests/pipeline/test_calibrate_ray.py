@@ -275,3 +275,24 @@ def test_both_methods_on_two_actors_equal_one_process(ray_local, method):
     assert res.method == local.method
     for a, b in zip(res.model.parameters(), local.model.parameters(), strict=True):
         torch.testing.assert_close(a, b, rtol=1e-7, atol=0)
+
+
+def test_accelerated_em_on_two_actors_equals_one_process(ray_local):
+    """``accelerate=True`` (SQUAREM cycles over EM's gradient M-steps) reaches the actors: two
+    take the steps of one process on all recordings (the cycles' extrapolation and its
+    safeguard use the summed likelihood)."""
+    y = _scalar_recordings(3, 40)
+    model = _scalar_model
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    kw = dict(
+        x0=torch.zeros(1, dtype=DT), P0=torch.eye(1, dtype=DT), known_channels=[0], iterations=2,
+        method="em", accelerate=True, m_step_iterations=3, noise_scale="none",
+    )  # fmt: skip
+    local = torchfilt.fit_measurement_only(model(), y, **kw)
+    res = fit_measurement_only_ray(model(), Sequences(y), workers=2, **kw)
+    e_steps = [h["e_steps"] for h in local.history]
+    assert e_steps[-1] > local.iterations  # the cycles ran (more E-steps than iterations)
+    assert [h["e_steps"] for h in res.history] == e_steps
+    assert res.log_likelihood == pytest.approx(local.log_likelihood, rel=1e-9)
+    for a, b in zip(res.model.parameters(), local.model.parameters(), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-7, atol=0)

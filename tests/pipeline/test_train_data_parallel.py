@@ -297,6 +297,19 @@ def test_data_parallel_compares_both_methods_like_a_local_run(both_runs):
     assert not (dp.parent / "transition.ckpt").exists()
 
 
+def test_data_parallel_takes_accelerate_like_a_local_run(ray_local, tmp_path):
+    """``[measurement_only] accelerate = true`` reaches the actors' EM (the stage's fitter took
+    no such keyword before: a TypeError inside the stage): the bundle equals a local run's."""
+    simulate_dataset("reaction", tmp_path / "data", recordings=4, steps=60, seed=0)
+    text = MEASONLY.format(data=(tmp_path / "data").as_posix())
+    recipe = tmp_path / "r.toml"
+    recipe.write_text(text.replace("\niterations = 4", "\niterations = 2\naccelerate = true", 1))
+    a = load_bundle(train_recipe(recipe, tmp_path / "local", progress=False))
+    b = load_bundle(train_recipe_data_parallel(recipe, tmp_path / "dp", workers=2, progress=False))
+    _close(a["transition"], b["transition"], "transition", rtol=LBFGS_ORDER_RTOL)
+    assert b["transition"]["fit"]["options"]["accelerate"] is True
+
+
 @pytest.mark.slow
 def test_interrupted_comparison_resumes_to_the_same_bundle(both_runs, monkeypatch):
     """A data-parallel ``method = "both"`` run killed in its second method (the likelihood

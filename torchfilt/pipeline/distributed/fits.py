@@ -152,6 +152,7 @@ def fit_measurement_only_ray(
     method: str = "likelihood",
     learn_measurement_noise: bool = True,
     m_step_iterations: int = 20,
+    accelerate: bool | None = None,
     compile: bool | Literal["step", "loop"] = False,
     noise_scale: Literal["auto", "none", "held-out"] = "auto",
     holdout: float = 0.2,
@@ -189,6 +190,8 @@ def fit_measurement_only_ray(
         method: as in :func:`~torchfilt.training.fit_measurement_only`.
         learn_measurement_noise: as in :func:`~torchfilt.training.fit_measurement_only`.
         m_step_iterations: as in :func:`~torchfilt.training.fit_measurement_only`.
+        accelerate: as in :func:`~torchfilt.training.fit_measurement_only` (SQUAREM cycles;
+            every actor takes the same steps: they use the summed likelihood).
         compile: as in :func:`~torchfilt.training.fit_measurement_only` (each actor compiles
             its own filter).
         noise_scale: as in :func:`~torchfilt.training.fit_measurement_only` (default
@@ -225,6 +228,7 @@ def fit_measurement_only_ray(
         "validation": validation,
         "learn_measurement_noise": learn_measurement_noise,
         "m_step_iterations": m_step_iterations,
+        "accelerate": accelerate,
         "compile": compile,
         "noise_scale": noise_scale,
         "holdout": holdout,
