@@ -166,7 +166,8 @@ def _fit_start(
 ) -> _Fitted | None:
     """The linear EM from ``start`` (``H`` and ``R`` held); ``None`` where it fails. With
     ``stable`` and an EM that ends with an eigenvalue of ``A`` on or outside the unit circle,
-    the (stable) start itself instead."""
+    the (stable) start itself instead; a start that is not stable itself (the random walk, on
+    the circle) keeps its EM's result."""
     try:
         fit = fit_em(
             start, ys, us, x0=m0, P0=P0, known_channels=known, fixed=("H", "R"),
