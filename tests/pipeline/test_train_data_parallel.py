@@ -437,3 +437,46 @@ def test_actors_import_the_drivers_modules_or_say_which_is_missing(tmp_path, mon
         group_mod._unpacked(([], packed[1]))
     job = group_mod._unpacked(packed)  # the driver's folder exists here: found
     assert job["model"](3) == 3 and str(folder) in sys.path
+
+
+def test_the_ray_fitters_take_every_keyword_the_stages_pass(tmp_path):
+    """A local run through spy fitters records what the calibration and ``states = "none"``
+    stages pass with every optional key set (``method = "auto"``, ``accelerate``, a learned
+    sensor noise, calibration on); the Ray stage fitters' signatures take all of it (a missing
+    keyword was a raw ``TypeError`` inside the stage: ``accelerate``). No Ray needed."""
+    import inspect
+
+    from torchfilt.pipeline.run_stages import StageFitters
+    from torchfilt.training import calibrate, fit_measurement_only
+
+    seen: dict[str, tuple[int, dict]] = {}
+
+    def spy(name, real):
+        def fit(*args, **kwargs):
+            seen[name] = (len(args), kwargs)
+            return real(*args, **kwargs)
+
+        return fit
+
+    simulate_dataset("reaction", tmp_path / "data", recordings=4, steps=40, seed=0)
+    text = MEASONLY.format(data=(tmp_path / "data").as_posix())
+    text = text.replace('model = "system:reaction"\n[filter]', 'model = "run_support:total_pressure"\nR = [0.1]\n[filter]')  # fmt: skip
+    text = text.replace('method = "em"', 'method = "auto"').replace(
+        "\niterations = 4", "\niterations = 2\naccelerate = true\nlearn_measurement_noise = true", 1
+    )
+    text = text.replace("[calibrate]\nenabled = false", "[calibrate]\niterations = 2")
+    recipe = tmp_path / "r.toml"
+    recipe.write_text(text)
+    local = StageFitters(
+        calibrate=spy("calibrate", calibrate),
+        measurement_only=spy("measurement_only", fit_measurement_only),
+        name="spy",
+    )
+    train_recipe(recipe, tmp_path / "run", progress=False, fitters=local)
+    assert set(seen) == {"calibrate", "measurement_only"}
+    assert {"accelerate", "validation", "learn_measurement_noise"} <= set(
+        seen["measurement_only"][1]
+    )
+    ray_fitters = dp_mod.data_parallel_fitters(2)
+    for name, (n_args, kwargs) in seen.items():
+        inspect.signature(getattr(ray_fitters, name)).bind(*([None] * n_args), **kwargs)
