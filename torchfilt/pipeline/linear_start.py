@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 
 from torchfilt.exceptions import TorchfiltError
-from torchfilt.filters import kalman_filter, kalman_smoother
+from torchfilt.filters import kalman_smoother
 from torchfilt.io.recording import Recording
 from torchfilt.models import (
     CholeskyCovariance,
@@ -93,6 +93,17 @@ def _linearised(h: Any, m0: Tensor, n: int) -> tuple[Tensor, Tensor, Tensor] | N
     return J.detach(), c, R.detach().reshape(J.shape[0], J.shape[0])
 
 
+class _Start(NamedTuple):
+    """A start of the linear EM: the model, where it came from (``"N4SID"`` or ``"random
+    walk"``), the N4SID block rows (``None``: the random walk) and whether N4SID's estimate was
+    stabilised."""
+
+    model: LinearGaussianModel
+    source: str
+    rows: int | None
+    stabilised: bool
+
+
 def _starts(
     walk: LinearGaussianModel,
     J: Tensor,
@@ -103,16 +114,15 @@ def _starts(
     n: int,
     dtype: torch.dtype,
     stable: bool,
-) -> list[tuple[LinearGaussianModel, str, int | None, bool]]:
+) -> list[_Start]:
     """The starts of the linear EM (measurement matrix ``J``, noise ``R``): N4SID with each of
     :data:`BLOCK_ROWS_FACTORS` times the default block rows that the data allow (complete data
     only), as estimated and, where its ``A`` has an eigenvalue on or outside the unit circle,
     stabilised (:func:`~torchfilt.models.subspace_start`'s ``stable``; with ``stable``: that
-    one alone); else the random walk ``walk``. Each as ``(model, source, block rows,
-    stabilised)``."""
-    out: list[tuple[LinearGaussianModel, str, int | None, bool]] = []
+    one alone); else the random walk ``walk``."""
+    out: list[_Start] = []
     if not all(bool(torch.isfinite(y).all()) for y in ys):
-        return [(walk, "random walk", None, False)]
+        return [_Start(walk, "random walk", None, False)]
     base = default_block_rows(n, J.shape[-2])
     for rows in (f * base for f in BLOCK_ROWS_FACTORS):
         for stabilised in (False, True):
@@ -127,25 +137,30 @@ def _starts(
                 None if sub.B is None else sub.B.to(dtype),
             )  # fmt: skip
             if not stabilised and spectral_radius(model.A) < 1.0:
-                out.append((model, "N4SID", rows, False))
+                out.append(_Start(model, "N4SID", rows, False))
                 break  # stable as estimated: nothing to stabilise
             if stabilised or not stable:
-                out.append((model, "N4SID", rows, stabilised))
-    return out or [(walk, "random walk", None, False)]
+                out.append(_Start(model, "N4SID", rows, stabilised))
+    return out or [_Start(walk, "random walk", None, False)]
 
 
 class _Fitted(NamedTuple):
-    """One start after the linear EM: the model, its training log-likelihood, the EM
-    iterations kept (0: the start itself), where it came from, the N4SID block rows (``None``:
-    a random walk) and what the record adds (``log_likelihood``; ``unstable_after_em``: the
-    spectral radius of the EM's ``A`` that made the start itself the candidate)."""
+    """A start after the linear EM: the model kept, its training log-likelihood, the EM
+    iterations kept (0: the start itself) and, where ``stable`` kept the start because the EM
+    left the unit circle, the EM's spectral radius."""
 
+    start: _Start
     model: LinearGaussianModel
     log_likelihood: float
     iterations: int
-    source: str
-    rows: int | None
-    note: dict[str, Any]
+    unstable_after_em: float | None
+
+    def marks(self) -> dict[str, Any]:
+        """What the record says of the start besides its likelihood."""
+        out: dict[str, Any] = {"stabilised": self.start.stabilised}
+        if self.unstable_after_em is not None:
+            out["unstable_after_em"] = self.unstable_after_em
+        return out
 
 
 def spectral_radius(A: Tensor) -> float:
@@ -154,8 +169,7 @@ def spectral_radius(A: Tensor) -> float:
 
 
 def _fit_start(
-    start: LinearGaussianModel,
-    source: str,
+    start: _Start,
     ys: list[Tensor],
     us: list[Tensor] | None,
     m0: Tensor,
@@ -166,11 +180,11 @@ def _fit_start(
 ) -> _Fitted | None:
     """The linear EM from ``start`` (``H`` and ``R`` held); ``None`` where it fails. With
     ``stable`` and an EM that ends with an eigenvalue of ``A`` on or outside the unit circle,
-    the (stable) start itself instead; a start that is not stable itself (the random walk, on
-    the circle) keeps its EM's result."""
+    the (stable) start itself instead, at the likelihood the EM found there; a start that is not
+    stable itself (the random walk, on the circle) keeps its EM's result."""
     try:
         fit = fit_em(
-            start, ys, us, x0=m0, P0=P0, known_channels=known, fixed=("H", "R"),
+            start.model, ys, us, x0=m0, P0=P0, known_channels=known, fixed=("H", "R"),
             iterations=LINEAR_EM_ITERATIONS, dtype=dtype,
         )  # fmt: skip
     except TorchfiltError:
@@ -178,18 +192,10 @@ def _fit_start(
     if not isinstance(fit.model, LinearGaussianModel) or not math.isfinite(fit.log_likelihood):
         return None
     rho = spectral_radius(fit.model.A)
-    if not stable or rho < 1.0 or spectral_radius(start.A) >= 1.0:
-        note = {"log_likelihood": fit.log_likelihood}
-        return _Fitted(fit.model, fit.log_likelihood, fit.iterations, source, None, note)
-    with torch.no_grad():
-        ll = sum(
-            float(kalman_filter(start, y, u, x0=m0, P0=P0).log_likelihood.sum())
-            for y, u in zip(ys, us if us is not None else [None] * len(ys), strict=True)
-        )
-    if not math.isfinite(ll):
-        return None
-    note = {"log_likelihood": ll, "unstable_after_em": rho}
-    return _Fitted(start, ll, 0, source, None, note)
+    if stable and rho >= 1.0 and spectral_radius(start.model.A) < 1.0:
+        ll = fit.initial_log_likelihood
+        return _Fitted(start, start.model, ll, 0, rho) if math.isfinite(ll) else None
+    return _Fitted(start, fit.model, fit.log_likelihood, fit.iterations, None)
 
 
 def linear_em_start(
@@ -240,15 +246,16 @@ def linear_em_start(
     walk = LinearGaussianModel(torch.eye(n, dtype=dtype), J, torch.diag(q0.to(dtype)), R, B0)
     tried: list[dict[str, Any]] = []
     best: _Fitted | None = None
-    for start, source, rows, stabilised in _starts(walk, J, R, ys, us, known, n, dtype, stable):
-        fitted = _fit_start(start, source, ys, us, m0, P0, known, dtype, stable)
+    for start in _starts(walk, J, R, ys, us, known, n, dtype, stable):
+        fitted = _fit_start(start, ys, us, m0, P0, known, dtype, stable)
         if fitted is None:
             continue
-        fitted.note["stabilised"] = stabilised
-        if rows is not None:
-            tried.append({"block_rows": rows, **fitted.note})
+        if start.rows is not None:
+            tried.append(
+                {"block_rows": start.rows, "log_likelihood": fitted.log_likelihood} | fitted.marks()
+            )
         if best is None or fitted.log_likelihood > best.log_likelihood:
-            best = fitted._replace(rows=rows)
+            best = fitted
     if best is None:
         return None
     model = best.model
@@ -273,11 +280,11 @@ def linear_em_start(
     assert Q is not None
     record = {
         "start": "linear EM",
-        "from": best.source,
+        "from": best.start.source,
         "em_iterations": best.iterations,
         "linear_log_likelihood": best.log_likelihood,
-        **{k: v for k, v in best.note.items() if k != "log_likelihood"},
+        **best.marks(),
     }
-    if best.rows is not None:
-        record |= {"block_rows": best.rows, "block_rows_tried": tried}
+    if best.start.rows is not None:
+        record |= {"block_rows": best.start.rows, "block_rows_tried": tried}
     return LinearStart(StateSpaceModel(f, h, Q=CholeskyCovariance(Q.detach().clone())), record)
