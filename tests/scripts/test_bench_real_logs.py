@@ -4,6 +4,7 @@ baseline's free run, checked on a simulated stable system (the real logs are not
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,6 +27,18 @@ def _simulate(T: int, seed: int, noise: float) -> tuple[np.ndarray, np.ndarray]:
         y[k] = C @ x + noise * rng.standard_normal()
         x = A @ x + B * u[k]
     return u, y
+
+
+def simulated_log_args(folder: Path) -> tuple[Path, list[str]]:
+    """A simulated stable log (450 samples, noise 5% of the output) written as
+    ``folder/robot-arm.csv``, and the output folder and arguments of a bench script run on it
+    (order 2)."""
+    u, y = _simulate(450, 2, 0.05)
+    (folder / "robot-arm.csv").write_text(
+        "u,y\n" + "".join(f"{a},{b}\n" for a, b in zip(u, y, strict=True))
+    )
+    out = folder / "out"
+    return out, ["--data", str(folder), "--out", str(out), "--logs", "robot-arm", "--order", "2"]
 
 
 def test_both_layouts_and_the_training_standardisation(brl, tmp_path):
@@ -67,12 +80,7 @@ def test_n4sid_baseline_free_runs_a_stable_system(brl):
 def test_main_on_a_simulated_log(brl, tmp_path):
     import json
 
-    u, y = _simulate(450, 2, 0.05)
-    (tmp_path / "robot-arm.csv").write_text(
-        "u,y\n" + "".join(f"{a},{b}\n" for a, b in zip(u, y, strict=True))
-    )
-    out = tmp_path / "out"
-    args = ["--data", str(tmp_path), "--out", str(out), "--logs", "robot-arm", "--order", "2"]
+    out, args = simulated_log_args(tmp_path)
     assert brl.main([*args, "--inducing", "4", "--block-rows", "10"]) == 0
     res = json.loads((out / "bench_real_logs.json").read_text())["logs"]["robot-arm"]["rows"]
     assert set(res) == {

@@ -10,7 +10,7 @@ import math
 import pytest
 import torch
 from script_support import load_script
-from test_bench_real_logs import _simulate  # the simulated stable log of its sibling
+from test_bench_real_logs import simulated_log_args  # the simulated log of its sibling
 
 from torchfilt.io import load_dataset
 
@@ -37,12 +37,7 @@ def test_the_dataset_reads_back_as_the_stage_fits_it(brt, tmp_path):
 
 @pytest.mark.slow
 def test_main_on_a_simulated_log(brt, tmp_path):
-    u, y = _simulate(450, 2, 0.05)
-    (tmp_path / "robot-arm.csv").write_text(
-        "u,y\n" + "".join(f"{a},{b}\n" for a, b in zip(u, y, strict=True))
-    )
-    out = tmp_path / "out"
-    args = ["--data", str(tmp_path), "--out", str(out), "--logs", "robot-arm", "--order", "2"]
+    out, args = simulated_log_args(tmp_path)
     assert brt.main([*args, "--noise", "1e-2"]) == 0
     rows = json.loads((out / "bench_real_logs_train.json").read_text())["logs"]["robot-arm"]
     assert set(rows) == {"N4SID (nfoursid)", "train, R = 0.01"}
