@@ -47,9 +47,15 @@ def _close(a: object, b: object, where: str = "", rtol: float = ORDER_RTOL) -> N
         assert a == b, where
 
 
-def _metrics(run: Path, stage: str) -> list[int]:
+def _metrics(run: Path, stage: str, method: str | None = None) -> list[int]:
+    """The iterations ``metrics.jsonl`` records for ``stage`` (and, under ``method = "auto"``
+    or ``"both"``, for one ``method``)."""
     lines = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
-    return [r["iteration"] for r in lines if r["stage"] == stage]
+    return [
+        r["iteration"]
+        for r in lines
+        if r["stage"] == stage and (method is None or r.get("method") == method)
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -275,11 +281,6 @@ def both_runs(ray_local, tmp_path_factory):
     return recipe, local, dp
 
 
-def _method_iterations(run: Path, method: str) -> list[int]:
-    lines = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
-    return [r["iteration"] for r in lines if r.get("method") == method]
-
-
 def test_data_parallel_compares_both_methods_like_a_local_run(both_runs):
     """``method = "both"`` on two actors: EM and the likelihood method each data-parallel, the
     two compared on the validation recordings (whole on every actor), the same one kept as in a
@@ -293,7 +294,7 @@ def test_data_parallel_compares_both_methods_like_a_local_run(both_runs):
     assert [c["method"] for c in compared] == ["em", "likelihood"]
     assert all(c["basis"] == "validation" and c["score"] is not None for c in compared)
     for c in compared:
-        assert _method_iterations(dp.parent, c["method"]) == list(range(1, c["iterations"] + 1))
+        assert _metrics(dp.parent, "transition", c["method"]) == list(range(1, c["iterations"] + 1))
     assert not (dp.parent / "transition.ckpt").exists()
 
 
@@ -345,7 +346,7 @@ def test_interrupted_comparison_resumes_to_the_same_bundle(both_runs, monkeypatc
     a, b = load_bundle(run / "model.pt"), load_bundle(dp)
     _close(a["transition"], b["transition"], "transition")
     for m in ("em", "likelihood"):
-        assert _method_iterations(run, m) == [1, 2, 3, 4], m
+        assert _metrics(run, "transition", m) == [1, 2, 3, 4], m
     assert "transition (likelihood): resuming from iteration 2" in (run / "train.log").read_text()
     assert not ck.exists()
 
